@@ -1,0 +1,79 @@
+"""The ``tesseract4d`` console entry point.
+
+Each subcommand lives in its own module exposing ``add_arguments(parser)`` and
+``run(args) -> int``; only the chosen subcommand's module is imported, so ``--help`` is fast.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+
+# name -> (module, one-line help). The order is the data flow.
+SUBCOMMANDS: dict[str, tuple[str, str]] = {
+    "datagen": ("datagen.cli", "generate RGB-D-N episodes from ManiSkill motion planners"),
+    "dataset": ("datagen.dataset_cli", "inspect (info) or validate (check) a dataset folder"),
+    "train": ("tesseract4d.train_cli", "train the RGB-D-N video diffusion model"),
+    "predict": ("tesseract4d.predict_cli", "predict the RGB-D-N future from a first frame and an instruction"),
+    "reconstruct": ("reconstruction.cli", "fuse an RGB-D-N video into a consistent 4D point cloud"),
+    "evaluate": ("reconstruction.evaluate_cli", "metrics of a prediction/reconstruction against ground truth"),
+    "view": ("viewer.cli", "open a reconstruction, episode or prediction in the browser viewer"),
+    "demo": ("tesseract4d.demo", "one command: render a scene, predict, reconstruct, view"),
+}
+
+
+def _top_parser() -> argparse.ArgumentParser:
+    lines = "\n".join(f"  {name:<12} {help_}" for name, (_, help_) in SUBCOMMANDS.items())
+    return argparse.ArgumentParser(
+        prog="tesseract4d",
+        description="tesseract4d: a 4D embodied world model (ManiSkill data -> RGB-D-N diffusion -> 4D point clouds -> browser).",
+        epilog=f"subcommands:\n{lines}\n\nRun `tesseract4d SUBCOMMAND --help` for its options.",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    top = _top_parser()
+    top.add_argument("--version", action="store_true", help="print the version and exit")
+    if not argv or argv[0] in ("-h", "--help"):
+        top.print_help()
+        return 0
+    if argv[0] == "--version":
+        from tesseract4d import __version__
+
+        print(__version__)
+        return 0
+    name = argv[0]
+    if name not in SUBCOMMANDS:
+        top.print_usage(sys.stderr)
+        print(f"tesseract4d: unknown subcommand {name!r}; choose one of: {', '.join(SUBCOMMANDS)}", file=sys.stderr)
+        return 2
+    from tesseract4d import runtime
+
+    runtime.configure()
+    module_name, help_ = SUBCOMMANDS[name]
+    module = importlib.import_module(module_name)
+    parser = argparse.ArgumentParser(
+        prog=f"tesseract4d {name}", description=(module.__doc__ or help_).strip(),
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    module.add_arguments(parser)
+    args = parser.parse_args(argv[1:])
+    try:
+        return int(module.run(args) or 0)
+    except KeyboardInterrupt:
+        print("\ninterrupted; finished work is kept on disk", file=sys.stderr)
+        return 130
+    except Exception as e:  # user-facing errors: one clear line, no traceback
+        from tesseract4d.errors import UserError
+
+        if isinstance(e, UserError):
+            print(f"tesseract4d {name}: error: {e}", file=sys.stderr)
+            return 2
+        raise
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,422 @@
+"""The tesseract4d dataset format (version 1): one writer, one reader, documented here.
+
+Layout of a dataset folder::
+
+    DIR/
+      info.json                                   DatasetInfo (format version, conventions)
+      episodes/<env_id>/seed_<seed:06d>.h5         one HDF5 file per episode (the shard unit)
+      previews/<env_id>/seed_<seed:06d>.mp4        RGB | depth | normal side by side (browser-playable)
+
+Every episode file is a self-contained shard: parallel workers write different files, so no
+locking is needed, and a file appears under its final name only once it is complete (written
+to a temporary name in the same folder, flushed, then atomically renamed). Anything named
+``*.partial.h5`` is an interrupted write and is ignored (and removed) by writers.
+
+Inside an episode file (all arrays chunked per frame and gzip-compressed)::
+
+    attrs: format_version, episode_id, env_id, seed, instruction, success (-1 unknown / 0 / 1),
+           control_mode, env_kwargs (JSON), fps, source ("simulation" | "prediction"),
+           metadata (JSON: package versions, instruction attributes, anything extra)
+    frame_steps              (T,)          int32   simulator step index of each stored frame
+    actions                  (S, A)        float32 the action applied at every sim step (S may be 0)
+    qpos                     (T, D)        float32 robot joint positions at each frame (D may be 0)
+    object_poses/<name>      (T, 7)        float32 world pose, xyz + quaternion wxyz
+    cameras/<cam>/rgb          (T, H, W, 3)  uint8
+    cameras/<cam>/depth_m      (T, H, W)     float32 metres along the OpenCV +z axis, 0 = no hit
+    cameras/<cam>/normal_cam   (T, H, W, 3)  float16 unit normals, OpenCV camera frame, 0 = no hit
+    cameras/<cam>/segmentation (T, H, W)     int32   per-pixel id (optional), attr seg_id_to_name (JSON)
+    cameras/<cam>/K            (T, 3, 3)     float64 pixel intrinsics
+    cameras/<cam>/T_world_cam  (T, 4, 4)     float64 camera→world, OpenCV axes
+
+Re-simulation: ``gym.make(env_id, **env_kwargs, control_mode=control_mode)``, ``reset(seed=seed)``,
+then apply ``actions`` in order.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import re
+import uuid
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Iterator
+
+import numpy as np
+
+from tesseract4d.errors import UserError
+
+FORMAT_VERSION = 1
+INFO_FILE = "info.json"
+EPISODES_DIR = "episodes"
+PREVIEWS_DIR = "previews"
+EPISODE_TEMPLATE = "episodes/{env_id}/seed_{seed:06d}.h5"
+PREVIEW_TEMPLATE = "previews/{env_id}/seed_{seed:06d}.mp4"
+PARTIAL_SUFFIX = ".partial.h5"
+
+DEPTH_ENCODING = "float32 metres along the OpenCV camera +z axis; 0 = no measurement"
+NORMAL_CONVENTION = "float16 unit vectors in the OpenCV camera frame (x right, y down, z forward); 0 = no measurement"
+POSE_CONVENTION = "T_world_cam: 4x4 camera-to-world, OpenCV camera axes"
+
+
+class DatasetFormatError(UserError):
+    """A dataset folder or episode file that this version of tesseract4d cannot use."""
+
+
+@dataclass
+class DatasetInfo:
+    """Dataset-level facts, written to ``DIR/info.json``."""
+
+    format_version: int = FORMAT_VERSION
+    fps: float = 20.0
+    height: int = 128
+    width: int = 128
+    cameras: list[str] = field(default_factory=lambda: ["base_camera"])
+    depth_encoding: str = DEPTH_ENCODING
+    normal_convention: str = NORMAL_CONVENTION
+    pose_convention: str = POSE_CONVENTION
+    source: str = "simulation"
+    extra: dict = field(default_factory=dict)
+
+    def to_json(self) -> str:
+        return json.dumps(dataclasses.asdict(self), indent=2, sort_keys=True)
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "DatasetInfo":
+        known = {f.name for f in dataclasses.fields(cls)}
+        return cls(**{k: v for k, v in d.items() if k in known})
+
+
+@dataclass
+class CameraFrames:
+    """All frames of one camera. T frames of H x W pixels."""
+
+    rgb: np.ndarray  # (T, H, W, 3) uint8
+    depth_m: np.ndarray  # (T, H, W) float32, 0 = no hit
+    normal_cam: np.ndarray  # (T, H, W, 3) float32 unit, OpenCV camera frame, 0 = no hit
+    K: np.ndarray  # (T, 3, 3) float64
+    T_world_cam: np.ndarray  # (T, 4, 4) float64
+    segmentation: np.ndarray | None = None  # (T, H, W) int32
+    seg_id_to_name: dict[int, str] = field(default_factory=dict)
+
+    @property
+    def num_frames(self) -> int:
+        return int(self.rgb.shape[0])
+
+    def validate(self, name: str = "camera") -> None:
+        """Raise DatasetFormatError if shapes/dtypes break the contract."""
+        if self.rgb.ndim != 4 or self.rgb.shape[-1] != 3 or self.rgb.dtype != np.uint8:
+            raise DatasetFormatError(f"{name}: rgb must be (T, H, W, 3) uint8, got {self.rgb.shape} {self.rgb.dtype}")
+        T, H, W, _ = self.rgb.shape
+        expect = {
+            "depth_m": (T, H, W),
+            "normal_cam": (T, H, W, 3),
+            "K": (T, 3, 3),
+            "T_world_cam": (T, 4, 4),
+        }
+        for key, shape in expect.items():
+            arr = getattr(self, key)
+            if arr is None or tuple(arr.shape) != shape:
+                got = None if arr is None else tuple(arr.shape)
+                raise DatasetFormatError(f"{name}: {key} must have shape {shape}, got {got}")
+        if self.segmentation is not None and tuple(self.segmentation.shape) != (T, H, W):
+            raise DatasetFormatError(f"{name}: segmentation must have shape {(T, H, W)}, got {self.segmentation.shape}")
+        if not np.all(np.isfinite(self.depth_m)):
+            raise DatasetFormatError(f"{name}: depth_m contains NaN/inf; use 0 for 'no measurement'")
+
+
+@dataclass
+class Episode:
+    """One episode: frames of every camera plus what is needed to re-simulate it."""
+
+    env_id: str
+    seed: int
+    instruction: str
+    cameras: dict[str, CameraFrames]
+    frame_steps: np.ndarray  # (T,) int32
+    actions: np.ndarray = field(default_factory=lambda: np.zeros((0, 0), np.float32))  # (S, A)
+    qpos: np.ndarray = field(default_factory=lambda: np.zeros((0, 0), np.float32))  # (T, D)
+    object_poses: dict[str, np.ndarray] = field(default_factory=dict)  # name -> (T, 7)
+    success: bool | None = None
+    control_mode: str = ""
+    env_kwargs: dict = field(default_factory=dict)
+    fps: float = 20.0
+    source: str = "simulation"
+    metadata: dict = field(default_factory=dict)
+
+    @property
+    def episode_id(self) -> str:
+        return f"{self.env_id}/seed_{self.seed:06d}"
+
+    @property
+    def num_frames(self) -> int:
+        return int(len(self.frame_steps))
+
+    def validate(self) -> None:
+        if not self.cameras:
+            raise DatasetFormatError(f"{self.episode_id}: an episode needs at least one camera")
+        for name, cam in self.cameras.items():
+            cam.validate(f"{self.episode_id}/{name}")
+            if cam.num_frames != self.num_frames:
+                raise DatasetFormatError(
+                    f"{self.episode_id}/{name}: {cam.num_frames} frames but frame_steps has {self.num_frames}"
+                )
+        if self.qpos.size and self.qpos.shape[0] != self.num_frames:
+            raise DatasetFormatError(f"{self.episode_id}: qpos has {self.qpos.shape[0]} rows, expected {self.num_frames}")
+        for name, pose in self.object_poses.items():
+            if pose.shape != (self.num_frames, 7):
+                raise DatasetFormatError(f"{self.episode_id}: object_poses/{name} must be ({self.num_frames}, 7)")
+
+
+# --------------------------------------------------------------------------- paths
+
+
+def episode_path(root: str | os.PathLike, env_id: str, seed: int) -> Path:
+    return Path(root) / EPISODE_TEMPLATE.format(env_id=env_id, seed=seed)
+
+
+def preview_path(root: str | os.PathLike, env_id: str, seed: int) -> Path:
+    return Path(root) / PREVIEW_TEMPLATE.format(env_id=env_id, seed=seed)
+
+
+_EPISODE_RE = re.compile(r"^seed_(\d{6,})\.h5$")
+
+
+def list_episode_files(root: str | os.PathLike) -> list[Path]:
+    """Complete episode files of a dataset, sorted (partial writes are excluded)."""
+    base = Path(root) / EPISODES_DIR
+    if not base.is_dir():
+        return []
+    return sorted(p for p in base.glob("*/seed_*.h5") if _EPISODE_RE.match(p.name))
+
+
+# --------------------------------------------------------------------------- dataset info
+
+
+def read_info(root: str | os.PathLike) -> DatasetInfo:
+    """Read ``DIR/info.json``; fail with a fix if it is missing, corrupt or another version."""
+    root = Path(root)
+    path = root / INFO_FILE
+    if not root.exists():
+        raise DatasetFormatError(f"{root} does not exist. Pass a dataset folder written by `tesseract4d datagen`.")
+    if not path.is_file():
+        raise DatasetFormatError(f"{root} has no {INFO_FILE}; it is not a tesseract4d dataset (write one with `tesseract4d datagen`).")
+    try:
+        d = json.loads(path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+        raise DatasetFormatError(f"{path} is corrupt ({e}). Restore it or regenerate the dataset.") from e
+    version = d.get("format_version")
+    if version != FORMAT_VERSION:
+        raise DatasetFormatError(
+            f"{root} holds dataset format version {version}, but this tesseract4d reads version "
+            f"{FORMAT_VERSION}. Write to a new folder, or convert/regenerate the dataset with this version."
+        )
+    return DatasetInfo.from_dict(d)
+
+
+def init_dataset(root: str | os.PathLike, info: DatasetInfo) -> DatasetInfo:
+    """Create a dataset folder, or reopen an existing one of the same version.
+
+    Existing data is never touched; returns the info that is on disk (the existing one when
+    reopening, so resolution/cameras stay those of the data already written).
+    """
+    root = Path(root)
+    if (root / INFO_FILE).exists():
+        existing = read_info(root)
+        if (existing.height, existing.width) != (info.height, info.width):
+            raise DatasetFormatError(
+                f"{root} already holds {existing.height}x{existing.width} episodes; requested "
+                f"{info.height}x{info.width}. Use another --out folder or the same resolution."
+            )
+        return existing
+    if root.exists() and any(root.iterdir()):
+        raise DatasetFormatError(f"{root} exists, is not empty and is not a tesseract4d dataset; choose an empty or new folder.")
+    root.mkdir(parents=True, exist_ok=True)
+    _atomic_write_text(root / INFO_FILE, info.to_json())
+    return info
+
+
+def _atomic_write_text(path: Path, text: str) -> None:
+    tmp = path.with_name(f".{path.name}.{uuid.uuid4().hex}.tmp")
+    tmp.write_text(text)
+    os.replace(tmp, path)
+
+
+# --------------------------------------------------------------------------- writer
+
+
+def write_episode(root: str | os.PathLike, episode: Episode, compression_level: int = 4) -> Path:
+    """Write one episode atomically to its shard file; returns the final path."""
+    import h5py
+
+    episode.validate()
+    final = episode_path(root, episode.env_id, episode.seed)
+    final.parent.mkdir(parents=True, exist_ok=True)
+    tmp = final.with_name(f".{final.stem}.{uuid.uuid4().hex}{PARTIAL_SUFFIX}")
+    gz = dict(compression="gzip", compression_opts=compression_level, shuffle=True)
+
+    def frames(group, name, data):
+        data = np.ascontiguousarray(data)
+        chunks = (1,) + data.shape[1:] if data.ndim >= 3 and data.shape[0] > 0 else None
+        group.create_dataset(name, data=data, chunks=chunks, **(gz if chunks else {}))
+
+    try:
+        with h5py.File(tmp, "w") as f:
+            f.attrs["format_version"] = FORMAT_VERSION
+            f.attrs["episode_id"] = episode.episode_id
+            f.attrs["env_id"] = episode.env_id
+            f.attrs["seed"] = int(episode.seed)
+            f.attrs["instruction"] = episode.instruction
+            f.attrs["success"] = -1 if episode.success is None else int(bool(episode.success))
+            f.attrs["control_mode"] = episode.control_mode
+            f.attrs["env_kwargs"] = json.dumps(episode.env_kwargs, sort_keys=True)
+            f.attrs["fps"] = float(episode.fps)
+            f.attrs["source"] = episode.source
+            f.attrs["metadata"] = json.dumps(episode.metadata, sort_keys=True, default=str)
+            f.create_dataset("frame_steps", data=np.asarray(episode.frame_steps, np.int32))
+            f.create_dataset("actions", data=np.asarray(episode.actions, np.float32))
+            f.create_dataset("qpos", data=np.asarray(episode.qpos, np.float32))
+            og = f.create_group("object_poses")
+            for name, pose in episode.object_poses.items():
+                og.create_dataset(name, data=np.asarray(pose, np.float32))
+            cg = f.create_group("cameras")
+            for cam_name, cam in episode.cameras.items():
+                g = cg.create_group(cam_name)
+                frames(g, "rgb", cam.rgb.astype(np.uint8))
+                frames(g, "depth_m", cam.depth_m.astype(np.float32))
+                frames(g, "normal_cam", cam.normal_cam.astype(np.float16))
+                if cam.segmentation is not None:
+                    frames(g, "segmentation", cam.segmentation.astype(np.int32))
+                g.attrs["seg_id_to_name"] = json.dumps({str(k): v for k, v in cam.seg_id_to_name.items()})
+                g.create_dataset("K", data=np.asarray(cam.K, np.float64))
+                g.create_dataset("T_world_cam", data=np.asarray(cam.T_world_cam, np.float64))
+            f.flush()
+        os.replace(tmp, final)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+    return final
+
+
+def remove_partial_files(root: str | os.PathLike) -> list[Path]:
+    """Delete leftovers of interrupted writes; returns what was removed."""
+    base = Path(root) / EPISODES_DIR
+    removed = sorted(base.glob(f"*/.*{PARTIAL_SUFFIX}")) if base.is_dir() else []
+    for p in removed:
+        p.unlink(missing_ok=True)
+    return removed
+
+
+# --------------------------------------------------------------------------- reader
+
+
+def read_episode(
+    path: str | os.PathLike,
+    cameras: list[str] | None = None,
+    frames: slice | np.ndarray | None = None,
+) -> Episode:
+    """Read an episode file (optionally only some cameras and a frame slice/index array)."""
+    import h5py
+
+    path = Path(path)
+    if not path.is_file():
+        raise DatasetFormatError(f"episode file {path} does not exist")
+    sel = slice(None) if frames is None else frames
+    try:
+        with h5py.File(path, "r") as f:
+            version = int(f.attrs.get("format_version", -1))
+            if version != FORMAT_VERSION:
+                raise DatasetFormatError(
+                    f"{path} is format version {version}; this tesseract4d reads version {FORMAT_VERSION}. Regenerate it."
+                )
+            cams = {}
+            names = list(f["cameras"].keys()) if cameras is None else cameras
+            for name in names:
+                if name not in f["cameras"]:
+                    raise DatasetFormatError(f"{path} has no camera {name!r}; it has {sorted(f['cameras'].keys())}")
+                g = f["cameras"][name]
+                cams[name] = CameraFrames(
+                    rgb=g["rgb"][sel],
+                    depth_m=g["depth_m"][sel],
+                    normal_cam=g["normal_cam"][sel].astype(np.float32),
+                    K=g["K"][sel],
+                    T_world_cam=g["T_world_cam"][sel],
+                    segmentation=g["segmentation"][sel] if "segmentation" in g else None,
+                    seg_id_to_name={int(k): v for k, v in json.loads(g.attrs.get("seg_id_to_name", "{}")).items()},
+                )
+            qpos = f["qpos"][()]
+            success = int(f.attrs["success"])
+            return Episode(
+                env_id=str(f.attrs["env_id"]),
+                seed=int(f.attrs["seed"]),
+                instruction=str(f.attrs["instruction"]),
+                cameras=cams,
+                frame_steps=f["frame_steps"][sel],
+                actions=f["actions"][()],
+                qpos=qpos[sel] if qpos.size else qpos,
+                object_poses={k: v[sel] for k, v in f["object_poses"].items()},
+                success=None if success < 0 else bool(success),
+                control_mode=str(f.attrs["control_mode"]),
+                env_kwargs=json.loads(f.attrs["env_kwargs"]),
+                fps=float(f.attrs["fps"]),
+                source=str(f.attrs["source"]),
+                metadata=json.loads(f.attrs["metadata"]),
+            )
+    except DatasetFormatError:
+        raise
+    except (OSError, KeyError, ValueError) as e:
+        raise DatasetFormatError(
+            f"{path} is corrupt or truncated ({type(e).__name__}: {e}). Delete it and re-run datagen to regenerate it."
+        ) from e
+
+
+def read_episode_attrs(path: str | os.PathLike) -> dict:
+    """Cheap metadata read (no frames): env_id, seed, instruction, success, num_frames, cameras, shape."""
+    import h5py
+
+    try:
+        with h5py.File(path, "r") as f:
+            cams = list(f["cameras"].keys())
+            shape = f["cameras"][cams[0]]["rgb"].shape if cams else (0, 0, 0, 3)
+            return {
+                "format_version": int(f.attrs.get("format_version", -1)),
+                "env_id": str(f.attrs["env_id"]),
+                "seed": int(f.attrs["seed"]),
+                "instruction": str(f.attrs["instruction"]),
+                "success": int(f.attrs["success"]),
+                "num_frames": int(shape[0]),
+                "height": int(shape[1]),
+                "width": int(shape[2]),
+                "cameras": cams,
+            }
+    except (OSError, KeyError, ValueError, IndexError) as e:
+        raise DatasetFormatError(f"{path} is corrupt or truncated ({type(e).__name__}: {e}). Delete it and regenerate it.") from e
+
+
+def iter_episodes(root: str | os.PathLike, cameras: list[str] | None = None) -> Iterator[Episode]:
+    read_info(root)
+    for p in list_episode_files(root):
+        yield read_episode(p, cameras=cameras)
+
+
+def resolve_episode(spec: str | os.PathLike) -> Path:
+    """Turn a user's episode reference into a file: a ``.h5`` path, ``DIR/ENV_ID/SEED`` or a
+    dataset folder holding exactly one episode (e.g. a prediction output)."""
+    p = Path(spec)
+    if p.is_file():
+        return p
+    if p.is_dir():
+        files = list_episode_files(p)
+        if len(files) == 1:
+            return files[0]
+        if not files:
+            raise DatasetFormatError(f"{p} holds no episodes (expected {EPISODE_TEMPLATE} inside)")
+        raise DatasetFormatError(f"{p} holds {len(files)} episodes; name one as {p}/<env_id>/<seed>")
+    # DIR/ENV_ID/SEED
+    root, env_id, seed = p.parent.parent, p.parent.name, p.name
+    if seed.isdigit():
+        f = episode_path(root, env_id, int(seed))
+        if f.is_file():
+            return f
+    raise DatasetFormatError(f"no episode at {spec}: give an episode .h5 file, a dataset folder with one episode, or DIR/ENV_ID/SEED")
