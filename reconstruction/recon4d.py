@@ -1,0 +1,204 @@
+"""``Recon4D``: the 4D reconstruction result, and its on-disk format (the contract between
+reconstruction, evaluation and the viewer).
+
+Folder layout written by :meth:`Recon4D.save`::
+
+    DIR/manifest.json               format version, frame count, image size, fps, metadata, file list
+    DIR/recon4d.npz                 every array below (what :meth:`Recon4D.load` reads)
+    DIR/frames/frame_0000.ply ...   per-frame coloured points with normals (world frame)
+    DIR/background.ply              fused static background points (if any)
+    DIR/background_mesh.ply/.glb    fused static background mesh (if any)
+
+All points and normals are in the world frame (metres); cameras use OpenCV axes.
+Per-frame point sets have different sizes, so they are stored concatenated with offsets.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import uuid
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from tesseract4d.errors import UserError
+
+RECON_FORMAT_VERSION = 1
+MANIFEST = "manifest.json"
+ARRAYS = "recon4d.npz"
+
+
+class ReconFormatError(UserError):
+    """A folder that is not a (readable) tesseract4d reconstruction."""
+
+
+@dataclass
+class Recon4D:
+    """A temporally consistent 4D point cloud. T frames of H x W images."""
+
+    points_world: list[np.ndarray]  # T x (N_t, 3) float32
+    colors: list[np.ndarray]  # T x (N_t, 3) uint8
+    normals_world: list[np.ndarray]  # T x (N_t, 3) float32, unit
+    dynamic: list[np.ndarray]  # T x (N_t,) bool, True = moving part of the scene
+    rgb: np.ndarray  # (T, H, W, 3) uint8 source frames (for frustums and side panels)
+    depth_m: np.ndarray  # (T, H, W) float32 depth used for the points (refined or raw), 0 = none
+    normal_cam: np.ndarray  # (T, H, W, 3) float32 normals, OpenCV camera frame
+    K: np.ndarray  # (T, 3, 3)
+    T_world_cam: np.ndarray  # (T, 4, 4) camera -> world
+    fps: float = 10.0
+    background_points: np.ndarray = field(default_factory=lambda: np.zeros((0, 3), np.float32))
+    background_colors: np.ndarray = field(default_factory=lambda: np.zeros((0, 3), np.uint8))
+    background_normals: np.ndarray = field(default_factory=lambda: np.zeros((0, 3), np.float32))
+    mesh_vertices: np.ndarray = field(default_factory=lambda: np.zeros((0, 3), np.float32))
+    mesh_faces: np.ndarray = field(default_factory=lambda: np.zeros((0, 3), np.int32))
+    mesh_colors: np.ndarray = field(default_factory=lambda: np.zeros((0, 3), np.uint8))
+    metadata: dict = field(default_factory=dict)
+
+    @property
+    def num_frames(self) -> int:
+        return len(self.points_world)
+
+    def validate(self) -> None:
+        T = self.num_frames
+        if T == 0:
+            raise ReconFormatError("a reconstruction needs at least one frame")
+        for name in ("colors", "normals_world", "dynamic"):
+            seq = getattr(self, name)
+            if len(seq) != T:
+                raise ReconFormatError(f"{name} has {len(seq)} frames, points_world has {T}")
+            for t, (p, a) in enumerate(zip(self.points_world, seq)):
+                if len(a) != len(p):
+                    raise ReconFormatError(f"frame {t}: {name} has {len(a)} rows, points_world has {len(p)}")
+        for name in ("rgb", "depth_m", "normal_cam", "K", "T_world_cam"):
+            if len(getattr(self, name)) != T:
+                raise ReconFormatError(f"{name} has {len(getattr(self, name))} frames, expected {T}")
+
+    # ------------------------------------------------------------------ save / load
+
+    def save(self, out_dir: str | os.PathLike, write_ply: bool = True) -> Path:
+        """Write the folder atomically (to a temporary sibling, then rename); returns it."""
+        self.validate()
+        out = Path(out_dir)
+        tmp = out.with_name(f".{out.name}.{uuid.uuid4().hex}.partial")
+        tmp.mkdir(parents=True)
+        try:
+            offsets = np.cumsum([0] + [len(p) for p in self.points_world]).astype(np.int64)
+            cat = lambda seq, dt, w: (np.concatenate(seq).astype(dt) if offsets[-1] else np.zeros((0,) + w, dt))  # noqa: E731
+            np.savez_compressed(
+                tmp / ARRAYS,
+                offsets=offsets,
+                points_world=cat(self.points_world, np.float32, (3,)),
+                colors=cat(self.colors, np.uint8, (3,)),
+                normals_world=cat(self.normals_world, np.float32, (3,)),
+                dynamic=cat(self.dynamic, bool, ()),
+                rgb=self.rgb.astype(np.uint8),
+                depth_m=self.depth_m.astype(np.float32),
+                normal_cam=self.normal_cam.astype(np.float32),
+                K=self.K.astype(np.float64),
+                T_world_cam=self.T_world_cam.astype(np.float64),
+                background_points=self.background_points.astype(np.float32),
+                background_colors=self.background_colors.astype(np.uint8),
+                background_normals=self.background_normals.astype(np.float32),
+                mesh_vertices=self.mesh_vertices.astype(np.float32),
+                mesh_faces=self.mesh_faces.astype(np.int32),
+                mesh_colors=self.mesh_colors.astype(np.uint8),
+            )
+            files = [ARRAYS]
+            if write_ply:
+                (tmp / "frames").mkdir()
+                for t in range(self.num_frames):
+                    name = f"frames/frame_{t:04d}.ply"
+                    write_point_ply(tmp / name, self.points_world[t], self.colors[t], self.normals_world[t])
+                    files.append(name)
+                if len(self.background_points):
+                    write_point_ply(tmp / "background.ply", self.background_points, self.background_colors, self.background_normals)
+                    files.append("background.ply")
+                if len(self.mesh_faces):
+                    import trimesh
+
+                    mesh = trimesh.Trimesh(self.mesh_vertices, self.mesh_faces, vertex_colors=self.mesh_colors, process=False)
+                    mesh.export(tmp / "background_mesh.ply")
+                    mesh.export(tmp / "background_mesh.glb")
+                    files += ["background_mesh.ply", "background_mesh.glb"]
+            manifest = {
+                "format": "tesseract4d-recon4d",
+                "format_version": RECON_FORMAT_VERSION,
+                "num_frames": self.num_frames,
+                "image_size": list(self.rgb.shape[1:3]),
+                "fps": self.fps,
+                "points_per_frame": [int(len(p)) for p in self.points_world],
+                "background_points": int(len(self.background_points)),
+                "mesh_faces": int(len(self.mesh_faces)),
+                "files": files,
+                "metadata": self.metadata,
+            }
+            (tmp / MANIFEST).write_text(json.dumps(manifest, indent=2, default=str))
+            if out.exists():
+                shutil.rmtree(out)
+            os.replace(tmp, out)
+        except BaseException:
+            shutil.rmtree(tmp, ignore_errors=True)
+            raise
+        return out
+
+    @classmethod
+    def load(cls, path: str | os.PathLike) -> "Recon4D":
+        path = Path(path)
+        manifest_path = path / MANIFEST
+        if not manifest_path.is_file():
+            raise ReconFormatError(f"{path} is not a reconstruction folder (no {MANIFEST}); write one with `tesseract4d reconstruct`.")
+        try:
+            manifest = json.loads(manifest_path.read_text())
+        except json.JSONDecodeError as e:
+            raise ReconFormatError(f"{manifest_path} is corrupt ({e}); re-run `tesseract4d reconstruct`.") from e
+        if manifest.get("format_version") != RECON_FORMAT_VERSION:
+            raise ReconFormatError(
+                f"{path} is reconstruction format {manifest.get('format_version')}; this tesseract4d reads "
+                f"{RECON_FORMAT_VERSION}. Re-run `tesseract4d reconstruct` on the source video."
+            )
+        try:
+            z = np.load(path / ARRAYS)
+            off = z["offsets"]
+            split = lambda a: [a[off[i]:off[i + 1]] for i in range(len(off) - 1)]  # noqa: E731
+            return cls(
+                points_world=split(z["points_world"]),
+                colors=split(z["colors"]),
+                normals_world=split(z["normals_world"]),
+                dynamic=split(z["dynamic"]),
+                rgb=z["rgb"], depth_m=z["depth_m"], normal_cam=z["normal_cam"],
+                K=z["K"], T_world_cam=z["T_world_cam"], fps=float(manifest.get("fps", 10.0)),
+                background_points=z["background_points"], background_colors=z["background_colors"],
+                background_normals=z["background_normals"], mesh_vertices=z["mesh_vertices"],
+                mesh_faces=z["mesh_faces"], mesh_colors=z["mesh_colors"],
+                metadata=manifest.get("metadata", {}),
+            )
+        except (OSError, KeyError, ValueError) as e:
+            raise ReconFormatError(f"{path / ARRAYS} is corrupt or truncated ({e}); re-run `tesseract4d reconstruct`.") from e
+
+
+def write_point_ply(path: str | os.PathLike, points: np.ndarray, colors: np.ndarray | None = None, normals: np.ndarray | None = None) -> None:
+    """Binary little-endian PLY with float xyz, optional float normals and uchar RGB."""
+    points = np.asarray(points, np.float32).reshape(-1, 3)
+    fields = [("x", "<f4"), ("y", "<f4"), ("z", "<f4")]
+    if normals is not None:
+        fields += [("nx", "<f4"), ("ny", "<f4"), ("nz", "<f4")]
+    if colors is not None:
+        fields += [("red", "u1"), ("green", "u1"), ("blue", "u1")]
+    data = np.empty(len(points), dtype=fields)
+    data["x"], data["y"], data["z"] = points.T
+    if normals is not None:
+        n = np.asarray(normals, np.float32).reshape(-1, 3)
+        data["nx"], data["ny"], data["nz"] = n.T
+    if colors is not None:
+        c = np.asarray(colors, np.uint8).reshape(-1, 3)
+        data["red"], data["green"], data["blue"] = c.T
+    ply_type = {"<f4": "float", "u1": "uchar"}
+    header = ["ply", "format binary_little_endian 1.0", f"element vertex {len(points)}"]
+    header += [f"property {ply_type[t]} {n}" for n, t in fields]
+    header.append("end_header")
+    with open(path, "wb") as f:
+        f.write(("\n".join(header) + "\n").encode("ascii"))
+        f.write(data.tobytes())
