@@ -1,0 +1,396 @@
+"""Generate a dataset: fan (task, seed) attempts out over workers, keep successes, resume.
+
+Semantics
+- ``episodes`` is the number of *successful* episodes wanted per task. Seeds are tried in order
+  from ``seed_start``; failed plans are skipped. ``max_attempts`` caps the seeds tried per task
+  (default ``4 * episodes + 4``); a task that hits the cap is reported, not retried forever.
+- Each worker simulates, renders and writes its own episode files (one shard per episode,
+  written atomically by ``tesseract4d.dataset_format.write_episode``). The driver appends every
+  attempt's outcome to ``DIR/datagen_attempts.jsonl``, so a rerun skips seeds that failed before
+  as well as episodes already on disk. A killed run leaves at most ``*.partial.*`` files, which
+  never count and are removed by the next run.
+- ``workers == 1`` without a Ray address runs in this process. Otherwise Ray actors (one CPU
+  each) do the work: a local Ray instance by default, or the cluster at ``ray_address``
+  (every node then needs this package installed and ``out`` on a shared file system).
+- Outputs besides episodes: ``datagen_config.json`` (resolved config), ``datagen_report.json``
+  (per-task planner success rates and throughput) and MP4 previews.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import time
+import uuid
+from collections import Counter
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from datagen.simulate import SimConfig
+from datagen.tasks import get_task
+from tesseract4d.dataset_format import (
+    PREVIEWS_DIR, DatasetInfo, init_dataset, list_episode_files, remove_partial_files,
+)
+from tesseract4d.errors import UserError
+
+CONFIG_FILE = "datagen_config.json"
+REPORT_FILE = "datagen_report.json"
+ATTEMPTS_FILE = "datagen_attempts.jsonl"
+# Options that change what an episode file contains: a dataset folder keeps one value of each.
+_DATASET_DEFINING = ("frames", "cameras", "camera_jitter_m", "randomize_colors", "randomize_lighting",
+                     "instruction_split")
+
+
+@dataclass
+class DatagenConfig:
+    """Everything `tesseract4d datagen` does; written to DIR/datagen_config.json."""
+
+    tasks: list[str]
+    episodes: int
+    out: Path
+    sim: SimConfig = field(default_factory=SimConfig)
+    seed_start: int = 0
+    max_attempts: int | None = None  # per task; None = 4 * episodes + 4
+    workers: int = 1
+    ray_address: str | None = None
+    previews: bool = True
+
+    def attempts_cap(self) -> int:
+        return self.max_attempts if self.max_attempts is not None else 4 * self.episodes + 4
+
+    def validate(self) -> None:
+        for t in self.tasks:
+            get_task(t)
+        if self.episodes < 1:
+            raise UserError(f"--episodes must be at least 1, got {self.episodes}")
+        if self.workers < 1:
+            raise UserError(f"--workers must be at least 1, got {self.workers}")
+        if self.sim.height < 16 or self.sim.width < 16 or self.sim.height % 2 or self.sim.width % 2:
+            raise UserError(f"resolution {self.sim.height}x{self.sim.width}: use even sizes of at least 16 pixels")
+        if self.sim.frames < 0 or self.sim.frames == 1:
+            raise UserError(f"--frames must be 0 (all steps) or at least 2, got {self.sim.frames}")
+        if self.sim.camera_jitter_m < 0:
+            raise UserError(f"--camera-jitter must be >= 0 metres, got {self.sim.camera_jitter_m}")
+        if self.attempts_cap() < self.episodes:
+            raise UserError(f"--max-attempts ({self.attempts_cap()}) must be at least --episodes ({self.episodes})")
+
+    def to_json(self) -> str:
+        d = dataclasses.asdict(self)
+        d["out"] = str(self.out)
+        d["max_attempts_resolved"] = self.attempts_cap()
+        return json.dumps(d, indent=2, sort_keys=True)
+
+
+# --------------------------------------------------------------------------- worker
+
+
+class Worker:
+    """Runs attempts in one process: keeps one task's env alive, writes episodes and previews."""
+
+    def __init__(self, out: str, sim: dict, previews: bool, render_threads: int | None = None):
+        from tesseract4d import runtime
+
+        runtime.configure()
+        if render_threads:  # lavapipe's rasteriser threads; one per worker avoids oversubscription
+            os.environ.setdefault("LP_NUM_THREADS", str(render_threads))
+        import logging
+
+        logging.getLogger("mani_skill").setLevel(logging.ERROR)
+        self.out = out
+        self.sim_config = SimConfig(**sim)
+        self.previews = previews
+        self._sim = None
+
+    def attempt(self, env_id: str, seed: int) -> dict:
+        """Try (env_id, seed). Returns the outcome as a JSON-able dict (no frames)."""
+        import warnings
+
+        import torch
+
+        from datagen.previews import write_preview
+        from datagen.simulate import EpisodeSimulator
+        from tesseract4d.dataset_format import write_episode
+
+        torch.set_num_threads(1)  # ManiSkill's tensors are tiny; threads only contend
+        if self._sim is None or self._sim.env_id != env_id:
+            if self._sim is not None:
+                self._sim.close()
+            self._sim = EpisodeSimulator(env_id, self.sim_config)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            result = self._sim.run(seed)
+        write_s = 0.0
+        if result.success:
+            t0 = time.perf_counter()
+            write_episode(self.out, result.episode)
+            if self.previews:
+                write_preview(self.out, result.episode)
+            write_s = time.perf_counter() - t0
+        out = {f.name: getattr(result, f.name) for f in dataclasses.fields(result) if f.name != "episode"}
+        out["write_s"] = write_s
+        out["instruction"] = result.episode.instruction if result.episode else ""
+        return out
+
+    def close(self) -> None:
+        if self._sim is not None:
+            self._sim.close()
+            self._sim = None
+
+
+class _LocalPool:
+    """One in-process worker: submit() runs the attempt right away."""
+
+    def __init__(self, cfg: DatagenConfig):
+        self.worker = Worker(str(cfg.out), dataclasses.asdict(cfg.sim), cfg.previews)
+        self.capacity = 1
+        self._done: list[tuple[object, dict]] = []
+
+    def submit(self, key, env_id: str, seed: int) -> None:
+        self._done.append((key, self.worker.attempt(env_id, seed)))
+
+    def wait_one(self) -> tuple[object, dict]:
+        return self._done.pop(0)
+
+    def shutdown(self) -> None:
+        self.worker.close()
+
+
+class _RayPool:
+    """K Ray actors, one CPU each; attempts go to whichever actor is free."""
+
+    def __init__(self, cfg: DatagenConfig):
+        import ray
+
+        self.ray = ray
+        if not ray.is_initialized():
+            if cfg.ray_address:
+                ray.init(address=cfg.ray_address, log_to_driver=False)
+            else:
+                ray.init(num_cpus=cfg.workers, include_dashboard=False, log_to_driver=False,
+                         configure_logging=False)
+        threads = max(1, (os.cpu_count() or 1) // cfg.workers)
+        actor_cls = ray.remote(num_cpus=1)(Worker)
+        self.actors = [actor_cls.remote(str(cfg.out), dataclasses.asdict(cfg.sim), cfg.previews, threads)
+                       for _ in range(cfg.workers)]
+        self.free = list(self.actors)
+        self.capacity = len(self.actors)
+        self.pending: dict = {}  # ObjectRef -> (key, actor)
+
+    def submit(self, key, env_id: str, seed: int) -> None:
+        actor = self.free.pop()
+        self.pending[actor.attempt.remote(env_id, seed)] = (key, actor)
+
+    def wait_one(self) -> tuple[object, dict]:
+        ready, _ = self.ray.wait(list(self.pending), num_returns=1)
+        key, actor = self.pending.pop(ready[0])
+        self.free.append(actor)
+        try:
+            return key, self.ray.get(ready[0])
+        except self.ray.exceptions.RayTaskError as e:
+            cause = getattr(e, "cause", None)
+            if isinstance(cause, UserError):
+                raise UserError(str(cause)) from e
+            raise
+
+    def shutdown(self) -> None:
+        for a in self.actors:
+            try:
+                self.ray.get(a.close.remote(), timeout=30)
+            except Exception:  # a dead actor has nothing left to close
+                pass
+        self.ray.shutdown()
+
+
+# --------------------------------------------------------------------------- bookkeeping
+
+
+def read_attempts(root: str | os.PathLike) -> list[dict]:
+    """Outcomes logged by earlier runs (a line cut off by a kill is ignored)."""
+    path = Path(root) / ATTEMPTS_FILE
+    if not path.is_file():
+        return []
+    out = []
+    for line in path.read_text().splitlines():
+        try:
+            out.append(json.loads(line))
+        except json.JSONDecodeError:
+            continue
+    return out
+
+
+def _append_attempt(root: Path, record: dict) -> None:
+    with open(root / ATTEMPTS_FILE, "a") as f:
+        f.write(json.dumps(record, sort_keys=True) + "\n")
+        f.flush()
+        os.fsync(f.fileno())
+
+
+def _atomic_write(path: Path, text: str) -> None:
+    tmp = path.with_name(f".{path.name}.{uuid.uuid4().hex}.tmp")
+    tmp.write_text(text)
+    os.replace(tmp, path)
+
+
+def _remove_partial_previews(root: Path) -> None:
+    base = root / PREVIEWS_DIR
+    if base.is_dir():
+        for p in base.glob("*/.*.partial.mp4"):
+            p.unlink(missing_ok=True)
+
+
+def _existing_seeds(root: Path, env_id: str) -> set[int]:
+    return {int(p.stem.split("_")[1]) for p in list_episode_files(root) if p.parent.name == env_id}
+
+
+def open_dataset(cfg: DatagenConfig) -> DatasetInfo:
+    """Create or reopen cfg.out; refuse a folder written with different episode-defining options."""
+    defining = {k: getattr(cfg.sim, k) for k in _DATASET_DEFINING}
+    info = DatasetInfo(fps=20.0, height=cfg.sim.height, width=cfg.sim.width, cameras=list(cfg.sim.cameras),
+                       extra={"datagen": defining})
+    on_disk = init_dataset(cfg.out, info)
+    previous = on_disk.extra.get("datagen")
+    if previous is not None and previous != defining:
+        diff = {k: (previous.get(k), defining[k]) for k in defining if previous.get(k) != defining[k]}
+        raise UserError(
+            f"{cfg.out} was generated with other options (on disk vs requested: {diff}). "
+            f"Rerun with the same options to resume it, or choose a new --out folder."
+        )
+    return on_disk
+
+
+def summarize(root: Path, tasks: list[str]) -> dict:
+    """Per-task planner statistics over every run logged in ``root``."""
+    attempts = read_attempts(root)
+    report = {}
+    for env_id in tasks:
+        recs = {}
+        for r in attempts:
+            if r["env_id"] == env_id:
+                recs[r["seed"]] = r  # the latest outcome of a seed counts
+        on_disk = _existing_seeds(root, env_id)
+        n_attempts = len(set(recs) | on_disk)
+        n_success = len(on_disk)
+        errors = Counter(r.get("error") or "ok" for r in recs.values() if not r["success"])
+        steps = [r["num_steps"] for r in recs.values() if r["success"]]
+        report[env_id] = {
+            "attempts": n_attempts,
+            "successes": n_success,
+            "failures": n_attempts - n_success,
+            "success_rate": round(n_success / n_attempts, 4) if n_attempts else None,
+            "failure_reasons": dict(errors),
+            "mean_sim_steps": round(sum(steps) / len(steps), 1) if steps else None,
+        }
+    return report
+
+
+# --------------------------------------------------------------------------- driver
+
+
+def run_datagen(cfg: DatagenConfig, progress: bool = True) -> dict:
+    """Generate until every task has ``cfg.episodes`` successes (or hits its attempt cap).
+
+    Returns the report that is also written to ``DIR/datagen_report.json``.
+    """
+    from tqdm import tqdm
+
+    from datagen.simulate import check_vulkan_env
+
+    cfg.validate()
+    check_vulkan_env()
+    root = Path(cfg.out)
+    open_dataset(cfg)
+    remove_partial_files(root)
+    _remove_partial_previews(root)
+    _atomic_write(root / CONFIG_FILE, cfg.to_json())
+
+    cap = cfg.attempts_cap()
+    previous = read_attempts(root)
+    tried: dict[str, set[int]] = {t: set() for t in cfg.tasks}
+    for r in previous:  # failed seeds are not retried; a logged success whose file is gone is redone
+        if r["env_id"] in tried and not r["success"]:
+            tried[r["env_id"]].add(int(r["seed"]))
+    successes = {t: len(_existing_seeds(root, t)) for t in cfg.tasks}
+    for t in cfg.tasks:
+        tried[t] |= _existing_seeds(root, t)
+    next_seed = {t: cfg.seed_start for t in cfg.tasks}
+    in_flight = Counter()
+
+    def next_job():
+        for t in cfg.tasks:
+            if successes[t] + in_flight[t] >= cfg.episodes or len(tried[t]) + in_flight[t] >= cap:
+                continue
+            s = next_seed[t]
+            while s in tried[t]:
+                s += 1
+            next_seed[t] = s + 1
+            return t, s
+        return None
+
+    total = cfg.episodes * len(cfg.tasks)
+    done_before = sum(min(successes[t], cfg.episodes) for t in cfg.tasks)
+    bar = tqdm(total=total, initial=done_before, desc="datagen", unit="ep", disable=not progress, dynamic_ncols=True)
+    run_attempts = run_successes = run_frames = 0
+    t_start = time.perf_counter()
+    pool = _RayPool(cfg) if (cfg.workers > 1 or cfg.ray_address) else _LocalPool(cfg)
+    try:
+        while True:
+            while sum(in_flight.values()) < pool.capacity and (job := next_job()) is not None:
+                in_flight[job[0]] += 1
+                pool.submit(job, *job)
+            if sum(in_flight.values()) == 0:
+                break
+            (env_id, seed), res = pool.wait_one()
+            in_flight[env_id] -= 1
+            tried[env_id].add(seed)
+            record = {k: res[k] for k in ("env_id", "seed", "success", "num_steps", "num_frames", "error",
+                                          "plan_s", "render_s", "write_s")}
+            record["time"] = time.time()
+            _append_attempt(root, record)
+            run_attempts += 1
+            if res["success"]:
+                successes[env_id] += 1
+                run_successes += 1
+                run_frames += res["num_frames"]
+                bar.update(1)
+            elapsed = max(time.perf_counter() - t_start, 1e-9)
+            bar.set_postfix_str(
+                f"{env_id} ok {run_successes}/{run_attempts} ({run_successes / run_attempts:.0%}) "
+                f"{run_frames / elapsed:.1f} frames/s"
+            )
+    finally:
+        bar.close()
+        pool.shutdown()
+    wall = time.perf_counter() - t_start
+    tasks_report = summarize(root, cfg.tasks)
+    for t in cfg.tasks:
+        tasks_report[t]["complete"] = tasks_report[t]["successes"] >= cfg.episodes
+    report = {
+        "tasks": tasks_report,
+        "this_run": {
+            "attempts": run_attempts,
+            "episodes_written": run_successes,
+            "frames_rendered": run_frames,
+            "wall_seconds": round(wall, 2),
+            "frames_per_second": round(run_frames / wall, 2) if wall > 0 else None,
+            "workers": cfg.workers,
+        },
+        "episodes_wanted_per_task": cfg.episodes,
+        "max_attempts_per_task": cap,
+    }
+    _atomic_write(root / REPORT_FILE, json.dumps(report, indent=2, sort_keys=True))
+    return report
+
+
+def format_report(report: dict) -> str:
+    """The per-task table printed at the end of a run."""
+    lines = [f"{'task':<22} {'ok':>5} {'tried':>6} {'planner success':>16}  failure reasons"]
+    for env_id, r in report["tasks"].items():
+        rate = "-" if r["success_rate"] is None else f"{100 * r['success_rate']:.0f} %"
+        reasons = ", ".join(f"{k}: {v}" for k, v in r["failure_reasons"].items()) or "-"
+        flag = "" if r.get("complete", True) else "  (attempt cap reached)"
+        lines.append(f"{env_id:<22} {r['successes']:>5} {r['attempts']:>6} {rate:>16}  {reasons}{flag}")
+    run = report["this_run"]
+    lines.append(f"this run: {run['episodes_written']} episodes from {run['attempts']} attempts in "
+                 f"{run['wall_seconds']:.1f} s, {run['frames_rendered']} frames ({run['frames_per_second']} frames/s)")
+    return "\n".join(lines)
