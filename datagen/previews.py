@@ -21,7 +21,8 @@ PREVIEW_FPS = 8.0
 def depth_to_color(depth_m: np.ndarray, near_m: float | None = None, far_m: float | None = None) -> np.ndarray:
     """(T, H, W) metres -> (T, H, W, 3) uint8 with OpenCV's TURBO map; 0 (no hit) is black.
 
-    The range defaults to the valid depths' 2nd..98th percentile over the whole clip, so a
+    The range defaults to the valid depths' 2nd..90th percentile (the far
+    background would otherwise take most of the colour range) over the whole clip, so a
     clip's colours are comparable across its frames.
     """
     import cv2
@@ -29,7 +30,7 @@ def depth_to_color(depth_m: np.ndarray, near_m: float | None = None, far_m: floa
     valid = depth_m > 0
     if near_m is None or far_m is None:
         vals = depth_m[valid]
-        near_m, far_m = (np.percentile(vals, [2, 98]) if vals.size else (0.0, 1.0))
+        near_m, far_m = (np.percentile(vals, [2, 90]) if vals.size else (0.0, 1.0))
     scale = np.clip((depth_m - near_m) / max(far_m - near_m, 1e-6), 0, 1)
     gray = (255 * (1 - scale)).astype(np.uint8)  # near = warm
     out = np.stack([cv2.applyColorMap(g, cv2.COLORMAP_TURBO)[..., ::-1] for g in gray])

@@ -144,7 +144,7 @@ class EpisodeSimulator:
         try:
             env = gym.make(self.env_id, control_mode=CONTROL_MODE, render_mode=None, **ENV_KWARGS)
         except RuntimeError as e:
-            if "render" in str(e).lower() or "vulkan" in str(e).lower():
+            if any(word in str(e).lower() for word in ("vulkan", "vk::", "render", "physical device")):
                 raise UserError(f"{VULKAN_FIX} ({e})") from e
             raise
         self._renderer = SceneRenderer(self.config.height, self.config.width)
