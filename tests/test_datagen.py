@@ -232,3 +232,12 @@ def test_broken_vulkan_driver_says_how_to_install_one(tmp_path):
     assert proc.returncode == 2, proc.stderr[-2000:]
     assert "scripts/setup.sh" in proc.stderr and "Vulkan" in proc.stderr
     assert not list_episode_files(tmp_path / "ds")
+
+
+def test_datagen_modules_import_without_the_simulator():
+    code = ("import sys, datagen.cli, datagen.dataset_cli, datagen.simulate, datagen.generate, datagen.capture, "
+            "datagen.previews; print(','.join(m for m in ('torch', 'mani_skill', 'sapien', 'ray', 'gymnasium') "
+            "if m in sys.modules))")
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60, cwd=REPO)
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.strip() == ""
