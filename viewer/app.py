@@ -1,0 +1,369 @@
+"""The browser viewer: a viser server showing one 4D source (plus an optional ground truth).
+
+Usage from Python (non-blocking)::
+
+    app = ViewerApp(recon, port=0)        # or ViewerApp.from_path("out/reconstruction")
+    url = app.start()                     # serves on 127.0.0.1, returns "http://127.0.0.1:PORT"
+    ...
+    app.stop()
+
+GUI panels: Playback (frame slider, play, fps, loop), Display (colour mode, point size,
+per-frame vs fused static points, frustums), Frame images (RGB, depth, normal of the current
+frame), Compare (layout and per-frame metrics, with a ground truth) and Generate (instruction,
+seed, steps -> predict + reconstruct, shown when done).
+"""
+
+from __future__ import annotations
+
+import os
+import socket
+import sys
+import threading
+import traceback
+from typing import Callable
+
+import numpy as np
+
+from reconstruction.recon4d import Recon4D
+from tesseract4d.errors import UserError
+from viewer.colors import COLOR_MODES, colorize_depth, colorize_normals
+from viewer.scene import DEFAULT_MAX_POINTS, POINT_MODES, SceneLayer, initial_view, make_server, stop_server
+
+# generate(instruction, seed, steps, progress(fraction in [0, 1], message)) -> a new source.
+Generator = Callable[[str, int, int, Callable[[float, str], None]], Recon4D]
+PANEL_IMAGE_MAX_SIDE = 256
+MAX_FPS = 30
+COMPARE_LAYOUTS = ("Side by side", "Prediction only", "Ground truth only")
+
+
+def check_port_free(host: str, port: int) -> None:
+    """Raise UserError if (host, port) cannot be bound (viser would silently take the next port)."""
+    if port == 0:
+        return
+    with socket.socket(socket.AF_INET6 if ":" in host else socket.AF_INET, socket.SOCK_STREAM) as s:
+        try:
+            s.bind((host, port))
+        except OSError as e:
+            raise UserError(f"port {port} on {host} is in use or not available ({e.strerror}); "
+                            f"pass another --port (or stop the program using it).") from e
+
+
+def _panel_image(image: np.ndarray) -> np.ndarray:
+    h, w = image.shape[:2]
+    if max(h, w) <= PANEL_IMAGE_MAX_SIDE:
+        return image
+    import cv2
+
+    s = PANEL_IMAGE_MAX_SIDE / max(h, w)
+    return cv2.resize(image, (max(1, round(w * s)), max(1, round(h * s))), interpolation=cv2.INTER_AREA)
+
+
+class ViewerApp:
+    """A viser app for one source (and optionally its ground truth). Thread-safe GUI + playback."""
+
+    def __init__(self, source: Recon4D, *, host: str = "127.0.0.1", port: int = 8080,
+                 max_points: int = DEFAULT_MAX_POINTS, compare: Recon4D | None = None,
+                 metrics: list[dict] | None = None, generate: Generator | None = None,
+                 generate_unavailable_reason: str = "Start the viewer with --checkpoint CKPT to generate.",
+                 title: str = "tesseract4d"):
+        self.host, self.port, self.max_points, self.title = host, int(port), int(max_points), title
+        self.layer = SceneLayer(source, "prediction" if compare is not None else "scene", max_points, label="prediction")
+        self.gt_layer = SceneLayer(compare, "ground_truth", max_points, label="ground truth") if compare is not None else None
+        self._metrics = metrics
+        self._generate = generate
+        self._generate_unavailable_reason = generate_unavailable_reason
+        self.server = None
+        self._lock = threading.RLock()
+        self._stop = threading.Event()
+        self._playback_thread: threading.Thread | None = None
+        self._generating = False
+        self.generation_error: str | None = None
+        self.generation_count = 0
+
+    @classmethod
+    def from_path(cls, path: str | os.PathLike, *, compare: str | os.PathLike | None = None,
+                  metrics: str | os.PathLike | None = None, checkpoint: str | os.PathLike | None = None,
+                  camera: str | None = None, **kwargs) -> "ViewerApp":
+        """Open PATH (reconstruction folder or dataset episode); see :func:`viewer.sources.load_source`."""
+        from viewer.sources import load_source
+
+        source = load_source(path, camera=camera)
+        gt = load_source(compare, camera=camera) if compare is not None else None
+        rows = None
+        if metrics is not None:
+            from viewer.compare import load_report_per_frame
+
+            rows = load_report_per_frame(metrics)
+        generate = None
+        if checkpoint is not None:
+            from viewer.generate import model_generator
+
+            generate = model_generator(checkpoint, source)
+        return cls(source, compare=gt, metrics=rows, generate=generate, **kwargs)
+
+    # ------------------------------------------------------------------ lifecycle
+
+    @property
+    def url(self) -> str:
+        if self.server is None:
+            raise RuntimeError("the viewer is not running; call start() first")
+        host = f"[{self.host}]" if ":" in self.host else self.host
+        return f"http://{host}:{self.server.get_port()}"
+
+    def start(self) -> str:
+        """Start serving in background threads; returns the URL."""
+        check_port_free(self.host, self.port)
+        self.server = make_server(self.host, self.port)
+        if self.port and self.server.get_port() != self.port:  # lost a race for the port
+            got = self.server.get_port()
+            stop_server(self.server)
+            self.server = None
+            raise UserError(f"port {self.port} on {self.host} is in use (viser fell back to {got}); pass another --port.")
+        self.server.gui.configure_theme(control_layout="fixed", control_width="medium", show_share_button=False)
+        self.server.gui.set_panel_label(self.title)
+        self._build_scene()
+        self._build_gui()
+        self._stop.clear()
+        self._playback_thread = threading.Thread(target=self._playback_loop, name="viewer-playback", daemon=True)
+        self._playback_thread.start()
+        return self.url
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._playback_thread is not None:
+            self._playback_thread.join(timeout=5)
+        if self.server is not None:
+            stop_server(self.server)
+        self.server = None
+
+    def __enter__(self) -> "ViewerApp":
+        self.start()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.stop()
+
+    # ------------------------------------------------------------------ scene
+
+    @property
+    def num_frames(self) -> int:
+        return max(self.layer.recon.num_frames, self.gt_layer.recon.num_frames if self.gt_layer else 0)
+
+    def _layers(self) -> list[SceneLayer]:
+        return [self.layer] + ([self.gt_layer] if self.gt_layer is not None else [])
+
+    def _build_scene(self) -> None:
+        server = self.server
+        if self.gt_layer is not None:
+            # Ground truth to the right of the prediction (as seen from the first camera).
+            right = self.layer.recon.T_world_cam[0, :3, 0]
+            self.gt_layer.set_offset(right * 2.2 * max(self.layer.radius, self.gt_layer.radius))
+        for layer in self._layers():
+            layer.build(server)
+        look_at = self.layer.centre + (self.gt_layer.offset / 2 if self.gt_layer is not None else 0.0)
+        view = initial_view(self.layer.recon, look_at)
+        server.scene.set_up_direction(view["up_axis"])
+        cam = server.initial_camera
+        cam.position = tuple(view["position"])
+        cam.look_at = tuple(view["look_at"])
+        cam.up = tuple(view["up"])
+
+    # ------------------------------------------------------------------ GUI
+
+    def _build_gui(self) -> None:
+        gui = self.server.gui
+        T = self.num_frames
+        with gui.add_folder("Playback"):
+            self.frame_slider = gui.add_slider("Frame", min=0, max=max(T - 1, 1), step=1, initial_value=0, disabled=T < 2)
+            self.play_checkbox = gui.add_checkbox("Play", initial_value=False, disabled=T < 2)
+            self.fps_slider = gui.add_slider("FPS", min=1, max=MAX_FPS, step=1,
+                                             initial_value=int(np.clip(round(self.layer.recon.fps), 1, MAX_FPS)))
+            self.loop_checkbox = gui.add_checkbox("Loop", initial_value=True)
+        with gui.add_folder("Display"):
+            self.color_dropdown = gui.add_dropdown("Colour", tuple(COLOR_MODES), initial_value="RGB")
+            size = self.layer.default_point_size
+            self.point_size_slider = gui.add_slider("Point size (m)", min=round(size / 4, 5), max=round(size * 6, 5),
+                                                    step=round(size / 20, 6) or 1e-5, initial_value=round(size, 5))
+            self.points_dropdown = gui.add_dropdown("Points", tuple(POINT_MODES), initial_value=next(iter(POINT_MODES)))
+            self.frustum_checkbox = gui.add_checkbox("Camera frustums", initial_value=True)
+        with gui.add_folder("Frame images"):
+            self.rgb_image = gui.add_image(np.zeros((8, 8, 3), np.uint8), label="RGB", format="jpeg")
+            self.depth_image = gui.add_image(np.zeros((8, 8, 3), np.uint8), label="Depth (turbo, near=blue)", format="jpeg")
+            self.normal_image = gui.add_image(np.zeros((8, 8, 3), np.uint8), label="Normal (camera frame)", format="jpeg")
+        self.layout_dropdown = None
+        self.metrics_md = None
+        if self.gt_layer is not None:
+            with gui.add_folder("Compare"):
+                self.layout_dropdown = gui.add_dropdown("Layout", COMPARE_LAYOUTS, initial_value=COMPARE_LAYOUTS[0])
+                gui.add_markdown("Left: prediction. Right: ground truth.")
+                self.metrics_md = gui.add_markdown("")
+            if self._metrics is None:
+                from viewer.compare import image_metrics
+
+                self._metrics = image_metrics(self.layer.recon, self.gt_layer.recon)
+            self.layout_dropdown.on_update(lambda _: self._apply_layout())
+        with gui.add_folder("Generate"):
+            instruction = str(self.layer.recon.metadata.get("instruction", ""))
+            self.instruction_text = gui.add_text("Instruction", initial_value=instruction)
+            self.seed_number = gui.add_number("Seed", initial_value=0, min=0, step=1)
+            self.steps_number = gui.add_number("Steps", initial_value=10, min=1, max=1000, step=1)
+            self.generate_button = gui.add_button("Generate", disabled=self._generate is None)
+            self.progress_bar = gui.add_progress_bar(0.0, visible=False)
+            self.status_md = gui.add_markdown("Ready." if self._generate is not None else self._generate_unavailable_reason)
+
+        self.frame_slider.on_update(lambda _: self._show_frame(int(self.frame_slider.value)))
+        self.color_dropdown.on_update(lambda _: self._recolor())
+        self.point_size_slider.on_update(lambda _: self._resize_points())
+        self.points_dropdown.on_update(lambda _: self._rebuild())
+        self.frustum_checkbox.on_update(lambda _: self._toggle_frustums())
+        self.generate_button.on_click(lambda _: self._start_generation())
+        self._update_panels(0)
+
+    def _color_mode(self) -> str:
+        return COLOR_MODES[self.color_dropdown.value]
+
+    def _show_frame(self, t: int) -> None:
+        with self._lock:
+            with self.server.atomic():
+                for layer in self._layers():
+                    layer.show(t)
+            self._update_panels(t)
+
+    def _update_panels(self, t: int) -> None:
+        r = self.layer.recon
+        i = self.layer.frame_index(t)
+        self.rgb_image.image = _panel_image(r.rgb[i])
+        self.depth_image.image = _panel_image(colorize_depth(r.depth_m[i], *self.layer.depth_limits))
+        self.normal_image.image = _panel_image(colorize_normals(r.normal_cam[i]))
+        if self.metrics_md is not None:
+            from viewer.compare import format_metrics
+
+            rows = self._metrics or []
+            self.metrics_md.content = format_metrics(rows[t] if t < len(rows) else None, t)
+
+    def _recolor(self) -> None:
+        with self._lock:
+            for layer in self._layers():
+                layer.set_color_mode(self._color_mode())
+
+    def _resize_points(self) -> None:
+        with self._lock:
+            for layer in self._layers():
+                layer.set_point_size(float(self.point_size_slider.value))
+
+    def _toggle_frustums(self) -> None:
+        with self._lock:
+            for layer in self._layers():
+                layer.set_frustums_visible(bool(self.frustum_checkbox.value))
+
+    def _rebuild(self) -> None:
+        with self._lock:
+            for layer in self._layers():
+                layer.build(self.server, color_mode=self._color_mode(), point_size=float(self.point_size_slider.value),
+                            point_mode=POINT_MODES[self.points_dropdown.value],
+                            show_frustums=bool(self.frustum_checkbox.value), t=int(self.frame_slider.value))
+            self._apply_layout()
+
+    def _apply_layout(self) -> None:
+        if self.gt_layer is None or self.layout_dropdown is None:
+            return
+        layout = self.layout_dropdown.value
+        with self._lock, self.server.atomic():
+            side = layout == COMPARE_LAYOUTS[0]
+            right = self.layer.recon.T_world_cam[0, :3, 0]
+            self.gt_layer.set_offset(right * 2.2 * max(self.layer.radius, self.gt_layer.radius) if side else np.zeros(3))
+            self.layer.set_visible(layout != COMPARE_LAYOUTS[2])
+            self.gt_layer.set_visible(layout != COMPARE_LAYOUTS[1])
+
+    # ------------------------------------------------------------------ playback
+
+    def _playback_loop(self) -> None:
+        while not self._stop.is_set():
+            if self.server is not None and self.play_checkbox.value and self.num_frames > 1:
+                t = int(self.frame_slider.value) + 1
+                if t >= self.num_frames:
+                    if self.loop_checkbox.value:
+                        t = 0
+                    else:
+                        self.play_checkbox.value = False
+                        continue
+                self.frame_slider.value = t  # runs _show_frame through the slider's callback
+            self._stop.wait(1.0 / max(float(self.fps_slider.value), 1.0))
+
+    # ------------------------------------------------------------------ generation
+
+    def set_source(self, recon: Recon4D) -> None:
+        """Replace the shown (predicted) source, e.g. with a freshly generated one."""
+        with self._lock:
+            self.layer.remove()
+            self.layer = SceneLayer(recon, self.layer.name, self.max_points, label=self.layer.label)
+            if self.gt_layer is not None:
+                from viewer.compare import image_metrics
+
+                self._metrics = image_metrics(self.layer.recon, self.gt_layer.recon)
+            T = self.num_frames
+            self.frame_slider.max = max(T - 1, 1)
+            self.frame_slider.disabled = self.play_checkbox.disabled = T < 2
+            self._rebuild()
+            self.frame_slider.value = 0
+            self._update_panels(0)
+            instruction = recon.metadata.get("instruction")
+            if instruction:
+                self.instruction_text.value = str(instruction)
+
+    def _start_generation(self) -> None:
+        with self._lock:
+            if self._generating or self._generate is None:
+                return
+            self._generating = True
+        args = (str(self.instruction_text.value), int(self.seed_number.value), int(self.steps_number.value))
+        threading.Thread(target=self._run_generation, args=args, name="viewer-generate", daemon=True).start()
+
+    def _progress(self, fraction: float, message: str) -> None:
+        self.progress_bar.value = float(np.clip(100.0 * fraction, 0.0, 100.0))
+        self.status_md.content = f"Generating: {message}"
+
+    def _run_generation(self, instruction: str, seed: int, steps: int) -> None:
+        self.generate_button.disabled = True
+        self.progress_bar.visible = True
+        self.generation_error = None
+        self._progress(0.0, f"{instruction!r}, seed {seed}, {steps} steps")
+        try:
+            if not instruction.strip():
+                raise UserError("type an instruction first")
+            recon = self._generate(instruction, seed, steps, self._progress)
+            recon.metadata.setdefault("instruction", instruction)
+            self.set_source(recon)
+            self.generation_count += 1
+            self.progress_bar.value = 100.0
+            self.status_md.content = f"Done: {recon.num_frames} frames for {instruction!r} (seed {seed}, {steps} steps)."
+        except Exception as e:  # shown to the user; the server keeps running
+            message = f"{type(e).__name__}: {e}" if not isinstance(e, UserError) else str(e)
+            self.generation_error = message
+            self.status_md.content = f"**Generation failed:** {message}"
+            if not isinstance(e, UserError):
+                traceback.print_exc(file=sys.stderr)
+            if self.server is not None:
+                for client in self.server.get_clients().values():
+                    client.add_notification("Generation failed", message, color="red", auto_close_seconds=10.0)
+        finally:
+            self.progress_bar.visible = False
+            self.generate_button.disabled = False
+            with self._lock:
+                self._generating = False
+
+    @property
+    def generating(self) -> bool:
+        return self._generating
+
+
+def serve_forever(app: ViewerApp) -> None:
+    """Start, print the URL, block until Ctrl-C, stop."""
+    url = app.start()
+    print(f"viewer: {url}  (Ctrl-C to stop)", flush=True)
+    try:
+        while True:
+            threading.Event().wait(3600)
+    finally:
+        app.stop()
+

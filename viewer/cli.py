@@ -1,0 +1,50 @@
+"""Open a reconstruction, a dataset episode or a prediction in the browser viewer.
+
+PATH is a reconstruction folder (from `tesseract4d reconstruct`), an episode .h5 file, a dataset
+or prediction folder holding one episode, or DIR/ENV_ID/SEED. Episodes are back-projected on the
+fly. The command prints the URL and serves until Ctrl-C; with --export it writes a standalone
+HTML recording instead (it opens from disk, no server needed) and exits.
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from viewer.scene import DEFAULT_MAX_POINTS
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("path", help="reconstruction folder, episode .h5, dataset/prediction folder, or DIR/ENV_ID/SEED")
+    parser.add_argument("--host", default="127.0.0.1", help="address to serve on (default %(default)s; 0.0.0.0 for all)")
+    parser.add_argument("--port", type=int, default=8080, help="port to serve on (default %(default)s)")
+    parser.add_argument("--export", type=Path, metavar="HTML", help="write a standalone HTML recording to this file and exit")
+    parser.add_argument("--compare", metavar="GT_PATH", help="ground truth of the same episode, shown beside PATH")
+    parser.add_argument("--metrics", type=Path, metavar="REPORT_JSON",
+                        help="per-frame metrics from `tesseract4d evaluate` for compare mode (default: cheap image metrics)")
+    parser.add_argument("--checkpoint", type=Path, help="model checkpoint; enables the Generate panel")
+    parser.add_argument("--camera", help="which camera of an episode to show (default: the first)")
+    parser.add_argument("--max-points", type=int, default=DEFAULT_MAX_POINTS,
+                        help="point budget per frame sent to the browser (default %(default)s)")
+
+
+def run(args: argparse.Namespace) -> int:
+    from tesseract4d.errors import UserError
+
+    if args.max_points < 1:
+        raise UserError(f"--max-points must be positive, got {args.max_points}")
+    if not 0 <= args.port <= 65535:
+        raise UserError(f"--port must be in 0..65535, got {args.port}")
+    if args.export is not None:
+        from viewer.export import export_html
+        from viewer.sources import load_source
+
+        out = export_html(load_source(args.path, camera=args.camera), args.export, max_points=args.max_points)
+        print(f"wrote {out} (open it in a browser; no server needed)")
+        return 0
+    from viewer.app import ViewerApp, serve_forever
+
+    app = ViewerApp.from_path(args.path, compare=args.compare, metrics=args.metrics, checkpoint=args.checkpoint,
+                              camera=args.camera, host=args.host, port=args.port, max_points=args.max_points)
+    serve_forever(app)
+    return 0

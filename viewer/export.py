@@ -1,0 +1,49 @@
+"""Standalone HTML recording of the playback (viser's scene serializer): opens from disk, no server.
+
+Only the 3D scene is recorded (GUI panels are not): every frame's point cloud and frustum,
+with visibility switched at the source's fps. The page's own player plays it back.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+from reconstruction.recon4d import Recon4D
+from tesseract4d.errors import UserError
+from viewer.scene import DEFAULT_MAX_POINTS, SceneLayer, initial_view, make_server, stop_server
+
+
+def export_html(source: Recon4D | str | os.PathLike, out_path: str | os.PathLike,
+                max_points: int = DEFAULT_MAX_POINTS, color_mode: str = "rgb", fps: float | None = None) -> Path:
+    """Write the recording to ``out_path`` (atomically) and return it."""
+    if not isinstance(source, Recon4D):
+        from viewer.sources import load_source
+
+        source = load_source(source)
+    out = Path(out_path)
+    if out.is_dir():
+        raise UserError(f"{out} is a folder; pass a file name such as {out / 'scene.html'}")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    layer = SceneLayer(source, "scene", max_points)
+    server = make_server("127.0.0.1", 0)
+    try:
+        layer.build(server, color_mode=color_mode)
+        view = initial_view(source, layer.centre)
+        server.scene.set_up_direction(view["up_axis"])
+        server.initial_camera.position = tuple(view["position"])
+        server.initial_camera.look_at = tuple(view["look_at"])
+        server.initial_camera.up = tuple(view["up"])
+        serializer = server.get_scene_serializer()
+        dt = 1.0 / (fps or source.fps or 10.0)
+        for t in range(source.num_frames):
+            with server.atomic():
+                layer.show(t)
+            serializer.insert_sleep(dt)
+        html = serializer.as_html()
+    finally:
+        stop_server(server)
+    tmp = out.with_name(f".{out.name}.partial")
+    tmp.write_text(html)
+    os.replace(tmp, out)
+    return out

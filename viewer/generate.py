@@ -1,0 +1,48 @@
+"""The live generation behind the viewer's Generate button: predict + reconstruct.
+
+:func:`model_generator` returns a ``generate(instruction, seed, steps, progress) -> Recon4D``
+callable (see ``viewer.app.Generator``) that conditions the model on frame 0 of the loaded
+source. The model loads on the first click, not at start-up.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Callable
+
+from reconstruction.recon4d import Recon4D
+from tesseract4d.errors import UserError
+
+# Share of the progress bar spent denoising; the rest is reconstruction.
+PREDICT_SHARE = 0.8
+
+
+def model_generator(checkpoint: str | os.PathLike, source: Recon4D) -> Callable[[str, int, int, Callable[[float, str], None]], Recon4D]:
+    checkpoint = Path(checkpoint)
+    if not checkpoint.is_dir():
+        raise UserError(f"checkpoint {checkpoint} not found; pass --checkpoint DIR (a folder written by `tesseract4d train`).")
+    cache: dict = {}
+
+    def generate(instruction: str, seed: int, steps: int, progress: Callable[[float, str], None]) -> Recon4D:
+        try:
+            from reconstruction.reconstruct import ReconConfig, reconstruct_episode
+            from tesseract4d.predict import load_pipeline, predict_episode
+        except ImportError as e:
+            raise UserError(f"the model code is not available in this install ({e}); update tesseract4d.") from e
+        from viewer.sources import first_frame_episode
+
+        if "pipeline" not in cache:
+            progress(0.0, f"loading {checkpoint}")
+            cache["pipeline"] = load_pipeline(checkpoint)
+        first = first_frame_episode(source)
+        pred = predict_episode(
+            cache["pipeline"], first, instruction, num_frames=source.num_frames, seed=seed, num_steps=steps,
+            progress=lambda step, total: progress(PREDICT_SHARE * step / max(total, 1), f"denoising step {step}/{total}"),
+        )
+        progress(PREDICT_SHARE, "reconstructing the 4D point cloud")
+        recon = reconstruct_episode(pred, config=ReconConfig())
+        recon.metadata.update({"instruction": instruction, "sample_seed": seed, "steps": steps})
+        return recon
+
+    return generate

@@ -1,0 +1,250 @@
+"""One 4D source drawn into a viser scene: the part shared by the live app and the HTML export.
+
+A :class:`SceneLayer` owns the scene nodes of one :class:`Recon4D` under ``/<name>``:
+
+    /<name>                     a frame at the layer's offset (compare mode moves it sideways)
+    /<name>/frames/<t>          one point cloud per time step; only the current one is visible
+    /<name>/cams/<t>            one camera frustum per time step, textured with that frame's RGB
+    /<name>/background          the fused static background points (if the source has them)
+
+Points are decimated to a per-frame budget and sent relative to the layer's centre, so float16
+positions keep sub-millimetre precision for scenes up to ~2 m across; larger scenes use float32.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from reconstruction.recon4d import Recon4D
+from viewer.colors import depth_range, point_colors
+
+DEFAULT_MAX_POINTS = 50_000
+# float16 has 11 significant bits: spacing at |x| = r is r * 2**-10. Use it only where that
+# spacing is below this (metres).
+FLOAT16_MAX_ERROR_M = 1e-3
+FRUSTUM_IMAGE_MAX_SIDE = 128
+# Which points are drawn: GUI label -> key.
+POINT_MODES: dict[str, str] = {
+    "Per-frame points": "frames",
+    "Static background + moving points": "background+dynamic",
+    "Static background only": "background",
+}
+
+
+@dataclass
+class FramePoints:
+    """The decimated points of one time step, relative to the layer centre."""
+
+    points_local: np.ndarray  # (N, 3) float32, metres, world axes, origin at the layer centre
+    rgb: np.ndarray  # (N, 3) uint8
+    normals: np.ndarray  # (N, 3) float32 world frame
+    depth_m: np.ndarray  # (N,) float32, depth along this frame's camera axis
+    dynamic: np.ndarray  # (N,) bool
+
+
+def decimate(n: int, budget: int, seed: int = 0) -> np.ndarray:
+    """Sorted indices of at most ``budget`` of n items, chosen uniformly at random (seeded)."""
+    if n <= budget:
+        return np.arange(n)
+    return np.sort(np.random.default_rng(seed).choice(n, size=budget, replace=False))
+
+
+def make_server(host: str, port: int):
+    """A viser server without its start-up banner (callers print their own URL)."""
+    import contextlib
+    import io
+
+    import viser
+
+    with contextlib.redirect_stdout(io.StringIO()):
+        return viser.ViserServer(host=host, port=port, verbose=False)
+
+
+def stop_server(server) -> None:
+    """Stop a viser server without its "(viser) Server stopped" line."""
+    import contextlib
+    import io
+
+    with contextlib.redirect_stdout(io.StringIO()):
+        server.stop()
+
+
+def wxyz_from_matrix(R: np.ndarray) -> np.ndarray:
+    import viser.transforms as vtf
+
+    return vtf.SO3.from_matrix(np.asarray(R, np.float64)).wxyz
+
+
+class SceneLayer:
+    """The scene nodes of one source. Build with :meth:`build`, then :meth:`show` a frame."""
+
+    def __init__(self, recon: Recon4D, name: str = "scene", max_points: int = DEFAULT_MAX_POINTS,
+                 label: str | None = None):
+        recon.validate()
+        self.recon = recon
+        self.name = name
+        self.label = label or name
+        self.max_points = int(max_points)
+        first = recon.points_world[0] if len(recon.points_world[0]) else np.concatenate(recon.points_world + [recon.background_points])
+        self.centre = np.median(first, axis=0).astype(np.float64) if len(first) else recon.T_world_cam[0, :3, 3].copy()
+        self.frames = [self._prepare(t) for t in range(recon.num_frames)]
+        keep = decimate(len(recon.background_points), 2 * self.max_points, seed=12345)
+        self.background = FramePoints(
+            points_local=(recon.background_points[keep] - self.centre).astype(np.float32),
+            rgb=recon.background_colors[keep], normals=recon.background_normals[keep],
+            depth_m=self._camera_depth(0, recon.background_points[keep]), dynamic=np.zeros(len(keep), bool),
+        )
+        all_local = np.concatenate([f.points_local for f in self.frames] + [self.background.points_local])
+        self.radius = float(np.percentile(np.linalg.norm(all_local, axis=1), 98)) if len(all_local) else 1.0
+        max_abs = float(np.abs(all_local).max()) if len(all_local) else 0.0
+        self.precision = "float16" if max_abs * 2.0**-10 <= FLOAT16_MAX_ERROR_M else "float32"
+        self.depth_limits = depth_range(recon.depth_m)
+        self.default_point_size = self._pixel_footprint()
+        self.offset = np.zeros(3)
+        self.server = None
+        self._root = None
+        self._clouds: list = []
+        self._frustums: list = []
+        self._background_node = None
+        self._current = 0
+
+    # ------------------------------------------------------------------ data
+
+    def _camera_depth(self, t: int, points_world: np.ndarray) -> np.ndarray:
+        T = self.recon.T_world_cam[t]
+        return ((points_world - T[:3, 3]) @ T[:3, 2]).astype(np.float32)
+
+    def _prepare(self, t: int) -> FramePoints:
+        r = self.recon
+        keep = decimate(len(r.points_world[t]), self.max_points, seed=t)
+        pts = r.points_world[t][keep]
+        return FramePoints(
+            points_local=(pts - self.centre).astype(np.float32), rgb=r.colors[t][keep],
+            normals=r.normals_world[t][keep], depth_m=self._camera_depth(t, pts), dynamic=r.dynamic[t][keep].astype(bool),
+        )
+
+    def _pixel_footprint(self) -> float:
+        """Point size (m) that closes the gaps: one pixel's footprint at the median depth, times
+        the decimation's spacing factor."""
+        d = self.recon.depth_m[0]
+        d = d[np.isfinite(d) & (d > 0)]
+        if d.size == 0:
+            return 0.01 * self.radius
+        f = float(self.recon.K[0, 0, 0])
+        n_total = max(len(self.recon.points_world[0]), 1)
+        spacing = np.sqrt(n_total / max(len(self.frames[0].points_local), 1))
+        return float(1.5 * np.median(d) / f * spacing)
+
+    def colors(self, frame: FramePoints, mode: str) -> np.ndarray:
+        return point_colors(mode, frame.rgb, frame.normals, frame.depth_m, frame.dynamic, self.depth_limits)
+
+    def frame_index(self, t: int) -> int:
+        """The layer's frame shown at global time t (the last one once this layer has ended)."""
+        return int(min(max(t, 0), self.recon.num_frames - 1))
+
+    # ------------------------------------------------------------------ scene nodes
+
+    def build(self, server, color_mode: str = "rgb", point_size: float | None = None, point_mode: str = "frames",
+              show_frustums: bool = True, t: int = 0) -> None:
+        """(Re)create every node of this layer in ``server.scene``, showing frame t."""
+        self.remove()
+        self.server = server
+        size = self.default_point_size if point_size is None else point_size
+        self._current = self.frame_index(t)
+        with server.atomic():
+            self._root = server.scene.add_frame(f"/{self.name}", show_axes=False, position=tuple(self.offset))
+            for i, fr in enumerate(self.frames):
+                mask = fr.dynamic if point_mode == "background+dynamic" else slice(None)
+                self._clouds.append(server.scene.add_point_cloud(
+                    f"/{self.name}/frames/{i}", points=fr.points_local[mask], colors=self.colors(fr, color_mode)[mask],
+                    point_size=size, precision=self.precision, position=tuple(self.centre),
+                    point_shape="square", point_shading="flat",
+                    visible=(i == self._current and point_mode != "background"),
+                ))
+                self._frustums.append(self._add_frustum(server, i, visible=show_frustums and i == self._current))
+            if len(self.background.points_local):
+                self._background_node = server.scene.add_point_cloud(
+                    f"/{self.name}/background", points=self.background.points_local,
+                    colors=self.colors(self.background, color_mode), point_size=size, precision=self.precision,
+                    position=tuple(self.centre), point_shape="square", point_shading="flat",
+                    visible=point_mode != "frames",
+                )
+        self._point_mode = point_mode
+        self._show_frustums = show_frustums
+
+    def _add_frustum(self, server, t: int, visible: bool):
+        import cv2
+
+        r = self.recon
+        H, W = r.rgb.shape[1:3]
+        scale = FRUSTUM_IMAGE_MAX_SIDE / max(H, W)
+        image = r.rgb[t] if scale >= 1 else cv2.resize(r.rgb[t], (max(1, round(W * scale)), max(1, round(H * scale))), interpolation=cv2.INTER_AREA)
+        fov_y = 2.0 * np.arctan2(H / 2.0, float(r.K[t, 1, 1]))
+        T = r.T_world_cam[t]
+        return server.scene.add_camera_frustum(
+            f"/{self.name}/cams/{t}", fov=float(fov_y), aspect=W / H, scale=0.15 * self.radius,
+            thickness=0.004 * self.radius, color=(40, 40, 40), image=image, format="jpeg", jpeg_quality=85,
+            wxyz=wxyz_from_matrix(T[:3, :3]), position=tuple(T[:3, 3]), visible=visible,
+        )
+
+    def show(self, t: int) -> None:
+        """Make global time t visible (call inside ``server.atomic()`` together with other layers)."""
+        i = self.frame_index(t)
+        if i == self._current or not self._clouds:
+            return
+        per_frame = self._point_mode != "background"
+        self._clouds[self._current].visible = False
+        self._clouds[i].visible = per_frame
+        self._frustums[self._current].visible = False
+        self._frustums[i].visible = self._show_frustums
+        self._current = i
+
+    def set_color_mode(self, mode: str) -> None:
+        with self.server.atomic():
+            for fr, cloud in zip(self.frames, self._clouds):
+                mask = fr.dynamic if self._point_mode == "background+dynamic" else slice(None)
+                cloud.colors = self.colors(fr, mode)[mask]
+            if self._background_node is not None:
+                self._background_node.colors = self.colors(self.background, mode)
+
+    def set_point_size(self, size: float) -> None:
+        with self.server.atomic():
+            for cloud in self._clouds + ([self._background_node] if self._background_node is not None else []):
+                cloud.point_size = float(size)
+
+    def set_frustums_visible(self, visible: bool) -> None:
+        self._show_frustums = visible
+        if self._frustums:
+            self._frustums[self._current].visible = visible
+
+    def set_visible(self, visible: bool) -> None:
+        if self._root is not None:
+            self._root.visible = visible
+
+    def set_offset(self, offset: np.ndarray) -> None:
+        self.offset = np.asarray(offset, np.float64)
+        if self._root is not None:
+            self._root.position = tuple(self.offset)
+
+    def remove(self) -> None:
+        if self._root is not None:
+            self._root.remove()  # removes the children too
+        self._root, self._clouds, self._frustums, self._background_node = None, [], [], None
+
+
+def initial_view(recon: Recon4D, look_at: np.ndarray) -> dict:
+    """Initial viewer camera: behind and above the first recording camera, looking at the scene.
+
+    Returns position, look_at and up (world vectors) and the scene's up axis as "+z"-style text.
+    """
+    T = np.asarray(recon.T_world_cam[0], np.float64)
+    eye = T[:3, 3]
+    up = -T[:3, 1]  # OpenCV y points down
+    axis = int(np.argmax(np.abs(up)))
+    up_axis = ("+" if up[axis] > 0 else "-") + "xyz"[axis]
+    up_world = np.zeros(3)
+    up_world[axis] = np.sign(up[axis])
+    position = look_at + 1.4 * (eye - look_at) + 0.15 * np.linalg.norm(eye - look_at) * up_world
+    return {"position": position, "look_at": np.asarray(look_at, np.float64), "up": up_world, "up_axis": up_axis}
