@@ -160,8 +160,8 @@ class ViewerApp:
             self.gt_layer.set_offset(right * 2.2 * max(self.layer.radius, self.gt_layer.radius))
         for layer in self._layers():
             layer.build(server)
-        look_at = self.layer.centre + (self.gt_layer.offset / 2 if self.gt_layer is not None else 0.0)
-        view = initial_view(self.layer.recon, look_at)
+        offset = self.gt_layer.offset if self.gt_layer is not None else np.zeros(3)
+        view = initial_view(self.layer.recon, self.layer.centre + offset / 2, extra_distance=0.4 * float(np.linalg.norm(offset)))
         server.scene.set_up_direction(view["up_axis"])
         cam = server.initial_camera
         cam.position = tuple(view["position"])

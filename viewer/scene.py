@@ -135,7 +135,7 @@ class SceneLayer:
         f = float(self.recon.K[0, 0, 0])
         n_total = max(len(self.recon.points_world[0]), 1)
         spacing = np.sqrt(n_total / max(len(self.frames[0].points_local), 1))
-        return float(1.5 * np.median(d) / f * spacing)
+        return float(1.2 * np.median(d) / f * spacing)
 
     def colors(self, frame: FramePoints, mode: str) -> np.ndarray:
         return point_colors(mode, frame.rgb, frame.normals, frame.depth_m, frame.dynamic, self.depth_limits)
@@ -234,8 +234,9 @@ class SceneLayer:
         self._root, self._clouds, self._frustums, self._background_node = None, [], [], None
 
 
-def initial_view(recon: Recon4D, look_at: np.ndarray) -> dict:
-    """Initial viewer camera: behind and above the first recording camera, looking at the scene.
+def initial_view(recon: Recon4D, look_at: np.ndarray, extra_distance: float = 0.0) -> dict:
+    """Initial viewer camera: behind and above the first recording camera, looking at the scene
+    (``extra_distance`` metres further back, e.g. to fit two side-by-side layers).
 
     Returns position, look_at and up (world vectors) and the scene's up axis as "+z"-style text.
     """
@@ -246,5 +247,13 @@ def initial_view(recon: Recon4D, look_at: np.ndarray) -> dict:
     up_axis = ("+" if up[axis] > 0 else "-") + "xyz"[axis]
     up_world = np.zeros(3)
     up_world[axis] = np.sign(up[axis])
-    position = look_at + 1.4 * (eye - look_at) + 0.15 * np.linalg.norm(eye - look_at) * up_world
+    # Swing 35 degrees around the up axis and pull back, so the recording camera's frustum is
+    # seen from the side instead of covering the points it recorded.
+    back = eye - look_at
+    angle = np.deg2rad(35.0)
+    along = np.dot(back, up_world) * up_world
+    across = back - along
+    swung = along + np.cos(angle) * across + np.sin(angle) * np.cross(up_world, across)
+    distance = 1.5 * np.linalg.norm(back) + extra_distance
+    position = look_at + distance * swung / np.linalg.norm(swung) + 0.2 * np.linalg.norm(back) * up_world
     return {"position": position, "look_at": np.asarray(look_at, np.float64), "up": up_world, "up_axis": up_axis}
