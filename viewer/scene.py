@@ -8,7 +8,7 @@ A :class:`SceneLayer` owns the scene nodes of one :class:`Recon4D` under ``/<nam
     /<name>/background          the fused static background points (if the source has them)
 
 Points are decimated to a per-frame budget and sent relative to the layer's centre, so float16
-positions keep sub-millimetre precision for scenes up to ~2 m across; larger scenes use float32.
+positions keep <= 1 mm rounding error for points within ~2 m of it; larger scenes use float32.
 """
 
 from __future__ import annotations
@@ -21,8 +21,8 @@ from reconstruction.recon4d import Recon4D
 from viewer.colors import depth_range, point_colors
 
 DEFAULT_MAX_POINTS = 50_000
-# float16 has 11 significant bits: spacing at |x| = r is r * 2**-10. Use it only where that
-# spacing is below this (metres).
+# float16 has 11 significant bits: rounding error at |x| = r is at most r * 2**-11. Use it only
+# where that error stays below this (metres), i.e. for points within ~2 m of the layer centre.
 FLOAT16_MAX_ERROR_M = 1e-3
 FRUSTUM_IMAGE_MAX_SIDE = 128
 # Which points are drawn: GUI label -> key.
@@ -99,7 +99,7 @@ class SceneLayer:
         all_local = np.concatenate([f.points_local for f in self.frames] + [self.background.points_local])
         self.radius = float(np.percentile(np.linalg.norm(all_local, axis=1), 98)) if len(all_local) else 1.0
         max_abs = float(np.abs(all_local).max()) if len(all_local) else 0.0
-        self.precision = "float16" if max_abs * 2.0**-10 <= FLOAT16_MAX_ERROR_M else "float32"
+        self.precision = "float16" if max_abs * 2.0**-11 <= FLOAT16_MAX_ERROR_M else "float32"
         self.depth_limits = depth_range(recon.depth_m)
         self.default_point_size = self._pixel_footprint()
         self.offset = np.zeros(3)

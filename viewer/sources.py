@@ -12,7 +12,6 @@ sliding box, ray-cast exactly) for tests, benchmarks and trying the viewer witho
 from __future__ import annotations
 
 import os
-import warnings
 from pathlib import Path
 
 import numpy as np
@@ -22,9 +21,9 @@ from tesseract4d.dataset_format import CameraFrames, Episode
 from tesseract4d.errors import UserError
 from tesseract4d.geometry import depth_to_world_points, rotate_vectors, unproject_depth, transform_points
 
-# A pixel is "moving" when its depth differs from the per-pixel median over time by more than
-# this much (metres, plus a fraction of the depth): the median of a static camera's depth is
-# the static background.
+# A pixel is "moving" when it is nearer than the farthest surface seen there over time (for a
+# static camera, that farthest surface is the static background that moving things pass in
+# front of) by more than this much (metres, plus a fraction of the depth).
 DYNAMIC_TOL_M = 0.01
 DYNAMIC_TOL_REL = 0.01
 # Two camera poses closer than this (metres / rotation-matrix entries) count as the same camera.
@@ -63,8 +62,9 @@ def load_source(path: str | os.PathLike, camera: str | None = None) -> Recon4D:
 def recon_from_episode(episode: Episode, camera: str | None = None) -> Recon4D:
     """Back-project every frame of one camera of an episode to world points (no refinement).
 
-    Moving points and the fused static background come from the per-pixel temporal median of
-    depth when the camera is static; a moving camera gives no background and no moving points.
+    Moving points and the fused static background come from the per-pixel farthest depth over
+    time when the camera is static (moving things occlude the background; where something never
+    moves away it counts as background). A moving camera gives no background and no moving points.
     """
     if camera is None:
         camera = next(iter(episode.cameras))
@@ -81,20 +81,16 @@ def recon_from_episode(episode: Episode, camera: str | None = None) -> Recon4D:
     dynamic_px = np.zeros_like(valid)
     background = (np.zeros((0, 3), np.float32), np.zeros((0, 3), np.uint8), np.zeros((0, 3), np.float32))
     if static_camera and T > 1:
-        with warnings.catch_warnings():  # all-invalid pixels give NaN, which is what we want
-            warnings.simplefilter("ignore", RuntimeWarning)
-            median = np.nanmedian(np.where(valid, depth, np.nan), axis=0)  # (H, W)
-        has_median = np.isfinite(median)
-        deviation = np.abs(depth - np.where(has_median, median, 0.0))
-        dynamic_px = valid & has_median & (deviation > DYNAMIC_TOL_M + DYNAMIC_TOL_REL * np.nan_to_num(median))
-        # Background colour and normal: from the frame whose depth is closest to the median.
-        best = np.argmin(np.where(valid, deviation, np.inf), axis=0)  # (H, W)
-        rows, cols = np.nonzero(has_median)
-        pts_cam = unproject_depth(np.nan_to_num(median), cam.K[0])[has_median]
+        depth_valid = np.where(valid, depth, 0.0)
+        farthest_t = np.argmax(depth_valid, axis=0)  # (H, W) the frame that sees the background
+        farthest = np.take_along_axis(depth_valid, farthest_t[None], 0)[0]  # (H, W), 0 = never valid
+        dynamic_px = valid & (depth < farthest - (DYNAMIC_TOL_M + DYNAMIC_TOL_REL * farthest))
+        rows, cols = np.nonzero(farthest > 0)
+        pts_cam = unproject_depth(farthest, cam.K[0])[rows, cols]
         background = (
             transform_points(cam.T_world_cam[0], pts_cam).astype(np.float32),
-            cam.rgb[best[rows, cols], rows, cols].astype(np.uint8),
-            rotate_vectors(cam.T_world_cam[0], cam.normal_cam[best[rows, cols], rows, cols]).astype(np.float32),
+            cam.rgb[farthest_t[rows, cols], rows, cols].astype(np.uint8),
+            rotate_vectors(cam.T_world_cam[0], cam.normal_cam[farthest_t[rows, cols], rows, cols]).astype(np.float32),
         )
     points, colors, normals, dynamic = [], [], [], []
     for t in range(T):
@@ -158,7 +154,8 @@ def look_at_pose(eye: np.ndarray, target: np.ndarray, up: np.ndarray = np.array(
 
 def analytic_episode(num_frames: int = 6, height: int = 96, width: int = 96, seed: int = 0,
                      instruction: str = "push the box to the right") -> Episode:
-    """A ray-cast RGB-D-N episode: a checkered table plane z=0 and a 16 cm box sliding along +y.
+    """A ray-cast RGB-D-N episode: a checkered table plane z=0 and a 16 cm box sliding
+    along the x = y diagonal (across the camera's view).
 
     The seed shifts the box's start, so different seeds give visibly different scenes.
     """
@@ -171,12 +168,13 @@ def analytic_episode(num_frames: int = 6, height: int = 96, width: int = 96, see
     R, origin = T_world_cam[:3, :3], T_world_cam[:3, 3]
     rays = rays_cam @ R.T  # world directions scaled so that the camera z component is 1
     half = 0.08
-    start_y = -0.25 + 0.1 * (seed % 5)
+    start = -0.25 + 0.1 * (seed % 5)
     rgb = np.zeros((num_frames, height, width, 3), np.uint8)
     depth = np.zeros((num_frames, height, width), np.float32)
     normal_cam = np.zeros((num_frames, height, width, 3), np.float32)
     for t in range(num_frames):
-        centre = np.array([0.0, start_y + 0.5 * t / max(num_frames - 1, 1), half])
+        s = start + 0.5 * t / max(num_frames - 1, 1)  # slides across the view, along x = y
+        centre = np.array([s * np.sqrt(0.5), s * np.sqrt(0.5), half])
         # Plane z = 0: origin_z + s * ray_z = 0, s is the camera z-depth since ray_cam_z = 1.
         with np.errstate(divide="ignore", invalid="ignore"):
             s_plane = -origin[2] / rays[..., 2]

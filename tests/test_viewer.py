@@ -1,0 +1,124 @@
+"""Viewer: colour maps, episode back-projection, decimation/precision, metrics reports, CLI errors."""
+
+from __future__ import annotations
+
+import json
+import socket
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from reconstruction.recon4d import Recon4D
+from tesseract4d.errors import UserError
+from viewer.colors import colorize_depth, colorize_normals, point_colors, turbo
+from viewer.compare import image_metrics, load_report_per_frame
+from viewer.scene import SceneLayer, decimate
+from viewer.sources import analytic_episode, load_source, recon_from_episode
+
+CLI = str(Path(sys.executable).with_name("tesseract4d"))
+
+
+def test_turbo_and_image_colour_maps():
+    rgb = turbo(np.linspace(0, 1, 5))
+    assert rgb.shape == (5, 3) and rgb.dtype == np.uint8
+    assert rgb[0, 2] > rgb[0, 0] and rgb[-1, 0] > rgb[-1, 2]  # near blue, far red
+    depth = colorize_depth(np.array([[0.0, 1.0], [2.0, np.nan]]), 1.0, 2.0)
+    assert (depth[0, 0] == 0).all() and (depth[1, 1] == 0).all() and depth[0, 1].any()
+    normals = colorize_normals(np.array([[0.0, 0.0, -1.0], [0.0, 0.0, 0.0]]))
+    assert normals[0].tolist() == [127, 127, 0] and normals[1].tolist() == [0, 0, 0]
+    with pytest.raises(ValueError):
+        point_colors("nope", rgb, rgb, np.zeros(5), np.zeros(5, bool), (0, 1))
+
+
+def test_episode_back_projection_finds_the_moving_box():
+    episode = analytic_episode(num_frames=5, height=48, width=48)
+    recon = recon_from_episode(episode)
+    recon.validate()
+    assert recon.num_frames == 5 and len(recon.background_points) > 0
+    for t in range(5):
+        pts, dyn, col = recon.points_world[t], recon.dynamic[t], recon.colors[t]
+        assert np.allclose(np.linalg.norm(recon.normals_world[t], axis=1), 1.0, atol=1e-3)
+        # The table is the plane z = 0 (static); moving points are the red box, above it.
+        table = pts[:, 2] < 1e-4
+        assert not dyn[table].any()
+        assert dyn.sum() > 0 and (pts[dyn, 2] > 1e-4).all() and (col[dyn, 0] > 150).all()
+    # The box slides along the x = y diagonal.
+    y = [recon.points_world[t][recon.dynamic[t], 1].mean() for t in range(5)]
+    assert np.all(np.diff(y) > 0)
+
+
+def test_decimation_budget_and_float16_choice():
+    assert len(decimate(10, 20)) == 10 and len(np.unique(decimate(1000, 100))) == 100
+    recon = recon_from_episode(analytic_episode(num_frames=2, height=64, width=64))
+    layer = SceneLayer(recon, max_points=500)
+    assert all(len(f.points_local) == 500 for f in layer.frames)
+    assert layer.precision == "float16"  # a 2 m scene around its centre: float16 spacing < 1 mm
+    far = Recon4D(**{**recon.__dict__, "points_world": [p * 100 for p in recon.points_world]})
+    assert SceneLayer(far, max_points=500).precision == "float32"
+
+
+def test_image_metrics_and_report(tmp_path):
+    a = recon_from_episode(analytic_episode(num_frames=3, height=32, width=32, seed=0))
+    b = recon_from_episode(analytic_episode(num_frames=3, height=32, width=32, seed=1))
+    same = image_metrics(a, a)
+    assert len(same) == 3 and same[0]["psnr_rgb_db"] == float("inf") and same[0]["depth_absrel"] == 0.0
+    diff = image_metrics(a, b)
+    assert diff[0]["psnr_rgb_db"] < 40 and diff[0]["depth_absrel"] > 0
+    (tmp_path / "r.json").write_text(json.dumps({"episodes": [{"per_frame": {"psnr": [1.0, 2.0], "absrel": [0.1, 0.2]}}]}))
+    assert load_report_per_frame(tmp_path / "r.json") == [{"psnr": 1.0, "absrel": 0.1}, {"psnr": 2.0, "absrel": 0.2}]
+    (tmp_path / "bad.json").write_text("{")
+    with pytest.raises(UserError, match="not valid JSON"):
+        load_report_per_frame(tmp_path / "bad.json")
+
+
+def test_load_source_errors(tmp_path):
+    with pytest.raises(UserError, match="does not exist"):
+        load_source(tmp_path / "missing")
+    (tmp_path / "notes.txt").write_text("hello")
+    with pytest.raises(UserError, match="not something the viewer opens"):
+        load_source(tmp_path / "notes.txt")
+    with pytest.raises(UserError, match="neither a reconstruction folder"):
+        load_source(tmp_path)
+
+
+def _run_cli(*args, timeout=60):
+    return subprocess.run([CLI, "view", *map(str, args)], capture_output=True, text=True, timeout=timeout)
+
+
+def test_cli_missing_and_malformed_paths(tmp_path):
+    res = _run_cli(tmp_path / "nope")
+    assert res.returncode == 2 and "does not exist" in res.stderr and "reconstruction folder" in res.stderr
+    bad = tmp_path / "recon"
+    bad.mkdir()
+    (bad / "manifest.json").write_text("{not json")
+    res = _run_cli(bad)
+    assert res.returncode == 2 and "corrupt" in res.stderr and "tesseract4d reconstruct" in res.stderr
+    (tmp_path / "episode.h5").write_bytes(b"not hdf5")
+    res = _run_cli(tmp_path / "episode.h5")
+    assert res.returncode == 2 and "corrupt or truncated" in res.stderr
+    assert "Traceback" not in res.stderr
+
+
+def test_cli_port_in_use(tmp_path):
+    recon_dir = recon_from_episode(analytic_episode(num_frames=2, height=32, width=32)).save(tmp_path / "recon", write_ply=False)
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        s.listen()
+        port = s.getsockname()[1]
+        res = _run_cli(recon_dir, "--port", port)
+    assert res.returncode == 2 and f"port {port}" in res.stderr and "in use" in res.stderr and "--port" in res.stderr
+
+
+def test_cli_export_of_a_dataset_episode(tmp_path):
+    from tesseract4d.dataset_format import DatasetInfo, init_dataset, write_episode
+
+    init_dataset(tmp_path / "data", DatasetInfo(height=32, width=32))
+    write_episode(tmp_path / "data", analytic_episode(num_frames=3, height=32, width=32, seed=7))
+    out = tmp_path / "scene.html"
+    res = _run_cli(tmp_path / "data" / "Analytic-v0" / "7", "--export", out)
+    assert res.returncode == 0, res.stderr
+    html = out.read_text()
+    assert "__VISER_EMBED_DATA__" in html and len(html) > 10_000
