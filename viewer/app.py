@@ -119,7 +119,7 @@ class ViewerApp:
             stop_server(self.server)
             self.server = None
             raise UserError(f"port {self.port} on {self.host} is in use (viser fell back to {got}); pass another --port.")
-        self.server.gui.configure_theme(control_layout="fixed", control_width="medium", show_share_button=False)
+        self.server.gui.configure_theme(control_width="medium", show_share_button=False)
         self.server.gui.set_panel_label(self.title)
         self._build_scene()
         self._build_gui()

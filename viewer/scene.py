@@ -254,6 +254,6 @@ def initial_view(recon: Recon4D, look_at: np.ndarray, extra_distance: float = 0.
     along = np.dot(back, up_world) * up_world
     across = back - along
     swung = along + np.cos(angle) * across + np.sin(angle) * np.cross(up_world, across)
-    distance = 1.5 * np.linalg.norm(back) + extra_distance
+    distance = 2.2 * np.linalg.norm(back) + extra_distance
     position = look_at + distance * swung / np.linalg.norm(swung) + 0.2 * np.linalg.norm(back) * up_world
     return {"position": position, "look_at": np.asarray(look_at, np.float64), "up": up_world, "up_axis": up_axis}
