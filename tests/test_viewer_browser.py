@@ -92,7 +92,7 @@ def test_canvas_shows_the_point_cloud(page, artifacts_dir):
 def test_frame_slider_changes_the_picture(page, app, artifacts_dir):
     before = canvas_image(page)
     click_slider(page, "Frame", 0.98)
-    wait_for(lambda: app.frame_slider.value == NUM_FRAMES - 1)
+    wait_for(lambda: app.frame_slider.value == NUM_FRAMES - 1 == app.frame)
     after = wait_until_changed(page, before)
     canvas_image(page, str(artifacts_dir / "viewer_last_frame.png"))
     assert image_change(before, after) > 0.005
@@ -116,10 +116,11 @@ def test_play_advances_frames(page, app):
     page.get_by_label("Play", exact=True).check()
     t0 = time.perf_counter()
     while len(seen) < 3 and time.perf_counter() - t0 < 10:
-        seen.add(app.frame_slider.value)
+        seen.add(app.frame)
         time.sleep(0.05)
     page.get_by_label("Play", exact=True).uncheck()
     assert len(seen) >= 3, f"playback showed only frames {sorted(seen)}"
+    wait_for(lambda: app.frame_slider.value == app.frame)  # paused: the slider shows the exact frame
 
 
 def test_generate_panel_shows_the_result_and_errors(page, app, artifacts_dir):

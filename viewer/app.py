@@ -19,6 +19,7 @@ import os
 import socket
 import sys
 import threading
+import time
 import traceback
 from typing import Callable
 
@@ -27,12 +28,13 @@ import numpy as np
 from reconstruction.recon4d import Recon4D
 from tesseract4d.errors import UserError
 from viewer.colors import COLOR_MODES, colorize_depth, colorize_normals
-from viewer.scene import DEFAULT_MAX_POINTS, POINT_MODES, SceneLayer, initial_view, make_server, stop_server
+from viewer.scene import DEFAULT_MAX_POINTS, POINT_MODES, SceneLayer, configure_rendering, initial_view, make_server, stop_server
 
 # generate(instruction, seed, steps, progress(fraction in [0, 1], message)) -> a new source.
 Generator = Callable[[str, int, int, Callable[[float, str], None]], Recon4D]
 PANEL_IMAGE_MAX_SIDE = 256
 MAX_FPS = 30
+PANEL_REFRESH_WHILE_PLAYING_S = 0.5
 COMPARE_LAYOUTS = ("Side by side", "Prediction only", "Ground truth only")
 
 
@@ -77,6 +79,10 @@ class ViewerApp:
         self._stop = threading.Event()
         self._playback_thread: threading.Thread | None = None
         self._generating = False
+        self._panels_updated_at = 0.0
+        self._slider_synced_at = 0.0
+        self._frame = 0
+        self.frame_switches = 0  # how often the shown time step changed (for benchmarks)
         self.generation_error: str | None = None
         self.generation_count = 0
 
@@ -154,6 +160,7 @@ class ViewerApp:
 
     def _build_scene(self) -> None:
         server = self.server
+        configure_rendering(server)
         if self.gt_layer is not None:
             # Ground truth to the right of the prediction (as seen from the first camera).
             right = self.layer.recon.T_world_cam[0, :3, 0]
@@ -216,18 +223,32 @@ class ViewerApp:
         self.point_size_slider.on_update(lambda _: self._resize_points())
         self.points_dropdown.on_update(lambda _: self._rebuild())
         self.frustum_checkbox.on_update(lambda _: self._toggle_frustums())
+        self.play_checkbox.on_update(lambda _: self._on_play_toggled())
         self.generate_button.on_click(lambda _: self._start_generation())
         self._update_panels(0)
 
     def _color_mode(self) -> str:
         return COLOR_MODES[self.color_dropdown.value]
 
+    @property
+    def frame(self) -> int:
+        """The time step shown now."""
+        return self._frame
+
     def _show_frame(self, t: int) -> None:
         with self._lock:
+            if t != self._frame:
+                self.frame_switches += 1
+            self._frame = t
             with self.server.atomic():
                 for layer in self._layers():
                     layer.show(t)
-            self._update_panels(t)
+            # While playing, refresh the side images a few times a second only: decoding three
+            # images per frame in the page halves the software-WebGL frame rate.
+            now = time.perf_counter()
+            if not self.play_checkbox.value or now - self._panels_updated_at >= PANEL_REFRESH_WHILE_PLAYING_S:
+                self._update_panels(t)
+                self._panels_updated_at = now
 
     def _update_panels(self, t: int) -> None:
         r = self.layer.recon
@@ -240,6 +261,12 @@ class ViewerApp:
 
             rows = self._metrics or []
             self.metrics_md.content = format_metrics(rows[t] if t < len(rows) else None, t)
+
+    def _on_play_toggled(self) -> None:
+        if not self.play_checkbox.value:  # paused: the slider and images show the exact frame
+            with self._lock:
+                self.frame_slider.value = self._frame
+                self._update_panels(self._frame)
 
     def _recolor(self) -> None:
         with self._lock:
@@ -261,7 +288,7 @@ class ViewerApp:
             for layer in self._layers():
                 layer.build(self.server, color_mode=self._color_mode(), point_size=float(self.point_size_slider.value),
                             point_mode=POINT_MODES[self.points_dropdown.value],
-                            show_frustums=bool(self.frustum_checkbox.value), t=int(self.frame_slider.value))
+                            show_frustums=bool(self.frustum_checkbox.value), t=self._frame)
             self._apply_layout()
 
     def _apply_layout(self) -> None:
@@ -280,14 +307,21 @@ class ViewerApp:
     def _playback_loop(self) -> None:
         while not self._stop.is_set():
             if self.server is not None and self.play_checkbox.value and self.num_frames > 1:
-                t = int(self.frame_slider.value) + 1
+                t = self._frame + 1
                 if t >= self.num_frames:
                     if self.loop_checkbox.value:
                         t = 0
                     else:
                         self.play_checkbox.value = False
                         continue
-                self.frame_slider.value = t  # runs _show_frame through the slider's callback
+                self._show_frame(t)
+                # Move the slider a few times a second only: a GUI update per frame costs the
+                # page ~20% of its software-WebGL frame rate. The slider's own callback then
+                # finds the frame already shown.
+                now = time.perf_counter()
+                if now - self._slider_synced_at >= PANEL_REFRESH_WHILE_PLAYING_S / 2:
+                    self._slider_synced_at = now
+                    self.frame_slider.value = t
             self._stop.wait(1.0 / max(float(self.fps_slider.value), 1.0))
 
     # ------------------------------------------------------------------ generation
@@ -304,6 +338,7 @@ class ViewerApp:
             T = self.num_frames
             self.frame_slider.max = max(T - 1, 1)
             self.frame_slider.disabled = self.play_checkbox.disabled = T < 2
+            self._frame = 0
             self._rebuild()
             self.frame_slider.value = 0
             self._update_panels(0)

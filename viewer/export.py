@@ -11,7 +11,7 @@ from pathlib import Path
 
 from reconstruction.recon4d import Recon4D
 from tesseract4d.errors import UserError
-from viewer.scene import DEFAULT_MAX_POINTS, SceneLayer, initial_view, make_server, stop_server
+from viewer.scene import DEFAULT_MAX_POINTS, SceneLayer, configure_rendering, initial_view, make_server, stop_server
 
 
 def export_html(source: Recon4D | str | os.PathLike, out_path: str | os.PathLike,
@@ -28,6 +28,7 @@ def export_html(source: Recon4D | str | os.PathLike, out_path: str | os.PathLike
     layer = SceneLayer(source, "scene", max_points)
     server = make_server("127.0.0.1", 0)
     try:
+        configure_rendering(server)
         layer.build(server, color_mode=color_mode)
         view = initial_view(source, layer.centre)
         server.scene.set_up_direction(view["up_axis"])

@@ -71,6 +71,13 @@ def stop_server(server) -> None:
         server.stop()
 
 
+def configure_rendering(server) -> None:
+    """Scene-wide settings for speed in software WebGL: points are unlit, so no shadow passes
+    and no environment map are needed."""
+    server.scene.configure_default_lights(enabled=True, cast_shadow=False)
+    server.scene.configure_environment_map(hdri=None)
+
+
 def wxyz_from_matrix(R: np.ndarray) -> np.ndarray:
     import viser.transforms as vtf
 
@@ -185,7 +192,7 @@ class SceneLayer:
         T = r.T_world_cam[t]
         return server.scene.add_camera_frustum(
             f"/{self.name}/cams/{t}", fov=float(fov_y), aspect=W / H, scale=0.15 * self.radius,
-            thickness=0.004 * self.radius, color=(40, 40, 40), image=image, format="jpeg", jpeg_quality=85,
+            thickness=0.004 * self.radius, color=(40, 40, 40), image=image, format="jpeg", jpeg_quality=85, cast_shadow=False, receive_shadow=False,
             wxyz=wxyz_from_matrix(T[:3, :3]), position=tuple(T[:3, 3]), visible=visible,
         )
 
