@@ -122,3 +122,44 @@ def test_cli_export_of_a_dataset_episode(tmp_path):
     assert res.returncode == 0, res.stderr
     html = out.read_text()
     assert "__VISER_EMBED_DATA__" in html and len(html) > 10_000
+
+
+def test_cli_serves_and_prints_the_url(tmp_path):
+    import signal
+    import urllib.request
+
+    recon_dir = recon_from_episode(analytic_episode(num_frames=2, height=32, width=32)).save(tmp_path / "recon", write_ply=False)
+    proc = subprocess.Popen([CLI, "view", str(recon_dir), "--port", "0"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        line = proc.stdout.readline()
+        assert line.startswith("viewer: http://127.0.0.1:"), line + proc.stderr.read()
+        url = line.split()[1]
+        with urllib.request.urlopen(url, timeout=10) as page:
+            assert b"<html" in page.read().lower()
+    finally:
+        proc.send_signal(signal.SIGINT)
+        rc = proc.wait(timeout=20)
+    assert rc == 130
+
+
+def test_compare_mode_layout_and_metrics():
+    from viewer.app import COMPARE_LAYOUTS, ViewerApp
+
+    pred = recon_from_episode(analytic_episode(num_frames=3, height=32, width=32, seed=1))
+    gt = recon_from_episode(analytic_episode(num_frames=3, height=32, width=32, seed=0))
+    with ViewerApp(pred, compare=gt, port=0) as app:
+        assert np.linalg.norm(app.gt_layer.offset) > 1.0  # side by side
+        assert "psnr_rgb_db" in app.metrics_md.content and "Frame 0" in app.metrics_md.content
+        app.frame_slider.value = 2
+        assert "Frame 2" in app.metrics_md.content
+        app.layout_dropdown.value = COMPARE_LAYOUTS[2]
+        assert not app.layer._root.visible and app.gt_layer._root.visible
+        assert np.allclose(app.gt_layer.offset, 0.0)
+
+
+def test_model_generator_reports_a_missing_checkpoint(tmp_path):
+    from viewer.generate import model_generator
+
+    source = recon_from_episode(analytic_episode(num_frames=2, height=32, width=32))
+    with pytest.raises(UserError, match="checkpoint"):
+        model_generator(tmp_path / "no_ckpt", source)
