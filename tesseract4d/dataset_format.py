@@ -299,6 +299,18 @@ def write_episode(root: str | os.PathLike, episode: Episode, compression_level: 
     return final
 
 
+def write_episode_dataset(root: str | os.PathLike, episode: Episode) -> Path:
+    """Write one episode as a dataset of its own (created if needed, info taken from the episode).
+
+    For single-episode outputs: a rendered first frame, a prediction. Returns the episode file.
+    """
+    first = next(iter(episode.cameras.values()))
+    height, width = first.rgb.shape[1:3]
+    init_dataset(root, DatasetInfo(fps=float(episode.fps), height=int(height), width=int(width),
+                                   cameras=list(episode.cameras), source=episode.source))
+    return write_episode(root, episode)
+
+
 def remove_partial_files(root: str | os.PathLike) -> list[Path]:
     """Delete leftovers of interrupted writes; returns what was removed."""
     base = Path(root) / EPISODES_DIR
