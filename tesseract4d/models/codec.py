@@ -1,0 +1,92 @@
+"""Codecs between model-space pixels and the space the transformer works in.
+
+Model-space pixel clips are ``(b, t, 7, H, W)`` (model_space.py). The ``tiny`` presets work on them
+directly (``PixelCodec``); ``cogvideox-5b`` works on the latents of ``AutoencoderKLCogVideoX``
+(``VaeCodec``): rgb, depth (repeated to 3 channels) and normal are encoded separately, each to
+``latent_channels`` channels, and stacked on channels: ``(b, t', 3 * latent_channels, h, w)``.
+
+Also here: how the first frame becomes the transformer's ``condition`` input.
+"""
+
+from __future__ import annotations
+
+import torch
+
+from tesseract4d.model_space import MODALITIES, MODALITY_CHANNELS, channel_slices
+from tesseract4d.presets import CONDITION_REPEAT
+
+
+class PixelCodec:
+    """Identity codec: the network sees model-space pixels."""
+
+    temporal_compression = 1
+    spatial_compression = 1
+
+    def __init__(self) -> None:
+        self.modality_channels = dict(MODALITY_CHANNELS)
+
+    def to(self, device: torch.device | str) -> "PixelCodec":
+        return self
+
+    def num_latent_frames(self, num_frames: int) -> int:
+        return num_frames
+
+    def encode(self, x: torch.Tensor, generator: torch.Generator | None = None) -> torch.Tensor:
+        return x  # (b, t, 7, h, w)
+
+    def decode(self, z: torch.Tensor) -> torch.Tensor:
+        return z
+
+
+class VaeCodec:
+    """Per-modality encoding through a CogVideoX VAE (frozen)."""
+
+    def __init__(self, vae) -> None:
+        self.vae = vae.eval().requires_grad_(False)
+        self.scaling = float(vae.config.scaling_factor)
+        self.temporal_compression = int(vae.config.temporal_compression_ratio)
+        self.spatial_compression = 2 ** (len(vae.config.block_out_channels) - 1)
+        lc = int(vae.config.latent_channels)
+        self.modality_channels = {name: lc for name in MODALITIES}
+
+    def to(self, device: torch.device | str) -> "VaeCodec":
+        self.vae.to(device)
+        return self
+
+    def num_latent_frames(self, num_frames: int) -> int:
+        if (num_frames - 1) % self.temporal_compression:
+            raise ValueError(f"a latent clip needs 1 + {self.temporal_compression}k frames, got {num_frames}")
+        return (num_frames - 1) // self.temporal_compression + 1
+
+    @torch.no_grad()
+    def encode(self, x: torch.Tensor, generator: torch.Generator | None = None) -> torch.Tensor:
+        """(b, t, 7, H, W) model-space pixels -> (b, t', 3*lc, h, w) scaled latents."""
+        parts = []
+        for s in channel_slices().values():
+            v = x[:, :, s]
+            if v.shape[2] == 1:
+                v = v.expand(-1, -1, 3, -1, -1)
+            v = v.permute(0, 2, 1, 3, 4).to(self.vae.dtype)  # (b, 3, t, H, W)
+            z = self.vae.encode(v).latent_dist.sample(generator) * self.scaling  # (b, lc, t', h, w)
+            parts.append(z.permute(0, 2, 1, 3, 4).float())
+        return torch.cat(parts, dim=2)
+
+    @torch.no_grad()
+    def decode(self, z: torch.Tensor) -> torch.Tensor:
+        """(b, t', 3*lc, h, w) latents -> (b, t, 7, H, W) model-space pixels."""
+        lc = self.modality_channels["rgb"]
+        out = []
+        for i, name in enumerate(MODALITIES):
+            zi = z[:, :, i * lc:(i + 1) * lc].permute(0, 2, 1, 3, 4) / self.scaling  # (b, lc, t', h, w)
+            v = self.vae.decode(zi.to(self.vae.dtype)).sample.float().permute(0, 2, 1, 3, 4)  # (b, t, 3, H, W)
+            out.append(v.mean(dim=2, keepdim=True) if MODALITY_CHANNELS[name] == 1 else v)
+        return torch.cat(out, dim=2)
+
+
+def make_condition(first: torch.Tensor, num_latent_frames: int, mode: str) -> torch.Tensor:
+    """First-frame condition (b, t', c, h, w) from the encoded first frame ``first`` (b, 1, c, h, w):
+    repeated over time (``repeat``) or at frame 0 followed by zeros (``first``, CogVideoX-I2V)."""
+    if mode == CONDITION_REPEAT:
+        return first.expand(-1, num_latent_frames, -1, -1, -1).contiguous()
+    pad = first.new_zeros(first.shape[0], num_latent_frames - 1, *first.shape[2:])
+    return torch.cat([first, pad], dim=1)

