@@ -42,7 +42,7 @@ class RGBDNPipeline:
     """
 
     def __init__(self, transformer, scheduler, codec, text_encoder, preset: ModelPreset, model_space,
-                 camera_name: str | None = None, bf16: bool = False):
+                 camera_name: str | None = None, bf16: bool = False, config: dict | None = None):
         self.transformer = transformer.eval()
         self.scheduler = scheduler
         self.codec = codec
@@ -51,6 +51,7 @@ class RGBDNPipeline:
         self.model_space = model_space
         self.camera_name = camera_name
         self.bf16 = bf16
+        self.config = config or {}  # the checkpoint's tesseract4d_config.json, when loaded from one
         self.device = next(transformer.parameters()).device
 
     @property

@@ -25,7 +25,14 @@ from diffusers.configuration_utils import ConfigMixin, register_to_config
 from diffusers.models.embeddings import get_3d_rotary_pos_embed
 from diffusers.models.modeling_utils import ModelMixin
 
+from tesseract4d.model_space import MODALITIES
+
 TIMESTEP_SCALE = 1000.0
+
+
+def _ordered(modality_channels: dict[str, int]) -> list[str]:
+    """Modalities in model-space order (config.json is saved with sorted keys, so dict order is lost)."""
+    return [m for m in MODALITIES if m in modality_channels] + sorted(set(modality_channels) - set(MODALITIES))
 
 
 class ModalityPatchProjection(nn.Module):
@@ -85,7 +92,7 @@ class RGBDNTransformer(ModelMixin, ConfigMixin):
     @register_to_config
     def __init__(self, backbone_config: dict, modality_channels: dict[str, int]):
         super().__init__()
-        names = list(modality_channels)
+        names = _ordered(modality_channels)
         if not names or names[0] != "rgb":
             raise ValueError(f"modality_channels must start with 'rgb' (the backbone's own input), got {names}")
         c_rgb = modality_channels["rgb"]
@@ -122,7 +129,8 @@ class RGBDNTransformer(ModelMixin, ConfigMixin):
 
     def channel_slices(self) -> dict[str, slice]:
         out, start = {}, 0
-        for name, c in self.config.modality_channels.items():
+        for name in _ordered(self.config.modality_channels):
+            c = self.config.modality_channels[name]
             out[name] = slice(start, start + c)
             start += c
         return out

@@ -1,0 +1,195 @@
+"""Prediction: first RGB-D-N frame + instruction -> predicted RGB-D-N episode (dataset format).
+
+    pipe = load_pipeline("runs/tiny/final")
+    first = render_first_frame("PickCube-v1", 100000, height=64, width=64)   # or read_episode(...)
+    pred = predict_episode(pipe, first, "pick up the red cube", num_frames=16, seed=0)
+    write_prediction(pred, "out/prediction")      # episode .h5 + MP4 preview (RGB | depth | normal)
+
+The predicted episode keeps the first frame's env id, seed, intrinsics and (static) camera pose;
+its frame 0 is the given first frame, depth is metric (0 = beyond the model's depth range),
+normals are unit vectors in the OpenCV camera frame.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+import torch
+
+from tesseract4d import dataset_format as df
+from tesseract4d.errors import UserError
+from tesseract4d.model_space import ModelSpace
+from tesseract4d.pipeline import INFERENCE_CONFIG_FILE, TRANSFORMER_DIR, RGBDNPipeline, make_scheduler
+from tesseract4d.presets import PRESETS, preset_from_dict
+
+
+def load_pipeline(checkpoint: str | os.PathLike, device: str = "cpu", bf16: bool = False) -> RGBDNPipeline:
+    """Load an inference checkpoint folder (``tesseract4d train --export``, or RUN/final).
+
+    Raises UserError when the folder is missing, is not a tesseract4d checkpoint, names an unknown
+    preset, or holds weights that do not match its preset.
+    """
+    from tesseract4d.models.build import build_codec, build_text_encoder
+    from tesseract4d.models.rgbdn_transformer import RGBDNTransformer
+
+    ckpt = Path(checkpoint)
+    if not ckpt.is_dir():
+        raise UserError(f"checkpoint {ckpt} not found; pass a folder written by `tesseract4d train` (RUN/final) "
+                        f"or `tesseract4d train --export RUN --to DIR`")
+    cfg_path = ckpt / INFERENCE_CONFIG_FILE
+    weights = ckpt / TRANSFORMER_DIR / "diffusion_pytorch_model.safetensors"
+    if not cfg_path.is_file() or not weights.is_file():
+        hint = " (a training checkpoint: export it with `tesseract4d train --export RUN`)" if (ckpt / "trainer_state.json").is_file() else ""
+        raise UserError(f"{ckpt} is not a tesseract4d inference checkpoint: it needs {INFERENCE_CONFIG_FILE} and "
+                        f"{TRANSFORMER_DIR}/diffusion_pytorch_model.safetensors{hint}")
+    try:
+        cfg = json.loads(cfg_path.read_text())
+        preset = preset_from_dict(cfg["preset"])
+    except (json.JSONDecodeError, KeyError, TypeError) as e:
+        raise UserError(f"{cfg_path} is corrupt ({type(e).__name__}: {e}); re-export the checkpoint") from e
+    if cfg["preset"].get("name") not in PRESETS:
+        raise UserError(f"{ckpt} uses preset {cfg['preset'].get('name')!r}, unknown to this tesseract4d "
+                        f"(known: {', '.join(PRESETS)}); update tesseract4d or use a matching checkpoint")
+    pretrained = cfg.get("pretrained_dir")
+    codec = build_codec(preset, pretrained)
+    transformer = _load_transformer(ckpt / TRANSFORMER_DIR, preset, codec)
+    text_encoder = build_text_encoder(preset, pretrained, device=device)
+    if transformer.backbone.config.text_embed_dim != text_encoder.dim:
+        raise UserError(f"{ckpt}: the transformer expects {transformer.backbone.config.text_embed_dim}-d text "
+                        f"embeddings but the {preset.text_encoder} encoder gives {text_encoder.dim}")
+    space = ModelSpace(**cfg["model_space"])
+    pipe = RGBDNPipeline(transformer, make_scheduler(), codec, text_encoder, preset, space,
+                         camera_name=cfg.get("camera_name"), bf16=bf16, config=cfg)
+    return pipe.to(device)
+
+
+def _load_transformer(folder: Path, preset, codec):
+    """RGBDNTransformer from ``folder``, checked against the preset (clear error if they differ)."""
+    from safetensors.torch import load_file
+
+    from tesseract4d.models.rgbdn_transformer import RGBDNTransformer
+
+    saved = json.loads((folder / "config.json").read_text())
+    expected_channels = dict(codec.modality_channels)
+    if saved.get("modality_channels") != expected_channels:
+        raise UserError(f"{folder} has modality channels {saved.get('modality_channels')} but preset "
+                        f"{preset.name!r} needs {expected_channels}; the weights belong to another preset")
+    if preset.backbone:
+        mismatch = {k: (saved.get("backbone_config", {}).get(k), v) for k, v in preset.backbone.items()
+                    if saved.get("backbone_config", {}).get(k) != v}
+        if mismatch:
+            raise UserError(f"{folder} does not match preset {preset.name!r}: "
+                            + ", ".join(f"{k} is {a}, preset has {b}" for k, (a, b) in mismatch.items()))
+    model = RGBDNTransformer(saved["backbone_config"], saved["modality_channels"])
+    state = load_file(str(folder / "diffusion_pytorch_model.safetensors"))
+    try:
+        model.load_state_dict(state)
+    except RuntimeError as e:
+        raise UserError(f"{folder}: weights do not match the config of preset {preset.name!r} "
+                        f"({str(e).splitlines()[0]} ...); re-export the checkpoint") from e
+    return model.eval()
+
+
+def _first_frame_arrays(first_frame: df.Episode, camera: str | None) -> tuple[str, df.CameraFrames]:
+    if not first_frame.cameras:
+        raise UserError("the first-frame episode has no camera")
+    name = camera or next(iter(first_frame.cameras))
+    if name not in first_frame.cameras:
+        raise UserError(f"the first-frame episode has no camera {name!r}; it has {', '.join(first_frame.cameras)}")
+    return name, first_frame.cameras[name]
+
+
+def predict_episode(
+    pipeline: RGBDNPipeline,
+    first_frame: df.Episode,
+    instruction: str,
+    *,
+    num_frames: int = 16,
+    seed: int = 0,
+    num_steps: int = 10,
+    text_guidance: float | None = None,
+    image_guidance: float | None = None,
+    camera: str | None = None,
+    progress: Callable[[int, int], None] | None = None,
+) -> df.Episode:
+    """Predict ``num_frames`` RGB-D-N frames from frame 0 of ``first_frame`` (its first camera, or
+    ``camera``) and ``instruction``. Guidance scales default to the checkpoint's preset.
+
+    Raises UserError for an empty instruction or a first frame whose resolution is not the model's.
+    """
+    episodes = predict_episodes(pipeline, first_frame, instruction, num_samples=1, num_frames=num_frames, seed=seed,
+                                num_steps=num_steps, text_guidance=text_guidance, image_guidance=image_guidance,
+                                camera=camera, progress=progress)
+    return episodes[0]
+
+
+def predict_episodes(
+    pipeline: RGBDNPipeline,
+    first_frame: df.Episode,
+    instruction: str,
+    *,
+    num_samples: int = 1,
+    num_frames: int = 16,
+    seed: int = 0,
+    num_steps: int = 10,
+    text_guidance: float | None = None,
+    image_guidance: float | None = None,
+    camera: str | None = None,
+    progress: Callable[[int, int], None] | None = None,
+) -> list[df.Episode]:
+    """``num_samples`` different predictions of the same first frame, sampled as one batch from the
+    generator seeded with ``seed`` (same arguments, same episodes)."""
+    if not isinstance(instruction, str) or not instruction.strip():
+        raise UserError("the instruction is empty; say what should happen, e.g. --instruction \"pick up the red cube\"")
+    if num_frames < 1 or num_steps < 1 or num_samples < 1:
+        raise UserError("--num-frames, --steps and --num-samples must be at least 1")
+    cam_name, cam = _first_frame_arrays(first_frame, camera)
+    h, w = cam.rgb.shape[1:3]
+    if (h, w) != pipeline.resolution:
+        raise UserError(f"the first frame is {h}x{w} but the model predicts {pipeline.resolution[0]}x{pipeline.resolution[1]}; "
+                        f"render/resize the first frame to the model's resolution")
+    x = pipeline.model_space.encode(cam.rgb[:1], cam.depth_m[:1], cam.normal_cam[:1])  # (1, 7, H, W)
+    generator = torch.Generator().manual_seed(int(seed))
+    clips = pipeline(x.expand(num_samples, -1, -1, -1), [instruction.strip()] * num_samples, num_frames=num_frames,
+                     num_inference_steps=num_steps, text_guidance=text_guidance, image_guidance=image_guidance,
+                     generator=generator, progress=progress)  # (n, T, 7, H, W)
+    out = []
+    for k in range(num_samples):
+        rgb, depth_m, normal_cam = pipeline.model_space.decode(clips[k])
+        # Frame 0 is the given first frame, exactly.
+        rgb[0], depth_m[0], normal_cam[0] = cam.rgb[0], cam.depth_m[0], cam.normal_cam[0]
+        frames = df.CameraFrames(
+            rgb=rgb, depth_m=depth_m, normal_cam=normal_cam,
+            K=np.repeat(np.asarray(cam.K[:1], np.float64), num_frames, 0),
+            T_world_cam=np.repeat(np.asarray(cam.T_world_cam[:1], np.float64), num_frames, 0),
+        )
+        out.append(df.Episode(
+            env_id=first_frame.env_id, seed=first_frame.seed, instruction=instruction.strip(), cameras={cam_name: frames},
+            frame_steps=np.arange(num_frames, dtype=np.int32), env_kwargs=dict(first_frame.env_kwargs),
+            control_mode=first_frame.control_mode, fps=first_frame.fps, source="prediction",
+            metadata={"prediction": {
+                "checkpoint_preset": pipeline.preset.name, "sample_seed": int(seed), "sample_index": k,
+                "num_steps": int(num_steps), "text_guidance": text_guidance, "image_guidance": image_guidance,
+                "depth_range_m": [pipeline.model_space.near_m, pipeline.model_space.far_m],
+                "training": pipeline.config.get("training"),
+            }},
+        ))
+    return out
+
+
+def write_prediction(episode: df.Episode, out_dir: str | os.PathLike) -> Path:
+    """Write a predicted episode as a one-episode dataset folder (``out_dir``) with its MP4 preview
+    (RGB | depth | normal); returns the episode's .h5 path."""
+    from datagen.previews import write_preview
+
+    cam = next(iter(episode.cameras.values()))
+    h, w = cam.rgb.shape[1:3]
+    df.init_dataset(out_dir, df.DatasetInfo(fps=episode.fps, height=h, width=w, cameras=list(episode.cameras),
+                                            source="prediction"))
+    path = df.write_episode(out_dir, episode)
+    write_preview(out_dir, episode)
+    return path

@@ -1,0 +1,166 @@
+"""Predict the RGB-D-N future of a scene from its first frame and an instruction.
+
+The first frame comes from one of:
+  --task PickCube-v1 --seed 100000        rendered by ManiSkill (the checkpoint's camera preset)
+  --episode DIR/ENV_ID/SEED | FILE.h5     frame 0 of a dataset episode
+  --rgb IMG --depth DEPTH --K K           your own files: depth as .npy (metres) or 16-bit PNG (mm);
+                                          K as .npy/.txt (3x3) or .json; normals (--normal .npy) are
+                                          derived from depth when not given
+
+  tesseract4d predict --checkpoint runs/tiny/final --task PickCube-v1 --seed 100000 \\
+      --instruction "pick up the red cube" --out out/pred
+
+Writes OUT as a dataset folder (episodes/<env>/seed_*.h5 + previews/*.mp4), one folder per sample
+(OUT/sample_XX) with --num-samples > 1, and OUT/predict_config.json.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from tesseract4d.errors import UserError
+
+
+@dataclass
+class PredictConfig:
+    checkpoint: Path | None = None
+    instruction: str | None = None
+    task: str | None = None
+    seed: int | None = None
+    episode: str | None = None
+    rgb: Path | None = None
+    depth: Path | None = None
+    K: Path | None = None
+    normal: Path | None = None
+    out: Path = Path("prediction")
+    num_frames: int = 16
+    steps: int = 10
+    sample_seed: int = 0
+    num_samples: int = 1
+    text_guidance: float | None = None
+    image_guidance: float | None = None
+    device: str = "cpu"
+    bf16: bool = False
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    d = PredictConfig()
+    parser.add_argument("--checkpoint", type=Path, required=True, help="inference checkpoint folder (RUN/final or --export output)")
+    parser.add_argument("--instruction", help="what should happen (default: the episode's / scene's own instruction)")
+    src = parser.add_argument_group("first frame (one of)")
+    src.add_argument("--task", help="ManiSkill task id to render, with --seed")
+    src.add_argument("--seed", type=int, help="scene seed for --task")
+    src.add_argument("--episode", help="dataset episode: FILE.h5, DIR/ENV_ID/SEED or a one-episode dataset folder")
+    src.add_argument("--rgb", type=Path, help="RGB image file")
+    src.add_argument("--depth", type=Path, help="depth: .npy in metres or 16-bit PNG in millimetres")
+    src.add_argument("--K", type=Path, help="3x3 pixel intrinsics: .npy, .txt or .json")
+    src.add_argument("--normal", type=Path, help="optional (H, W, 3) .npy unit normals, OpenCV camera frame")
+    parser.add_argument("--out", type=Path, default=d.out, help="output folder (default %(default)s)")
+    parser.add_argument("--num-frames", type=int, default=d.num_frames, help="frames to predict; more than one clip continues autoregressively (default %(default)s)")
+    parser.add_argument("--steps", type=int, default=d.steps, help="sampler steps (default %(default)s)")
+    parser.add_argument("--sample-seed", type=int, default=d.sample_seed, help="noise seed (default %(default)s)")
+    parser.add_argument("--num-samples", type=int, default=d.num_samples, help="samples to draw in one batch (default %(default)s)")
+    parser.add_argument("--text-guidance", type=float, help="text guidance scale (default: the checkpoint preset's)")
+    parser.add_argument("--image-guidance", type=float, help="first-frame guidance scale (default: the checkpoint preset's)")
+    parser.add_argument("--device", default=d.device, help="torch device (default %(default)s)")
+    parser.add_argument("--bf16", action="store_true", help="bf16 autocast")
+
+
+def _read_K(path: Path) -> np.ndarray:
+    if path.suffix == ".json":
+        K = np.asarray(json.loads(path.read_text()), np.float64)
+    elif path.suffix == ".npy":
+        K = np.load(path).astype(np.float64)
+    else:
+        K = np.loadtxt(path, dtype=np.float64)
+    if K.shape != (3, 3):
+        raise UserError(f"{path}: K must be a 3x3 matrix, got shape {K.shape}")
+    return K
+
+
+def _read_depth(path: Path) -> np.ndarray:
+    if path.suffix == ".npy":
+        return np.load(path).astype(np.float32)
+    import imageio.v2 as imageio
+
+    depth = imageio.imread(path)
+    if depth.dtype != np.uint16:
+        raise UserError(f"{path}: a depth PNG must be 16-bit millimetres (got {depth.dtype}); or pass a .npy in metres")
+    return depth.astype(np.float32) / 1000.0
+
+
+def first_frame_from_files(rgb: Path, depth: Path, K: Path, normal: Path | None = None):
+    """A one-frame Episode (env_id "user", identity camera pose) from user files."""
+    import imageio.v2 as imageio
+
+    from tesseract4d.dataset_format import CameraFrames, Episode
+    from tesseract4d.geometry import normals_from_depth
+
+    for name, p in (("--rgb", rgb), ("--depth", depth), ("--K", K)):
+        if p is None:
+            raise UserError("--rgb, --depth and --K go together: pass all three")
+        if not Path(p).is_file():
+            raise UserError(f"{name} {p} does not exist")
+    image = imageio.imread(rgb)
+    if image.ndim != 3 or image.shape[-1] not in (3, 4):
+        raise UserError(f"{rgb}: expected an RGB image, got shape {image.shape}")
+    image = np.ascontiguousarray(image[..., :3]).astype(np.uint8)
+    depth_m = _read_depth(depth)
+    if depth_m.shape != image.shape[:2]:
+        raise UserError(f"depth {depth_m.shape} and rgb {image.shape[:2]} differ in size")
+    K_mat = _read_K(K)
+    normal_cam = np.load(normal).astype(np.float32) if normal is not None else normals_from_depth(depth_m, K_mat)
+    cam = CameraFrames(rgb=image[None], depth_m=depth_m[None], normal_cam=normal_cam[None], K=K_mat[None],
+                       T_world_cam=np.eye(4)[None])
+    return Episode(env_id="user", seed=0, instruction="", cameras={"user": cam}, frame_steps=np.zeros(1, np.int32))
+
+
+def load_first_frame(cfg: PredictConfig, resolution: tuple[int, int], camera: str | None):
+    sources = [cfg.task is not None, cfg.episode is not None, any(x is not None for x in (cfg.rgb, cfg.depth, cfg.K))]
+    if sum(sources) != 1:
+        raise UserError("give the first frame in exactly one way: --task ID --seed S, --episode PATH, or --rgb/--depth/--K")
+    if cfg.task is not None:
+        if cfg.seed is None:
+            raise UserError("--task needs --seed (scene seeds from 100000 on are never used in training)")
+        from datagen.simulate import render_first_frame
+
+        return render_first_frame(cfg.task, cfg.seed, height=resolution[0], width=resolution[1], camera=camera or "close")
+    if cfg.episode is not None:
+        from tesseract4d import dataset_format as df
+
+        return df.read_episode(df.resolve_episode(cfg.episode), frames=slice(0, 1))
+    return first_frame_from_files(cfg.rgb, cfg.depth, cfg.K, cfg.normal)
+
+
+def run(args: argparse.Namespace) -> int:
+    from tqdm import tqdm
+
+    from tesseract4d.predict import load_pipeline, predict_episodes, write_prediction
+
+    cfg = PredictConfig(**{f.name: getattr(args, f.name) for f in dataclasses.fields(PredictConfig)})
+    pipe = load_pipeline(cfg.checkpoint, device=cfg.device, bf16=cfg.bf16)
+    first = load_first_frame(cfg, pipe.resolution, pipe.camera_name)
+    instruction = cfg.instruction if cfg.instruction is not None else first.instruction
+    bar = tqdm(desc="predict", unit="step")
+
+    def progress(step: int, total: int) -> None:
+        bar.total = total
+        bar.update(step - bar.n)
+
+    episodes = predict_episodes(pipe, first, instruction, num_samples=cfg.num_samples, num_frames=cfg.num_frames,
+                                seed=cfg.sample_seed, num_steps=cfg.steps, text_guidance=cfg.text_guidance,
+                                image_guidance=cfg.image_guidance, progress=progress)
+    bar.close()
+    out = Path(cfg.out)
+    for k, ep in enumerate(episodes):
+        folder = out if len(episodes) == 1 else out / f"sample_{k:02d}"
+        print(f"wrote {write_prediction(ep, folder)}")
+    resolved = {k: (str(v) if isinstance(v, Path) else v) for k, v in dataclasses.asdict(cfg).items()}
+    (out / "predict_config.json").write_text(json.dumps({**resolved, "instruction": instruction}, indent=2))
+    return 0
