@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from reconstruction.normal_integration import LeastSquares
+from reconstruction.normal_integration import GATE_SIGMAS, LeastSquares
 from tesseract4d.geometry import invert_pose, pixel_grid
 
 
@@ -71,8 +71,16 @@ def add_temporal_rows(
             ratio = a + T_t_prev[2, 3] / np.exp(ref_prev)
             ok &= ratio > 1e-6
             offset = np.log(np.where(ratio > 1e-6, ratio, 1.0))
-        ok &= np.abs(log_depth_ref[t][rows, cols] - ref_prev - offset) < gate_log
         moving = dynamic[t][rows, cols] | dynamic[t - 1][np.rint(yq).astype(np.int64), np.rint(xq).astype(np.int64)]
+        change = log_depth_ref[t][rows, cols] - ref_prev - offset
+        # A global depth-scale flicker between the frames is what these rows should remove,
+        # not a sign of occlusion: gate on the change relative to the frame's median change.
+        typical = ok & ~moving if (ok & ~moving).any() else ok
+        flicker = float(np.median(change[typical])) if typical.any() else 0.0
+        # Noisy depth spreads the changes of true matches; keep those within GATE_SIGMAS robust
+        # standard deviations (1.4826 MAD), and at least within gate_log.
+        spread = 1.4826 * float(np.median(np.abs(change[typical] - flicker))) if typical.any() else 0.0
+        ok &= np.abs(change - flicker) < max(gate_log, GATE_SIGMAS * spread)
         for label, sel, weight in (("static", ok & ~moving, static_weight), ("dynamic", ok & moving, dynamic_weight)):
             m = int(sel.sum())
             if m and weight > 0:

@@ -28,6 +28,8 @@ MIN_RAY_COSINE = 0.05
 # Rows whose target log-depth change exceeds this per pixel (a 20 % depth change) sit on a
 # silhouette or a near-grazing surface, where the normal says little about the depth.
 MAX_LOG_STEP = 0.2
+# Outlier threshold of the gates, in robust standard deviations.
+GATE_SIGMAS = 3.0
 
 
 @dataclass
@@ -141,14 +143,15 @@ def add_normal_rows(
     """Add one row per pair of 4-neighbours: ``x_b - x_a = (g_a + g_b) / 2``.
 
     index: (H, W) int, the unknown of each pixel (-1 = none); unknowns are log depths.
-    log_depth_ref: (H, W) log depth used to detect discontinuities (rows whose reference step
-    differs from the normal-implied step by more than ``discontinuity_log_tol`` are dropped).
+    log_depth_ref: (H, W) log depth used to detect discontinuities: rows whose reference step
+    differs from the normal-implied step by more than ``discontinuity_log_tol`` (or, for noisy
+    references, GATE_SIGMAS robust standard deviations of those differences) are dropped.
     Returns the number of rows added.
     """
     gu, gv, usable = log_depth_gradients(normal_cam, K)
     n = np.asarray(normal_cam, np.float64)
     n = n / np.maximum(np.linalg.norm(n, axis=-1, keepdims=True), 1e-12)
-    added = 0
+    candidates = []
     for axis, g in ((1, gu), (0, gv)):
         a = (slice(None), slice(0, -1)) if axis == 1 else (slice(0, -1), slice(None))
         b = (slice(None), slice(1, None)) if axis == 1 else (slice(1, None), slice(None))
@@ -157,13 +160,21 @@ def add_normal_rows(
         ok = (ia >= 0) & (ib >= 0) & usable[a] & usable[b] & (np.abs(target) < MAX_LOG_STEP)
         if discontinuity_normal_deg is not None:
             ok &= (n[a] * n[b]).sum(-1) > np.cos(np.deg2rad(discontinuity_normal_deg))
-        if log_depth_ref is not None and discontinuity_log_tol is not None:
-            step = log_depth_ref[b] - log_depth_ref[a]
-            ok &= np.abs(step - target) < discontinuity_log_tol
-        m = int(ok.sum())
+        residual = (log_depth_ref[b] - log_depth_ref[a] - target)[ok] if log_depth_ref is not None else None
+        candidates.append((ia[ok], ib[ok], target[ok], residual))
+    keep = [np.ones(len(c[2]), bool) for c in candidates]
+    if log_depth_ref is not None and discontinuity_log_tol is not None:
+        # Noisy reference depth spreads the residuals of smooth surfaces: the threshold is at
+        # least GATE_SIGMAS robust standard deviations (1.4826 MAD) of the frame's residuals.
+        residuals = np.concatenate([c[3] for c in candidates])
+        spread = 1.4826 * float(np.median(np.abs(residuals))) if len(residuals) else 0.0
+        tol = max(discontinuity_log_tol, GATE_SIGMAS * spread)
+        keep = [np.abs(c[3]) < tol for c in candidates]
+    added = 0
+    for (ia, ib, target, _), k in zip(candidates, keep):
+        m = int(k.sum())
         if m:
-            cols = np.stack([ia[ok], ib[ok]], -1)
-            problem.add(cols, np.tile([-1.0, 1.0], (m, 1)), target[ok], weight)
+            problem.add(np.stack([ia[k], ib[k]], -1), np.tile([-1.0, 1.0], (m, 1)), target[k], weight)
         added += m
     return added
 

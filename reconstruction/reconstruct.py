@@ -49,9 +49,9 @@ class ReconConfig:
     iterations: int = 300  # maximum conjugate-gradient iterations of the joint solve
     tolerance: float = 1e-5  # relative residual at which the solve stops
     flow_threshold_px: float = 0.5  # flow (beyond the camera's own motion) above this = dynamic
-    discontinuity_log_tol: float = 0.05  # drop normal rows whose input depth step differs this much (log)
+    discontinuity_log_tol: float = 0.05  # drop normal rows whose input depth step differs this much (log); adaptive to noise
     discontinuity_normal_deg: float = 45.0  # ... or whose two normals differ by more (degrees)
-    temporal_gate_log: float = 0.1  # drop temporal rows whose input depths differ more (occlusions)
+    temporal_gate_log: float = 0.02  # drop temporal rows whose input depths differ more (occlusions); adaptive to noise
     voxel_size_m: float | None = None  # TSDF voxel; None = 1.5 pixel footprints at the median depth
     trunc_voxels: float = 4.0  # TSDF truncation, in voxels
     fuse_background: bool = True  # TSDF-fuse static pixels into a background cloud and mesh
@@ -109,20 +109,6 @@ def check_frames(cam: CameraFrames, label: str) -> tuple[np.ndarray, np.ndarray,
     return np.where(valid, depth, 0.0).astype(np.float32), normals, valid
 
 
-def median_log_depth(depth_m: np.ndarray, valid: np.ndarray) -> np.ndarray:
-    """Log depth (T, H, W) after a 5x5 median per frame: a noise-robust reference for the
-    discontinuity and occlusion gates (raw log depth where the median would mix in holes)."""
-    import cv2
-
-    log_depth = np.log(np.where(valid, depth_m, 1.0)).astype(np.float32)
-    out = log_depth.copy()
-    for t in range(len(depth_m)):
-        med = cv2.medianBlur(np.ascontiguousarray(depth_m[t], np.float32), 5)
-        ok = valid[t] & (med > 0)
-        out[t][ok] = np.log(med[ok])
-    return out
-
-
 def refine_depth(depth_m, normal_cam, valid, K, T_world_cam, flow_prev, dynamic, config: ReconConfig, timings: dict) -> tuple[np.ndarray, dict]:
     """Stages 3-5: the joint least-squares refinement. Returns (depth (T, H, W) float32, stats)."""
     from reconstruction.consistency import add_temporal_rows
@@ -132,12 +118,11 @@ def refine_depth(depth_m, normal_cam, valid, K, T_world_cam, flow_prev, dynamic,
     index = np.full(depth_m.shape, -1, np.int64)
     index[valid] = np.arange(int(valid.sum()))
     log_depth = np.log(np.where(valid, depth_m, 1.0))
-    log_ref = median_log_depth(depth_m, valid)
     problem = LeastSquares(int(valid.sum()))
 
     start = time.perf_counter()
     normal_rows = sum(
-        add_normal_rows(problem, index[t], normal_cam[t], K[t], config.normal_weight, log_ref[t],
+        add_normal_rows(problem, index[t], normal_cam[t], K[t], config.normal_weight, log_depth[t],
                         config.discontinuity_log_tol, config.discontinuity_normal_deg)
         for t in range(T)
     )
@@ -145,7 +130,7 @@ def refine_depth(depth_m, normal_cam, valid, K, T_world_cam, flow_prev, dynamic,
     timings["normal_terms"] = time.perf_counter() - start
 
     start = time.perf_counter()
-    temporal = add_temporal_rows(problem, index, log_ref, flow_prev, dynamic, K, T_world_cam,
+    temporal = add_temporal_rows(problem, index, log_depth, flow_prev, dynamic, K, T_world_cam,
                                  config.static_weight, config.dynamic_weight, config.temporal_gate_log)
     timings["temporal_terms"] = time.perf_counter() - start
 
