@@ -9,7 +9,7 @@ import json
 import numpy as np
 import pytest
 
-from reconstruction.evaluate import evaluate_episode
+from reconstruction.evaluate import evaluate_episode, flickering_depth
 from reconstruction.recon4d import Recon4D
 from reconstruction.reconstruct import STAGES, ReconConfig, reconstruct_episode
 from tesseract4d.errors import UserError
@@ -22,19 +22,7 @@ WOBBLE_SCALE, WOBBLE_SHIFT_M = 0.03, 0.02  # per-frame depth scale / shift flick
 
 
 def corrupt(episode, seed: int = 0):
-    """Noisy depth with a per-frame scale/shift wobble (zero-mean over the clip), as a
-    generated video's depth flickers."""
-    rng = np.random.default_rng(seed)
-    out = copy.deepcopy(episode)
-    for cam in out.cameras.values():
-        T = len(cam.depth_m)
-        phase = rng.uniform(0, 2 * np.pi)
-        scale = 1 + WOBBLE_SCALE * np.sin(1.7 * np.arange(T) + phase)
-        shift = WOBBLE_SHIFT_M * np.cos(2.3 * np.arange(T) + phase)
-        valid = cam.depth_m > 0
-        noisy = cam.depth_m * (1 + NOISE_REL * rng.standard_normal(cam.depth_m.shape))
-        cam.depth_m = np.where(valid, noisy * scale[:, None, None] + shift[:, None, None], 0).astype(np.float32)
-    return out
+    return flickering_depth(episode, NOISE_REL, WOBBLE_SCALE, WOBBLE_SHIFT_M, seed=seed)
 
 
 def static_depth_variance(depth_m: np.ndarray, gt_depth_m: np.ndarray) -> float:
