@@ -28,11 +28,18 @@ def _require_pretrained(preset: ModelPreset, pretrained_dir: str | os.PathLike |
     return folder
 
 
+_TEXT_ENCODERS: dict[tuple, object] = {}
+
+
 def build_text_encoder(preset: ModelPreset, pretrained_dir=None, device="cpu"):
+    """The preset's frozen text encoder; one instance per process and configuration (it is only read)."""
     from tesseract4d.text_encoder import TextEncoder
 
     path = _require_pretrained(preset, pretrained_dir, "text_encoder").parent if preset.text_encoder == "t5" else None
-    return TextEncoder(preset.text_encoder, preset.max_text_tokens, path=path, device=device)
+    key = (preset.text_encoder, preset.max_text_tokens, str(path), str(device))
+    if key not in _TEXT_ENCODERS:
+        _TEXT_ENCODERS[key] = TextEncoder(preset.text_encoder, preset.max_text_tokens, path=path, device=device)
+    return _TEXT_ENCODERS[key]
 
 
 def build_codec(preset: ModelPreset, pretrained_dir=None):

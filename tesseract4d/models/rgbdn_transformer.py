@@ -39,7 +39,7 @@ class ModalityPatchProjection(nn.Module):
     """Sum of per-modality patch projections; stands in for the backbone's ``patch_embed.proj``.
 
     The backbone hands it either ``(n, C, h, w)`` (Conv2d path, ``patch_size_t`` None) or
-    ``(b, tokens, p_t*p*p*C)`` with channels innermost (Linear path); ``C`` is the sum over
+    ``(b, tokens, C*p_t*p*p)`` with channels outermost (Linear path); ``C`` is the sum over
     modalities of ``2 * c_m`` (noisy + condition), in modality order.
     """
 
@@ -56,8 +56,8 @@ class ModalityPatchProjection(nn.Module):
             return sum(proj(part) for proj, part in zip(self.projs.values(), parts))
         b, n, f = x.shape
         total = sum(sizes)
-        x = x.view(b, n, f // total, total)  # (b, tokens, p_t*p*p, C)
-        parts = torch.split(x, sizes, dim=-1)
+        x = x.view(b, n, total, f // total)  # (b, tokens, C, p_t*p*p)
+        parts = torch.split(x, sizes, dim=2)
         return sum(proj(part.reshape(b, n, -1)) for proj, part in zip(self.projs.values(), parts))
 
 
@@ -123,10 +123,6 @@ class RGBDNTransformer(ModelMixin, ConfigMixin):
         self._rotary_cache: dict[tuple, tuple[torch.Tensor, torch.Tensor]] = {}
 
     # ------------------------------------------------------------------ helpers
-    @property
-    def num_channels(self) -> int:
-        return sum(self.config.modality_channels.values())
-
     def channel_slices(self) -> dict[str, slice]:
         out, start = {}, 0
         for name in _ordered(self.config.modality_channels):

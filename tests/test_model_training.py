@@ -1,0 +1,131 @@
+"""Training of the RGB-D-N model: exact resume, checkpoint format, export, time limit, overfitting."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+import torch
+from model_fixtures import MICRO, register_preset, write_synthetic_dataset
+
+from tesseract4d import cli
+from tesseract4d.errors import UserError
+from tesseract4d.trainer import TrainConfig, Trainer, _psnr, list_checkpoints
+
+
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory) -> Path:
+    return write_synthetic_dataset(tmp_path_factory.mktemp("model_train") / "data", episodes=4)
+
+
+@pytest.fixture(autouse=True)
+def micro(monkeypatch):
+    return register_preset(monkeypatch)
+
+
+def _config(data: Path, out: Path, **kw) -> TrainConfig:
+    base = dict(data=data, out=out, preset=MICRO.name, max_steps=4, val_every=0, ckpt_every=0, progress=False)
+    base.update(kw)
+    return TrainConfig(**base)
+
+
+def _weights(trainer: Trainer) -> dict[str, torch.Tensor]:
+    return {k: v.detach().clone() for k, v in trainer.accelerator.unwrap_model(trainer.model).state_dict().items()}
+
+
+def test_two_steps_then_resume_equals_four_steps(dataset, tmp_path):
+    straight = Trainer(_config(dataset, tmp_path / "a"))
+    losses_a = [straight.train_step()["loss"] for _ in range(4)]
+
+    first = Trainer(_config(dataset, tmp_path / "b"))
+    losses_b = [first.train_step()["loss"] for _ in range(2)]
+    first.save_checkpoint()
+    del first
+    resumed = Trainer(_config(dataset, tmp_path / "b", resume=True))
+    assert resumed.step == 2
+    losses_b += [resumed.train_step()["loss"] for _ in range(2)]
+
+    assert losses_b == losses_a
+    wa, wb = _weights(straight), _weights(resumed)
+    assert all(torch.equal(wa[k], wb[k]) for k in wa)
+    ema_a, ema_b = straight.ema.model.state_dict(), resumed.ema.model.state_dict()
+    assert all(torch.equal(ema_a[k], ema_b[k]) for k in ema_a)
+
+
+def test_time_limit_stops_with_checkpoint_and_export(dataset, tmp_path):
+    run = tmp_path / "run"
+    final = Trainer(_config(dataset, run, max_steps=1000, max_minutes=0.0, val_every=1)).train()
+    ckpts = list_checkpoints(run)
+    assert [c.name for c in ckpts] == ["checkpoint-000001"]
+    ckpt = ckpts[0]
+    for name in ("transformer/config.json", "transformer/diffusion_pytorch_model.safetensors",
+                 "transformer_ema/diffusion_pytorch_model.safetensors", "optimizer.safetensors", "optimizer.json",
+                 "rng_state.safetensors", "trainer_state.json"):
+        assert (ckpt / name).is_file(), name
+    # No pickle anywhere in a run folder.
+    assert not [p for p in run.rglob("*") if p.suffix in (".bin", ".pt", ".pth", ".pkl", ".ckpt")]
+    assert final == run / "final"
+    assert sorted(p.relative_to(final).as_posix() for p in final.rglob("*") if p.is_file()) == [
+        "tesseract4d_config.json", "transformer/config.json", "transformer/diffusion_pytorch_model.safetensors"]
+    info = json.loads((final / "tesseract4d_config.json").read_text())
+    assert info["preset"]["name"] == MICRO.name and info["resolution"] == [32, 32] and info["num_frames"] == 8
+    assert info["depth_range_m"] == [MICRO.near_m, MICRO.far_m] and info["text_encoder"]["kind"] == "minilm"
+    assert info["training"]["steps"] == 1 and info["camera_name"] == "close"
+    assert list((run / "validation").rglob("*.mp4")), "validation video written"
+    assert (run / "logs").is_dir() and (run / "train_config.json").is_file()
+
+
+def test_resume_refuses_other_preset_and_existing_run(dataset, tmp_path, monkeypatch):
+    import dataclasses
+
+    run = tmp_path / "run"
+    trainer = Trainer(_config(dataset, run, max_steps=1))
+    trainer.train_step()
+    trainer.save_checkpoint()
+    with pytest.raises(UserError, match="--resume"):
+        Trainer(_config(dataset, run))
+    register_preset(monkeypatch, dataclasses.replace(MICRO, backbone={**MICRO.backbone, "num_layers": 3}))
+    with pytest.raises(UserError, match="differs from --preset"):
+        Trainer(_config(dataset, run, resume=True))
+
+
+def test_bad_training_inputs(dataset, tmp_path):
+    with pytest.raises(UserError, match="no info.json|does not exist"):
+        Trainer(_config(tmp_path / "nowhere", tmp_path / "r1"))
+    with pytest.raises(UserError, match="preset trains on 64x64"):
+        Trainer(_config(dataset, tmp_path / "r2", preset="tiny"))
+
+
+def test_train_cli_and_export(dataset, tmp_path, capsys):
+    run = tmp_path / "run"
+    assert cli.main(["train", "--preset", MICRO.name, "--data", str(dataset), "--out", str(run), "--max-steps", "2",
+                     "--val-every", "0", "--no-progress"]) == 0
+    assert (run / "final" / "transformer" / "diffusion_pytorch_model.safetensors").is_file()
+    assert cli.main(["train", "--export", str(run), "--to", str(tmp_path / "exported")]) == 0
+    assert (tmp_path / "exported" / "tesseract4d_config.json").is_file()
+    assert cli.main(["train", "--export", str(tmp_path / "empty")]) == 2
+    assert "holds no checkpoint" in capsys.readouterr().err
+
+
+def test_overfit_one_clip(tmp_path):
+    """300 steps on one clip: the loss falls and a sample reproduces the clip far better than the
+    static world (first frame repeated) and noise."""
+    data = write_synthetic_dataset(tmp_path / "one", episodes=1)
+    trainer = Trainer(_config(data, tmp_path / "run", max_steps=300, batch_size=4, text_dropout=0.0,
+                              image_dropout=0.0))
+    losses = [trainer.train_step()["loss"] for _ in range(300)]
+    assert sum(losses[-10:]) / 10 < 0.1 * losses[0]
+
+    from tesseract4d.pipeline import RGBDNPipeline, make_scheduler
+
+    pipe = RGBDNPipeline(trainer.ema.model, make_scheduler(), trainer.codec, trainer.text_encoder, trainer.preset,
+                         trainer.model_space)
+    clip, text = trainer.data.clip(0)
+    pred = pipe(clip[None, 0], [text], num_inference_steps=4, generator=torch.Generator().manual_seed(0))[0]
+    gt = (clip + 1) / 2
+    psnr = _psnr((pred + 1) / 2, gt)
+    static = _psnr(gt[:1].expand_as(gt), gt)
+    noise = _psnr(torch.rand(gt.shape, generator=torch.Generator().manual_seed(0)), gt)
+    # Measured: 35.5 dB vs 21.1 dB static world vs 8.5 dB noise.
+    assert psnr > 28.0 and psnr > static + 6.0 and psnr > noise + 15.0, (psnr, static, noise)
