@@ -1,0 +1,148 @@
+"""Prediction: checkpoint loading, seeded sampling, the predicted episode's contract, CLI, bad input."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from model_fixtures import MICRO, synthetic_episode, write_synthetic_dataset
+
+from tesseract4d import cli
+from tesseract4d import dataset_format as df
+from tesseract4d.errors import UserError
+from tesseract4d.presets import PRESETS
+from tesseract4d.predict import load_pipeline, predict_episode, predict_episodes, write_prediction
+
+
+@pytest.fixture(scope="module")
+def micro_registered():
+    PRESETS[MICRO.name] = MICRO
+    yield MICRO
+    PRESETS.pop(MICRO.name, None)
+
+
+@pytest.fixture(scope="module")
+def checkpoint(micro_registered, tmp_path_factory) -> Path:
+    from tesseract4d.trainer import TrainConfig, Trainer
+
+    root = tmp_path_factory.mktemp("model_predict")
+    data = write_synthetic_dataset(root / "data", episodes=2)
+    trainer = Trainer(TrainConfig(data=data, out=root / "run", preset=MICRO.name, max_steps=10, val_every=0,
+                                  ckpt_every=0, progress=False))
+    return trainer.train()
+
+
+@pytest.fixture(scope="module")
+def pipe(checkpoint):
+    return load_pipeline(checkpoint)
+
+
+def test_load_pipeline_attributes(pipe, checkpoint):
+    assert pipe.resolution == (32, 32) and pipe.num_frames == 8 and pipe.camera_name == "close"
+    # Save -> load round trip: the loaded transformer holds the exported (EMA) weights exactly.
+    from safetensors.torch import load_file
+
+    saved = load_file(str(checkpoint / "transformer" / "diffusion_pytorch_model.safetensors"))
+    loaded = pipe.transformer.state_dict()
+    assert saved.keys() == loaded.keys() and all(torch.equal(saved[k], loaded[k]) for k in saved)
+
+
+def test_seeded_sampling_is_deterministic(pipe):
+    first = synthetic_episode(3, frames=1)
+    a = predict_episode(pipe, first, "push the square to the right", seed=1, num_frames=8, num_steps=3)
+    b = predict_episode(pipe, first, "push the square to the right", seed=1, num_frames=8, num_steps=3)
+    c = predict_episode(pipe, first, "push the square to the right", seed=2, num_frames=8, num_steps=3)
+    ca, cb, cc = (e.cameras["close"] for e in (a, b, c))
+    assert np.array_equal(ca.rgb, cb.rgb) and np.array_equal(ca.depth_m, cb.depth_m)
+    assert np.array_equal(ca.normal_cam, cb.normal_cam)
+    assert not np.array_equal(ca.normal_cam[1:], cc.normal_cam[1:]) or not np.array_equal(ca.rgb[1:], cc.rgb[1:])
+    # Batched samples: deterministic too, and different from each other.
+    s1 = predict_episodes(pipe, first, "push", num_samples=2, seed=5, num_frames=8, num_steps=2)
+    s2 = predict_episodes(pipe, first, "push", num_samples=2, seed=5, num_frames=8, num_steps=2)
+    assert all(np.array_equal(x.cameras["close"].depth_m, y.cameras["close"].depth_m) for x, y in zip(s1, s2))
+    assert not np.array_equal(s1[0].cameras["close"].depth_m[1:], s1[1].cameras["close"].depth_m[1:])
+
+
+def test_predicted_episode_contract(pipe, tmp_path):
+    first = synthetic_episode(4, frames=3)  # a longer episode: frame 0 is used
+    calls = []
+    ep = predict_episode(pipe, first, "push the square to the left", num_frames=19, num_steps=2,
+                         progress=lambda step, total: calls.append((step, total)))
+    # 19 frames = 3 clips of 8 (each continuing from the last frame), trimmed.
+    assert calls[-1] == (6, 6) and len(calls) == 6
+    cam = ep.cameras["close"]
+    src = first.cameras["close"]
+    assert cam.rgb.shape == (19, 32, 32, 3) and cam.rgb.dtype == np.uint8
+    assert cam.depth_m.shape == (19, 32, 32) and cam.normal_cam.shape == (19, 32, 32, 3)
+    assert np.array_equal(cam.rgb[0], src.rgb[0]) and np.array_equal(cam.depth_m[0], src.depth_m[0])
+    assert np.allclose(cam.K, src.K[0]) and np.allclose(cam.T_world_cam, src.T_world_cam[0])
+    assert (ep.env_id, ep.seed, ep.source, ep.instruction) == ("Synthetic-v0", 4, "prediction", "push the square to the left")
+    valid = cam.depth_m > 0
+    assert ((cam.depth_m[valid] >= pipe.model_space.near_m) & (cam.depth_m[valid] <= pipe.model_space.far_m)).all()
+    lengths = np.linalg.norm(cam.normal_cam, axis=-1)
+    assert np.allclose(lengths[lengths > 0], 1.0, atol=1e-3)
+    ep.validate()
+
+    path = write_prediction(ep, tmp_path / "pred")
+    assert path == df.episode_path(tmp_path / "pred", "Synthetic-v0", 4)
+    back = df.read_episode(path)
+    assert back.source == "prediction" and back.num_frames == 19
+    assert np.array_equal(back.cameras["close"].rgb, cam.rgb)
+    assert df.preview_path(tmp_path / "pred", "Synthetic-v0", 4).stat().st_size > 0
+    assert df.read_info(tmp_path / "pred").source == "prediction"
+
+
+def test_bad_inputs(pipe, checkpoint, tmp_path):
+    first = synthetic_episode(0, frames=1)
+    with pytest.raises(UserError, match="instruction is empty"):
+        predict_episode(pipe, first, "   ")
+    with pytest.raises(UserError, match="model predicts 32x32"):
+        predict_episode(pipe, synthetic_episode(0, frames=1, size=48), "push")
+    with pytest.raises(UserError, match="not found"):
+        load_pipeline(tmp_path / "missing")
+    with pytest.raises(UserError, match="not a tesseract4d inference checkpoint"):
+        load_pipeline(tmp_path)
+    # A checkpoint whose weights belong to another preset.
+    other = tmp_path / "other"
+    shutil.copytree(checkpoint, other)
+    cfg = json.loads((other / "tesseract4d_config.json").read_text())
+    cfg["preset"] = PRESETS["tiny"].to_dict()
+    (other / "tesseract4d_config.json").write_text(json.dumps(cfg))
+    with pytest.raises(UserError, match="does not match preset 'tiny'"):
+        load_pipeline(other)
+    cfg["preset"]["name"] = "nonexistent"
+    (other / "tesseract4d_config.json").write_text(json.dumps(cfg))
+    with pytest.raises(UserError, match="unknown to this tesseract4d"):
+        load_pipeline(other)
+
+
+def test_predict_cli_episode_and_files(checkpoint, tmp_path, capsys):
+    import imageio.v2 as imageio
+
+    data = write_synthetic_dataset(tmp_path / "data", episodes=1)
+    out = tmp_path / "out"
+    assert cli.main(["predict", "--checkpoint", str(checkpoint), "--episode", f"{data}/Synthetic-v0/0",
+                     "--out", str(out), "--steps", "2", "--num-frames", "8"]) == 0
+    ep = df.read_episode(df.resolve_episode(out))
+    assert ep.instruction == "push the square to the right" and ep.num_frames == 8
+    assert json.loads((out / "predict_config.json").read_text())["steps"] == 2
+
+    cam = synthetic_episode(0, frames=1).cameras["close"]
+    imageio.imwrite(tmp_path / "rgb.png", cam.rgb[0])
+    np.save(tmp_path / "depth.npy", cam.depth_m[0])
+    np.savetxt(tmp_path / "K.txt", cam.K[0])
+    out2 = tmp_path / "out2"
+    assert cli.main(["predict", "--checkpoint", str(checkpoint), "--rgb", str(tmp_path / "rgb.png"), "--depth",
+                     str(tmp_path / "depth.npy"), "--K", str(tmp_path / "K.txt"), "--instruction", "push left",
+                     "--out", str(out2), "--steps", "1", "--num-samples", "2"]) == 0
+    assert len(df.list_episode_files(out2 / "sample_00")) == 1 and len(df.list_episode_files(out2 / "sample_01")) == 1
+
+    assert cli.main(["predict", "--checkpoint", str(tmp_path / "missing"), "--episode", str(data),
+                     "--out", str(tmp_path / "o3")]) == 2
+    assert "not found" in capsys.readouterr().err
+    assert cli.main(["predict", "--checkpoint", str(checkpoint), "--out", str(tmp_path / "o4")]) == 2
+    assert "exactly one way" in capsys.readouterr().err
