@@ -48,7 +48,7 @@ class ReconConfig:
     reg_weight: float = 2.0  # pull toward the input depth
     iterations: int = 300  # maximum conjugate-gradient iterations of the joint solve
     tolerance: float = 1e-5  # relative residual at which the solve stops
-    flow_threshold_px: float = 0.5  # flow (beyond the camera's own motion) above this = dynamic
+    flow_threshold_px: float = 1.0  # flow beyond the camera's own motion above this = dynamic (DIS errors reach ~0.5 px)
     discontinuity_log_tol: float = 0.05  # drop normal rows whose input depth step differs this much (log); adaptive to noise
     discontinuity_normal_deg: float = 45.0  # ... or whose two normals differ by more (degrees)
     temporal_gate_log: float = 0.02  # drop temporal rows whose input depths differ more (occlusions); adaptive to noise
