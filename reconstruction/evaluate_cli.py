@@ -7,8 +7,16 @@ the report that `tesseract4d view --compare GT --metrics REPORT` shows per frame
 PRED is a reconstruction folder (from `tesseract4d reconstruct`) or an episode (.h5, a
 prediction folder holding one episode, or DIR/ENV_ID/SEED), which is back-projected as is.
 
-Example:
+With --checkpoint and --heldout instead of PRED/--gt, evaluates a model over a held-out dataset:
+predicts every episode from its first frame and instruction and scores, in the same run, the
+model with the reconstruction's consistency step, the model without it, and the static world
+(first frame repeated), over all pixels and the moving region, plus instruction following
+(does the instructed object move the right way). Writes report.json and report.md (the README's
+results table) to --out.
+
+Examples:
   tesseract4d evaluate out/recon --gt data/test/episodes/PickCube-v1/seed_100000.h5 --json out/report.json
+  tesseract4d evaluate --checkpoint tesseract4d/checkpoints/tiny --heldout data/heldout --out outputs/heldout_eval
 """
 
 from __future__ import annotations
@@ -19,11 +27,18 @@ from pathlib import Path
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("pred", help="reconstruction folder, or a predicted episode (.h5 / folder / DIR/ENV_ID/SEED)")
-    parser.add_argument("--gt", required=True, help="ground-truth episode (.h5 / folder / DIR/ENV_ID/SEED)")
+    parser.add_argument("pred", nargs="?", help="reconstruction folder, or a predicted episode (.h5 / folder / DIR/ENV_ID/SEED)")
+    parser.add_argument("--gt", help="ground-truth episode (.h5 / folder / DIR/ENV_ID/SEED)")
     parser.add_argument("--camera", help="camera to compare (default: the ground truth's first)")
     parser.add_argument("--json", type=Path, metavar="REPORT", help="also write the report as JSON")
     parser.add_argument("--no-per-frame", action="store_true", help="print only the means")
+    held = parser.add_argument_group("held-out evaluation of a model (instead of PRED --gt)")
+    held.add_argument("--checkpoint", type=Path, help="model checkpoint folder (e.g. tesseract4d/checkpoints/tiny)")
+    held.add_argument("--heldout", type=Path, help="held-out dataset folder (datagen --seed-start 100000 --instruction-split heldout)")
+    held.add_argument("--out", type=Path, help="folder for report.json and report.md")
+    held.add_argument("--steps", type=int, default=10, help="sampler steps (default %(default)s)")
+    held.add_argument("--sample-seed", type=int, default=0, help="diffusion noise seed (default %(default)s)")
+    held.add_argument("--max-per-task", type=int, help="episodes per task at most (default: all)")
 
 
 def load_prediction(spec: str):
@@ -36,9 +51,29 @@ def load_prediction(spec: str):
     return read_episode(resolve_episode(spec))
 
 
+def run_heldout(args: argparse.Namespace) -> int:
+    from tesseract4d.heldout_eval import HeldoutConfig, evaluate_heldout, format_markdown
+
+    cfg = HeldoutConfig(checkpoint=args.checkpoint, data=args.heldout, out=args.out, camera=args.camera,
+                        num_steps=args.steps, sample_seed=args.sample_seed, max_episodes=args.max_per_task)
+    report = evaluate_heldout(cfg)
+    print(format_markdown(report))
+    if args.out:
+        print(f"wrote {args.out / 'report.json'} and {args.out / 'report.md'}")
+    return 0
+
+
 def run(args: argparse.Namespace) -> int:
     from reconstruction.evaluate import evaluate_episode, format_report, json_safe
     from tesseract4d.dataset_format import read_episode, resolve_episode
+    from tesseract4d.errors import UserError
+
+    if args.checkpoint is not None or args.heldout is not None:
+        if args.checkpoint is None or args.heldout is None or args.pred is not None:
+            raise UserError("held-out evaluation takes --checkpoint CKPT --heldout DIR (and no PRED)")
+        return run_heldout(args)
+    if args.pred is None or args.gt is None:
+        raise UserError("give PRED --gt EPISODE, or --checkpoint CKPT --heldout DIR; see `tesseract4d evaluate --help`")
 
     pred = load_prediction(args.pred)
     gt_path = resolve_episode(args.gt)
