@@ -34,6 +34,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--resume", action="store_true", help="continue from the latest checkpoint in --out")
     parser.add_argument("--val-every", type=int, default=d.val_every, help="validation videos every K steps, 0 = never (default %(default)s)")
     parser.add_argument("--ckpt-every", type=int, default=d.ckpt_every, help="checkpoint every K steps (default %(default)s)")
+    parser.add_argument("--loss-weights", default="rgb=1,depth=1,normal=1",
+                        help="per-modality loss weights (default %(default)s)")
     parser.add_argument("--seed", type=int, default=d.seed, help="training seed (default %(default)s)")
     parser.add_argument("--camera", help="camera of the dataset to train on (default: its first)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -51,11 +53,15 @@ def run(args: argparse.Namespace) -> int:
         return 0
     if args.out is None:
         raise UserError("pass --out RUN (the run folder)")
+    try:
+        weights = {k.strip(): float(v) for k, v in (item.split("=") for item in args.loss_weights.split(","))}
+    except ValueError as e:
+        raise UserError(f"--loss-weights must look like rgb=1,depth=1,normal=1, got {args.loss_weights!r}") from e
     cfg = TrainConfig(
         data=args.data, out=args.out, preset=args.preset, pretrained=args.pretrained, max_steps=args.max_steps,
         max_minutes=args.max_minutes, batch_size=args.batch_size, lr=args.lr, warmup_steps=args.warmup_steps,
         bf16=args.bf16, resume=args.resume, val_every=args.val_every, ckpt_every=args.ckpt_every, seed=args.seed,
-        camera=args.camera, progress=not args.no_progress,
+        camera=args.camera, progress=not args.no_progress, loss_weights=weights,
     )
     final = Trainer(cfg).train()
     print(f"inference checkpoint: {final}")

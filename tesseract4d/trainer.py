@@ -235,13 +235,17 @@ class Trainer:
         unknown = set(cfg.loss_weights) - set(MODALITIES)
         if unknown:
             raise UserError(f"unknown loss weight(s) {sorted(unknown)}; modalities are {', '.join(MODALITIES)}")
+        if sum(cfg.loss_weights.get(m, 0.0) for m in MODALITIES) <= 0:
+            raise UserError("the loss weights must not all be zero")
         self.out = Path(cfg.out)
         existing = list_checkpoints(self.out)
         if existing and not cfg.resume:
             raise UserError(f"{self.out} already holds checkpoints; pass --resume to continue, or choose a new --out")
         self.out.mkdir(parents=True, exist_ok=True)
+        mixed_precision = "bf16" if cfg.bf16 else "no"
+        _allow_new_accelerator(mixed_precision)
         self.accelerator = Accelerator(
-            mixed_precision="bf16" if cfg.bf16 else "no",
+            mixed_precision=mixed_precision,
             log_with="tensorboard",
             project_config=ProjectConfiguration(project_dir=str(self.out), logging_dir=str(self.out / "logs")),
         )
@@ -446,6 +450,15 @@ class Trainer:
 
     def _request_stop(self, signum, frame) -> None:
         self._stop_requested = True
+
+
+def _allow_new_accelerator(mixed_precision: str) -> None:
+    """accelerate keeps one process-wide state and refuses a second Accelerator with another
+    precision; a process that trains twice (benchmarks, notebooks) resets it between runs."""
+    from accelerate.state import AcceleratorState
+
+    if AcceleratorState._shared_state and str(AcceleratorState._shared_state.get("_mixed_precision", mixed_precision)) != mixed_precision:
+        AcceleratorState._reset_state(reset_partial_state=True)
 
 
 def _psnr(a: torch.Tensor, b: torch.Tensor) -> float:
