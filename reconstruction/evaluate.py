@@ -5,7 +5,7 @@ moving region (keys ending in ``_moving``). Definitions in ``metrics.py``.
 The report (what ``tesseract4d evaluate --json`` writes and the viewer's compare mode reads)::
 
     {"format": "tesseract4d-eval", "format_version": 1, "definitions": {...},
-     "camera": str, "num_frames": n, "pred_frames": Tp, "gt_frames": Tg,
+     "camera": str, "max_depth_m": M or null, "num_frames": n, "pred_frames": Tp, "gt_frames": Tg,
      "mean": {metric: value}, "per_frame": [{metric: value}, ... one per frame]}
 
 Values are floats; NaN (nothing to measure, e.g. an empty moving region) is written as null.
@@ -85,14 +85,17 @@ def _in_mask(points_world: np.ndarray, mask: np.ndarray, K: np.ndarray, T_world_
 
 
 def evaluate_episode(pred: Episode | Recon4D, gt: Episode, camera: str | None = None,
-                     moving_mask: np.ndarray | None = None) -> dict:
+                     moving_mask: np.ndarray | None = None, max_depth_m: float | None = None) -> dict:
     """Metrics of ``pred`` against ``gt`` (see the module docstring for the report's shape).
 
     pred: a predicted/raw episode (its depth is back-projected as is) or a Recon4D (its points
     and refined depth are used). camera: the camera of ``gt`` (and of ``pred`` if it has one of
     that name); None = the first. moving_mask: (T, H, W) bool of the ground truth's frames;
     None = :func:`metrics.moving_region_mask`. Frames are matched by index; when the counts
-    differ, the common leading frames are evaluated.
+    differ, the common leading frames are evaluated. max_depth_m: the evaluation range; the
+    geometric metrics (depth, normals, Chamfer) then count only pixels whose true depth is at
+    most this (e.g. a model's depth range: the workspace, not the distant floor); RGB metrics
+    always count every pixel.
     """
     if not isinstance(pred, (Episode, Recon4D)):
         raise UserError(f"evaluate: pred must be an Episode or a Recon4D, got {type(pred).__name__}")
@@ -116,15 +119,17 @@ def evaluate_episode(pred: Episode | Recon4D, gt: Episode, camera: str | None = 
         row: dict[str, float] = {}
         gt_all = truth.points_world[t]
         gt_valid = truth.depth_m[t] > 0
+        in_range = None if max_depth_m is None else truth.depth_m[t] <= max_depth_m
         for suffix, mask in (("", None), ("_moving", moving_mask[t])):
+            geo_mask = mask if in_range is None else (in_range if mask is None else mask & in_range)
             gt_pts, pred_pts = gt_all, pred_frames.points_world[t]
-            if mask is not None:
-                gt_pts = gt_all[mask[gt_valid]]
-                pred_pts = pred_pts[_in_mask(pred_pts, mask, gt_cam.K[t], gt_cam.T_world_cam[t])]
+            if geo_mask is not None:
+                gt_pts = gt_all[geo_mask[gt_valid]]
+                pred_pts = pred_pts[_in_mask(pred_pts, geo_mask, gt_cam.K[t], gt_cam.T_world_cam[t])]
             row["chamfer_l1_m" + suffix] = M.chamfer_l1_m(pred_pts, gt_pts)
-            d = M.depth_metrics(pred_frames.depth_m[t], truth.depth_m[t], mask)
+            d = M.depth_metrics(pred_frames.depth_m[t], truth.depth_m[t], geo_mask)
             row["depth_abs_rel" + suffix], row["depth_delta1" + suffix], row["depth_delta2" + suffix] = d["abs_rel"], d["delta1"], d["delta2"]
-            nm = M.normal_metrics(pred_frames.normal_cam[t], truth.normal_cam[t], mask)
+            nm = M.normal_metrics(pred_frames.normal_cam[t], truth.normal_cam[t], geo_mask)
             row["normal_mean_deg" + suffix], row["normal_median_deg" + suffix], row["normal_within_11_25" + suffix] = (
                 nm["mean_deg"], nm["median_deg"], nm["within_11_25"])
             row["rgb_psnr_db" + suffix] = M.rgb_psnr(pred_frames.rgb[t], truth.rgb[t], mask)
@@ -139,7 +144,7 @@ def evaluate_episode(pred: Episode | Recon4D, gt: Episode, camera: str | None = 
         mean[k] = float(np.mean(vals[np.isfinite(vals)])) if np.isfinite(vals).any() else float("nan")
     return {
         "format": REPORT_FORMAT, "format_version": REPORT_VERSION, "definitions": DEFINITIONS,
-        "camera": cam_name, "num_frames": n, "pred_frames": int(len(pred_frames.rgb)), "gt_frames": int(len(truth.rgb)),
+        "camera": cam_name, "max_depth_m": max_depth_m, "num_frames": n, "pred_frames": int(len(pred_frames.rgb)), "gt_frames": int(len(truth.rgb)),
         "mean": mean, "per_frame": per_frame,
     }
 

@@ -32,6 +32,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--camera", help="camera to compare (default: the ground truth's first)")
     parser.add_argument("--json", type=Path, metavar="REPORT", help="also write the report as JSON")
     parser.add_argument("--no-per-frame", action="store_true", help="print only the means")
+    parser.add_argument("--max-depth", type=float, metavar="M",
+                        help="evaluation range in metres: depth, normal and Chamfer metrics count only pixels whose true "
+                             "depth is at most M (default: all pixels; held-out evaluation: the checkpoint's depth range)")
     held = parser.add_argument_group("held-out evaluation of a model (instead of PRED --gt)")
     held.add_argument("--checkpoint", type=Path, help="model checkpoint folder (e.g. tesseract4d/checkpoints/tiny)")
     held.add_argument("--heldout", type=Path, help="held-out dataset folder (datagen --seed-start 100000 --instruction-split heldout)")
@@ -55,7 +58,8 @@ def run_heldout(args: argparse.Namespace) -> int:
     from tesseract4d.heldout_eval import HeldoutConfig, evaluate_heldout, format_markdown
 
     cfg = HeldoutConfig(checkpoint=args.checkpoint, data=args.heldout, out=args.out, camera=args.camera,
-                        num_steps=args.steps, sample_seed=args.sample_seed, max_episodes=args.max_per_task)
+                        num_steps=args.steps, sample_seed=args.sample_seed, max_episodes=args.max_per_task,
+                        max_depth_m=args.max_depth)
     report = evaluate_heldout(cfg)
     print(format_markdown(report))
     if args.out:
@@ -77,7 +81,7 @@ def run(args: argparse.Namespace) -> int:
 
     pred = load_prediction(args.pred)
     gt_path = resolve_episode(args.gt)
-    report = evaluate_episode(pred, read_episode(gt_path), camera=args.camera)
+    report = evaluate_episode(pred, read_episode(gt_path), camera=args.camera, max_depth_m=args.max_depth)
     report.update({"pred": str(args.pred), "gt": str(gt_path)})
     if report["pred_frames"] != report["gt_frames"]:
         print(f"note: prediction has {report['pred_frames']} frames, ground truth {report['gt_frames']}; "

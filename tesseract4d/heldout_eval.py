@@ -53,6 +53,9 @@ class HeldoutConfig:
     num_steps: int = 10
     sample_seed: int = 0
     max_episodes: int | None = None  # per task; None = all
+    # Evaluation range of the geometric metrics; None = the checkpoint's depth range (its far
+    # plane), so that no method is scored on the distant floor the model does not represent.
+    max_depth_m: float | None = None
 
 
 def static_world(first: df.Episode, camera: str, num_frames: int) -> df.Episode:
@@ -101,6 +104,7 @@ def evaluate_heldout(cfg: HeldoutConfig, progress: bool = True) -> dict:
     df.read_info(data)
     files = select_episodes(data, cfg.max_episodes)
     pipeline = load_pipeline(cfg.checkpoint)
+    max_depth_m = cfg.max_depth_m if cfg.max_depth_m is not None else float(pipeline.model_space.far_m)
     rows, scores = [], {m: [] for m in METHODS}
     bar = tqdm(files, desc="held-out", unit="episode", disable=not progress)
     for path in bar:
@@ -120,7 +124,7 @@ def evaluate_heldout(cfg: HeldoutConfig, progress: bool = True) -> dict:
         row = {"episode": str(path.relative_to(data)), "task": gt.env_id, "seed": gt.seed,
                "instruction": gt.instruction, "metrics": {}, "direction": {}}
         for method, output in outputs.items():
-            row["metrics"][method] = evaluate_episode(output, gt, camera=camera, moving_mask=moving)["mean"]
+            row["metrics"][method] = evaluate_episode(output, gt, camera=camera, moving_mask=moving, max_depth_m=max_depth_m)["mean"]
             if gt.env_id in TARGET_OBJECT and gt_cam.segmentation is not None:
                 last_rgb = output.rgb[-1] if method == "model" else output.cameras[camera].rgb[-1]
                 s = direction_score(gt.env_id, gt_cam.rgb, gt_cam.segmentation, gt_cam.seg_id_to_name,
@@ -140,7 +144,7 @@ def evaluate_heldout(cfg: HeldoutConfig, progress: bool = True) -> dict:
     report = {
         "format": "tesseract4d-heldout-eval", "format_version": 1,
         "config": {k: str(v) if isinstance(v, Path) else v for k, v in dataclasses.asdict(cfg).items()},
-        "episodes": len(rows), "tasks": tasks, "methods": METHOD_LABELS,
+        "episodes": len(rows), "tasks": tasks, "methods": METHOD_LABELS, "max_depth_m": max_depth_m,
         "summary": summary, "per_task": per_task,
         "instruction_following": {m: summarize(scores[m]) for m in METHODS},
         "rows": rows,
@@ -188,7 +192,8 @@ def format_markdown(report: dict) -> str:
                  + " | ".join(_fmt(follow[m].get("mean_cosine"), "") for m in METHODS) + " |")
     n = follow["model"].get("episodes", 0)
     lines.append("")
-    lines.append(f"{report['episodes']} held-out episodes ({', '.join(report['tasks'])}); "
+    lines.append(f"{report['episodes']} held-out episodes ({', '.join(report['tasks'])}); depth, normal and Chamfer "
+                 f"metrics over pixels with true depth ≤ {report['max_depth_m']:g} m (the model's depth range); "
                  f"instruction following over the {n} of them whose target object the colour tracker can follow "
                  f"(tracker error on the ground truth: {_fmt(follow['model'].get('tracker_px'), '')} px).")
     return "\n".join(lines)
