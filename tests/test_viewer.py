@@ -138,7 +138,7 @@ def test_cli_serves_and_prints_the_url(tmp_path):
             assert b"<html" in page.read().lower()
     finally:
         proc.send_signal(signal.SIGINT)
-        rc = proc.wait(timeout=20)
+        rc = proc.wait(timeout=60)  # generous: a loaded 2-core machine shuts viser down slowly
     assert rc == 130
 
 
