@@ -12,7 +12,6 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
-import time
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -70,16 +69,9 @@ def run(args: argparse.Namespace) -> int:
         print(f"  {name:<16} {path}")
     if cfg.headless:
         return 0
-    from viewer.app import ViewerApp
+    from viewer.app import ViewerApp, serve_forever
 
-    app = ViewerApp.from_path(outputs["reconstruction"], host=cfg.host, port=cfg.port, checkpoint=cfg.checkpoint)
-    url = app.start()
-    print(f"viewer: {url}  (Ctrl-C to stop)")
-    try:
-        while True:
-            time.sleep(1.0)
-    except KeyboardInterrupt:
-        app.stop()
+    serve_forever(ViewerApp.from_path(outputs["reconstruction"], host=cfg.host, port=cfg.port, checkpoint=cfg.checkpoint))
     return 0
 
 
