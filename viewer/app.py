@@ -392,29 +392,13 @@ class ViewerApp:
         return self._generating
 
 
-# How long Ctrl-C waits for the server to wind down before the process exits anyway.
-STOP_TIMEOUT_S = 10.0
-
-
 def serve_forever(app: ViewerApp) -> None:
-    """Start, print the URL, block until Ctrl-C, stop, and end the process with status 130.
-
-    The process exits explicitly once the server is stopped: in rare runs a worker thread of
-    the server's callback pool outlived ``stop()`` and kept a stopped viewer's process alive.
-    """
+    """Start, print the URL, block until Ctrl-C, stop."""
     url = app.start()
     print(f"viewer: {url}  (Ctrl-C to stop)", flush=True)
     try:
         while True:
             threading.Event().wait(3600)
-    except KeyboardInterrupt:
-        pass
-    stopper = threading.Thread(target=app.stop, name="viewer-stop", daemon=True)
-    stopper.start()
-    stopper.join(STOP_TIMEOUT_S)
-    if stopper.is_alive():
-        print(f"viewer: the server did not stop within {STOP_TIMEOUT_S:g} s; exiting anyway", file=sys.stderr)
-    print("viewer stopped", flush=True)
-    sys.stderr.flush()
-    os._exit(130)
+    finally:
+        app.stop()
 
