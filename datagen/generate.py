@@ -22,7 +22,6 @@ import dataclasses
 import json
 import os
 import time
-import uuid
 from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -30,7 +29,7 @@ from pathlib import Path
 from datagen.simulate import SimConfig
 from datagen.tasks import get_task
 from tesseract4d.dataset_format import (
-    PREVIEWS_DIR, DatasetInfo, init_dataset, list_episode_files, remove_partial_files,
+    PREVIEWS_DIR, DatasetInfo, atomic_write_text, init_dataset, list_episode_files, remove_partial_files,
 )
 from tesseract4d.errors import UserError
 
@@ -226,12 +225,6 @@ def _append_attempt(root: Path, record: dict) -> None:
         os.fsync(f.fileno())
 
 
-def _atomic_write(path: Path, text: str) -> None:
-    tmp = path.with_name(f".{path.name}.{uuid.uuid4().hex}.tmp")
-    tmp.write_text(text)
-    os.replace(tmp, path)
-
-
 def _remove_partial_previews(root: Path) -> None:
     base = root / PREVIEWS_DIR
     if base.is_dir():
@@ -302,7 +295,7 @@ def run_datagen(cfg: DatagenConfig, progress: bool = True) -> dict:
     open_dataset(cfg)
     remove_partial_files(root)
     _remove_partial_previews(root)
-    _atomic_write(root / CONFIG_FILE, cfg.to_json())
+    atomic_write_text(root / CONFIG_FILE, cfg.to_json())
 
     cap = cfg.attempts_cap()
     previous = read_attempts(root)
@@ -378,7 +371,7 @@ def run_datagen(cfg: DatagenConfig, progress: bool = True) -> dict:
         "episodes_wanted_per_task": cfg.episodes,
         "max_attempts_per_task": cap,
     }
-    _atomic_write(root / REPORT_FILE, json.dumps(report, indent=2, sort_keys=True))
+    atomic_write_text(root / REPORT_FILE, json.dumps(report, indent=2, sort_keys=True))
     return report
 
 

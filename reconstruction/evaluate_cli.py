@@ -69,7 +69,7 @@ def run_heldout(args: argparse.Namespace) -> int:
 
 def run(args: argparse.Namespace) -> int:
     from reconstruction.evaluate import evaluate_episode, format_report, json_safe
-    from tesseract4d.dataset_format import read_episode, resolve_episode
+    from tesseract4d.dataset_format import atomic_write_text, read_episode, resolve_episode
     from tesseract4d.errors import UserError
 
     if args.checkpoint is not None or args.heldout is not None:
@@ -89,6 +89,6 @@ def run(args: argparse.Namespace) -> int:
     print(format_report(report, per_frame=not args.no_per_frame))
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps(json_safe(report), indent=2))
+        atomic_write_text(args.json, json.dumps(json_safe(report), indent=2))
         print(f"wrote {args.json}")
     return 0

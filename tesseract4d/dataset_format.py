@@ -233,11 +233,13 @@ def init_dataset(root: str | os.PathLike, info: DatasetInfo) -> DatasetInfo:
     if root.exists() and any(root.iterdir()):
         raise DatasetFormatError(f"{root} exists, is not empty and is not a tesseract4d dataset; choose an empty or new folder.")
     root.mkdir(parents=True, exist_ok=True)
-    _atomic_write_text(root / INFO_FILE, info.to_json())
+    atomic_write_text(root / INFO_FILE, info.to_json())
     return info
 
 
-def _atomic_write_text(path: Path, text: str) -> None:
+def atomic_write_text(path: str | os.PathLike, text: str) -> None:
+    """Write a text file so that readers see the old or the new content, never a partial one."""
+    path = Path(path)
     tmp = path.with_name(f".{path.name}.{uuid.uuid4().hex}.tmp")
     tmp.write_text(text)
     os.replace(tmp, path)

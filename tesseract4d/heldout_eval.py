@@ -21,7 +21,6 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
-import os
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -153,15 +152,9 @@ def evaluate_heldout(cfg: HeldoutConfig, progress: bool = True) -> dict:
     if cfg.out is not None:
         out = Path(cfg.out)
         out.mkdir(parents=True, exist_ok=True)
-        _atomic_write(out / "report.json", json.dumps(report, indent=2))
-        _atomic_write(out / "report.md", format_markdown(report) + "\n")
+        df.atomic_write_text(out / "report.json", json.dumps(report, indent=2))
+        df.atomic_write_text(out / "report.md", format_markdown(report) + "\n")
     return report
-
-
-def _atomic_write(path: Path, text: str) -> None:
-    tmp = path.with_name(f".{path.name}.partial")
-    tmp.write_text(text)
-    os.replace(tmp, path)
 
 
 def _fmt(value, key: str) -> str:

@@ -186,10 +186,6 @@ def write_prediction(episode: df.Episode, out_dir: str | os.PathLike) -> Path:
     (RGB | depth | normal); returns the episode's .h5 path."""
     from datagen.previews import write_preview
 
-    cam = next(iter(episode.cameras.values()))
-    h, w = cam.rgb.shape[1:3]
-    df.init_dataset(out_dir, df.DatasetInfo(fps=episode.fps, height=h, width=w, cameras=list(episode.cameras),
-                                            source="prediction"))
-    path = df.write_episode(out_dir, episode)
+    path = df.write_episode_dataset(out_dir, episode)
     write_preview(out_dir, episode)
     return path
