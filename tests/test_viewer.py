@@ -60,6 +60,27 @@ def test_decimation_budget_and_float16_choice():
     assert SceneLayer(far, max_points=500).precision == "float32"
 
 
+def test_scene_size_and_initial_view_ignore_a_few_far_points():
+    from viewer.scene import initial_view
+
+    recon = recon_from_episode(analytic_episode(num_frames=2, height=64, width=64))
+    near = SceneLayer(recon, max_points=2000)
+    # 4% of the points far away (a floor seen up to the horizon) must not change the framing.
+    rng = np.random.default_rng(0)
+    far_points = [np.concatenate([p, p[rng.choice(len(p), len(p) // 25)] * 30.0]) for p in recon.points_world]
+    grown = Recon4D(**{**recon.__dict__, "points_world": far_points,
+                       "colors": [np.concatenate([c, c[: len(p) - len(c)]]) for c, p in zip(recon.colors, far_points)],
+                       "normals_world": [np.concatenate([n, n[: len(p) - len(n)]]) for n, p in zip(recon.normals_world, far_points)],
+                       "dynamic": [np.concatenate([d, np.zeros(len(p) - len(d), bool)]) for d, p in zip(recon.dynamic, far_points)]})
+    layer = SceneLayer(grown, max_points=2000)
+    assert layer.radius < 1.3 * near.radius
+    view = initial_view(grown, layer.centre)
+    eye = recon.T_world_cam[0, :3, 3]
+    # Looking at the scene from about as far as the recording camera, from above the table.
+    assert 1.0 < np.linalg.norm(view["position"] - layer.centre) / np.linalg.norm(eye - layer.centre) < 2.5
+    assert view["up_axis"] == "+z" and view["position"][2] > layer.centre[2]
+
+
 def test_image_metrics_and_report(tmp_path):
     a = recon_from_episode(analytic_episode(num_frames=3, height=32, width=32, seed=0))
     b = recon_from_episode(analytic_episode(num_frames=3, height=32, width=32, seed=1))
@@ -152,6 +173,7 @@ def test_compare_mode_layout_and_metrics():
     gt = recon_from_episode(analytic_episode(num_frames=3, height=32, width=32, seed=0))
     with ViewerApp(pred, compare=gt, port=0) as app:
         assert np.linalg.norm(app.gt_layer.offset) > 1.0  # side by side
+        assert (app.layer._label_node.text, app.gt_layer._label_node.text) == ("prediction", "ground truth")
         assert "psnr_rgb_db" in app.metrics_md.content and "Frame 0" in app.metrics_md.content
         app.frame_slider.value = 2
         assert "Frame 2" in app.metrics_md.content

@@ -69,7 +69,8 @@ class ViewerApp:
                  generate_unavailable_reason: str = "Start the viewer with --checkpoint CKPT to generate.",
                  title: str = "tesseract4d"):
         self.host, self.port, self.max_points, self.title = host, int(port), int(max_points), title
-        self.layer = SceneLayer(source, "prediction" if compare is not None else "scene", max_points, label="prediction")
+        self.layer = SceneLayer(source, "prediction" if compare is not None else "scene", max_points,
+                                label="prediction" if compare is not None else None)
         self.gt_layer = SceneLayer(compare, "ground_truth", max_points, label="ground truth") if compare is not None else None
         self._metrics = metrics
         self._generate = generate

@@ -25,6 +25,10 @@ DEFAULT_MAX_POINTS = 50_000
 # where that error stays below this (metres), i.e. for points within ~2 m of the layer centre.
 FLOAT16_MAX_ERROR_M = 1e-3
 FRUSTUM_IMAGE_MAX_SIDE = 128
+# Camera frustums are drawn this fraction of the way from the first camera to the scene centre.
+FRUSTUM_SCALE_OF_DISTANCE = 0.15
+# Percentile of the points' distances from the centre used as the scene radius.
+RADIUS_PERCENTILE = 90
 # Which points are drawn: GUI label -> key.
 POINT_MODES: dict[str, str] = {
     "Per-frame points": "frames",
@@ -92,7 +96,7 @@ class SceneLayer:
         recon.validate()
         self.recon = recon
         self.name = name
-        self.label = label or name
+        self.label = label  # drawn above the points when given (compare mode names its layers)
         self.max_points = int(max_points)
         first = recon.points_world[0] if len(recon.points_world[0]) else np.concatenate(recon.points_world + [recon.background_points])
         self.centre = np.median(first, axis=0).astype(np.float64) if len(first) else recon.T_world_cam[0, :3, 3].copy()
@@ -104,7 +108,9 @@ class SceneLayer:
             depth_m=self._camera_depth(0, recon.background_points[keep]), dynamic=np.zeros(len(keep), bool),
         )
         all_local = np.concatenate([f.points_local for f in self.frames] + [self.background.points_local])
-        self.radius = float(np.percentile(np.linalg.norm(all_local, axis=1), 98)) if len(all_local) else 1.0
+        # The scene's size for framing and for compare mode's offset: most points, not the few far
+        # ones (a floor seen up to the horizon would otherwise make the scene metres wide).
+        self.radius = float(np.percentile(np.linalg.norm(all_local, axis=1), RADIUS_PERCENTILE)) if len(all_local) else 1.0
         max_abs = float(np.abs(all_local).max()) if len(all_local) else 0.0
         self.precision = "float16" if max_abs * 2.0**-11 <= FLOAT16_MAX_ERROR_M else "float32"
         self.depth_limits = depth_range(recon.depth_m)
@@ -115,6 +121,7 @@ class SceneLayer:
         self._clouds: list = []
         self._frustums: list = []
         self._background_node = None
+        self._label_node = None
         self._current = 0
 
     # ------------------------------------------------------------------ data
@@ -162,6 +169,10 @@ class SceneLayer:
         self._current = self.frame_index(t)
         with server.atomic():
             self._root = server.scene.add_frame(f"/{self.name}", show_axes=False, position=tuple(self.offset))
+            if self.label:
+                up = -self.recon.T_world_cam[0, :3, 1]  # the first camera's up (OpenCV y points down)
+                self._label_node = server.scene.add_label(f"/{self.name}/label", self.label, position=tuple(self.centre + 0.8 * self.radius * up),
+                                       anchor="bottom-center", font_screen_scale=1.2)
             for i, fr in enumerate(self.frames):
                 mask = fr.dynamic if point_mode == "background+dynamic" else slice(None)
                 self._clouds.append(server.scene.add_point_cloud(
@@ -190,9 +201,10 @@ class SceneLayer:
         image = r.rgb[t] if scale >= 1 else cv2.resize(r.rgb[t], (max(1, round(W * scale)), max(1, round(H * scale))), interpolation=cv2.INTER_AREA)
         fov_y = 2.0 * np.arctan2(H / 2.0, float(r.K[t, 1, 1]))
         T = r.T_world_cam[t]
+        size_m = FRUSTUM_SCALE_OF_DISTANCE * float(np.linalg.norm(r.T_world_cam[0, :3, 3] - self.centre)) or 0.15 * self.radius
         return server.scene.add_camera_frustum(
-            f"/{self.name}/cams/{t}", fov=float(fov_y), aspect=W / H, scale=0.15 * self.radius,
-            thickness=0.004 * self.radius, color=(40, 40, 40), image=image, format="jpeg", jpeg_quality=85, cast_shadow=False, receive_shadow=False,
+            f"/{self.name}/cams/{t}", fov=float(fov_y), aspect=W / H, scale=size_m,
+            thickness=0.03 * size_m, color=(40, 40, 40), image=image, format="jpeg", jpeg_quality=85, cast_shadow=False, receive_shadow=False,
             wxyz=wxyz_from_matrix(T[:3, :3]), position=tuple(T[:3, 3]), visible=visible,
         )
 
@@ -238,7 +250,7 @@ class SceneLayer:
     def remove(self) -> None:
         if self._root is not None:
             self._root.remove()  # removes the children too
-        self._root, self._clouds, self._frustums, self._background_node = None, [], [], None
+        self._root, self._clouds, self._frustums, self._background_node, self._label_node = None, [], [], None, None
 
 
 def initial_view(recon: Recon4D, look_at: np.ndarray, extra_distance: float = 0.0) -> dict:
@@ -254,13 +266,13 @@ def initial_view(recon: Recon4D, look_at: np.ndarray, extra_distance: float = 0.
     up_axis = ("+" if up[axis] > 0 else "-") + "xyz"[axis]
     up_world = np.zeros(3)
     up_world[axis] = np.sign(up[axis])
-    # Swing 35 degrees around the up axis and pull back, so the recording camera's frustum is
+    # Swing 50 degrees around the up axis and pull back, so the recording camera's frustum is
     # seen from the side instead of covering the points it recorded.
     back = eye - look_at
-    angle = np.deg2rad(35.0)
+    angle = np.deg2rad(50.0)
     along = np.dot(back, up_world) * up_world
     across = back - along
     swung = along + np.cos(angle) * across + np.sin(angle) * np.cross(up_world, across)
-    distance = 2.2 * np.linalg.norm(back) + extra_distance
+    distance = 1.6 * np.linalg.norm(back) + extra_distance
     position = look_at + distance * swung / np.linalg.norm(swung) + 0.2 * np.linalg.norm(back) * up_world
     return {"position": position, "look_at": np.asarray(look_at, np.float64), "up": up_world, "up_axis": up_axis}
