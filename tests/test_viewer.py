@@ -81,6 +81,23 @@ def test_scene_size_and_initial_view_ignore_a_few_far_points():
     assert view["up_axis"] == "+z" and view["position"][2] > layer.centre[2]
 
 
+def test_point_budget_changes_live():
+    from viewer.app import ViewerApp
+
+    recon = recon_from_episode(analytic_episode(num_frames=3, height=128, width=128))
+    with ViewerApp(recon, port=0, max_points=1500) as app:
+        assert app.budget_dropdown.options == ("1,500",)  # no smaller step under 1,000 points
+    with ViewerApp(recon, port=0, max_points=4000) as app:
+        size_4k = app.point_size_slider.value
+        assert app.budget_dropdown.options == ("4,000", "2,000")
+        app.budget_dropdown.value = "2,000"
+        assert all(len(f.points_local) == 2000 for f in app.layer.frames)
+        assert all(len(c.points) == 2000 for c in app.layer._clouds)
+        # Half the points: each covers twice the area, so the size that closes the gaps grows by sqrt(2).
+        assert app.point_size_slider.value == pytest.approx(size_4k * np.sqrt(2), rel=0.01)
+        assert app.point_size_slider.min < app.point_size_slider.value < app.point_size_slider.max
+
+
 def test_image_metrics_and_report(tmp_path):
     a = recon_from_episode(analytic_episode(num_frames=3, height=32, width=32, seed=0))
     b = recon_from_episode(analytic_episode(num_frames=3, height=32, width=32, seed=1))

@@ -189,11 +189,13 @@ class ViewerApp:
             self.loop_checkbox = gui.add_checkbox("Loop", initial_value=True)
         with gui.add_folder("Display"):
             self.color_dropdown = gui.add_dropdown("Colour", tuple(COLOR_MODES), initial_value="RGB")
-            size = self.layer.default_point_size
-            self.point_size_slider = gui.add_slider("Point size (m)", min=round(size / 4, 5), max=round(size * 6, 5),
-                                                    step=round(size / 20, 6) or 1e-5, initial_value=round(size, 5))
+            lo, hi, step, size = point_size_range(self.layer.default_point_size)
+            self.point_size_slider = gui.add_slider("Point size (m)", min=lo, max=hi, step=step, initial_value=size)
             self.points_dropdown = gui.add_dropdown("Points", tuple(POINT_MODES), initial_value=next(iter(POINT_MODES)))
             self.frustum_checkbox = gui.add_checkbox("Camera frustums", initial_value=True)
+            # Fewer points play faster where the browser draws WebGL in software.
+            self.budget_dropdown = gui.add_dropdown("Points per frame", tuple(f"{n:,}" for n in point_budgets(self.max_points)),
+                                                    initial_value=f"{self.max_points:,}")
         with gui.add_folder("Frame images"):
             self.rgb_image = gui.add_image(np.zeros((8, 8, 3), np.uint8), label="RGB", format="jpeg")
             self.depth_image = gui.add_image(np.zeros((8, 8, 3), np.uint8), label="Depth (turbo, near=blue)", format="jpeg")
@@ -224,6 +226,7 @@ class ViewerApp:
         self.point_size_slider.on_update(lambda _: self._resize_points())
         self.points_dropdown.on_update(lambda _: self._rebuild())
         self.frustum_checkbox.on_update(lambda _: self._toggle_frustums())
+        self.budget_dropdown.on_update(lambda _: self._change_budget(int(self.budget_dropdown.value.replace(",", ""))))
         self.play_checkbox.on_update(lambda _: self._on_play_toggled())
         self.generate_button.on_click(lambda _: self._start_generation())
         self._update_panels(0)
@@ -283,6 +286,19 @@ class ViewerApp:
         with self._lock:
             for layer in self._layers():
                 layer.set_frustums_visible(bool(self.frustum_checkbox.value))
+
+    def _change_budget(self, max_points: int) -> None:
+        """Send every frame again with a different point budget, sized to close the gaps."""
+        with self._lock:
+            self.max_points = int(max_points)
+            for layer in self._layers():
+                layer.set_max_points(self.max_points)
+            self._set_point_size_range(self.layer.default_point_size)
+            self._rebuild()
+
+    def _set_point_size_range(self, size: float) -> None:
+        slider = self.point_size_slider
+        slider.min, slider.max, slider.step, slider.value = point_size_range(size)
 
     def _rebuild(self) -> None:
         with self._lock:
@@ -391,6 +407,16 @@ class ViewerApp:
     @property
     def generating(self) -> bool:
         return self._generating
+
+
+def point_size_range(size: float) -> tuple[float, float, float, float]:
+    """(min, max, step, value) of the point size slider around the size that closes the gaps."""
+    return round(size / 4, 5), round(size * 6, 5), round(size / 20, 6) or 1e-5, round(size, 5)
+
+
+def point_budgets(max_points: int) -> list[int]:
+    """The per-frame point budgets offered in the viewer: the given one and smaller steps."""
+    return sorted({int(max_points), *(b for b in (max_points // 2, max_points // 5, max_points // 10) if b >= 1000)}, reverse=True)
 
 
 def serve_forever(app: ViewerApp) -> None:

@@ -100,21 +100,15 @@ class SceneLayer:
         self.max_points = int(max_points)
         first = recon.points_world[0] if len(recon.points_world[0]) else np.concatenate(recon.points_world + [recon.background_points])
         self.centre = np.median(first, axis=0).astype(np.float64) if len(first) else recon.T_world_cam[0, :3, 3].copy()
-        self.frames = [self._prepare(t) for t in range(recon.num_frames)]
-        keep = decimate(len(recon.background_points), 2 * self.max_points, seed=12345)
-        self.background = FramePoints(
-            points_local=(recon.background_points[keep] - self.centre).astype(np.float32),
-            rgb=recon.background_colors[keep], normals=recon.background_normals[keep],
-            depth_m=self._camera_depth(0, recon.background_points[keep]), dynamic=np.zeros(len(keep), bool),
-        )
-        all_local = np.concatenate([f.points_local for f in self.frames] + [self.background.points_local])
+        all_local = np.concatenate(recon.points_world + [recon.background_points]) - self.centre
         # The scene's size for framing and for compare mode's offset: most points, not the few far
         # ones (a floor seen up to the horizon would otherwise make the scene metres wide).
         self.radius = float(np.percentile(np.linalg.norm(all_local, axis=1), RADIUS_PERCENTILE)) if len(all_local) else 1.0
+        # Precision from every point, so that it holds for any point budget.
         max_abs = float(np.abs(all_local).max()) if len(all_local) else 0.0
         self.precision = "float16" if max_abs * 2.0**-11 <= FLOAT16_MAX_ERROR_M else "float32"
+        self._decimate()
         self.depth_limits = depth_range(recon.depth_m)
-        self.default_point_size = self._pixel_footprint()
         self.offset = np.zeros(3)
         self.server = None
         self._root = None
@@ -125,6 +119,26 @@ class SceneLayer:
         self._current = 0
 
     # ------------------------------------------------------------------ data
+
+    def _decimate(self) -> None:
+        """The points sent to the browser under the current budget, and the point size that closes
+        the gaps between them."""
+        r = self.recon
+        self.frames = [self._prepare(t) for t in range(r.num_frames)]
+        keep = decimate(len(r.background_points), 2 * self.max_points, seed=12345)
+        self.background = FramePoints(
+            points_local=(r.background_points[keep] - self.centre).astype(np.float32),
+            rgb=r.background_colors[keep], normals=r.background_normals[keep],
+            depth_m=self._camera_depth(0, r.background_points[keep]), dynamic=np.zeros(len(keep), bool),
+        )
+        self.default_point_size = self._pixel_footprint()
+
+    def set_max_points(self, max_points: int) -> None:
+        """Change the per-frame point budget (then :meth:`build` again to send the new points)."""
+        if max_points < 1:
+            raise ValueError(f"the point budget must be positive, got {max_points}")
+        self.max_points = int(max_points)
+        self._decimate()
 
     def _camera_depth(self, t: int, points_world: np.ndarray) -> np.ndarray:
         T = self.recon.T_world_cam[t]
