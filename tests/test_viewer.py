@@ -150,6 +150,24 @@ def test_cli_port_in_use(tmp_path):
     assert res.returncode == 2 and f"port {port}" in res.stderr and "in use" in res.stderr and "--port" in res.stderr
 
 
+def test_port_of_a_just_stopped_server_is_free():
+    from viewer.app import check_port_free
+
+    # A server that closed its connections first leaves them in TIME_WAIT on its port for a
+    # minute; restarting the viewer right away must still work.
+    listener = socket.socket()
+    listener.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+    listener.bind(("127.0.0.1", 0))
+    listener.listen()
+    port = listener.getsockname()[1]
+    client = socket.create_connection(("127.0.0.1", port))
+    conn, _ = listener.accept()
+    conn.close()  # the server side closes first -> TIME_WAIT on (127.0.0.1, port)
+    client.close()
+    listener.close()
+    check_port_free("127.0.0.1", port)
+
+
 def test_cli_export_of_a_dataset_episode(tmp_path):
     from tesseract4d.dataset_format import DatasetInfo, init_dataset, write_episode
 
