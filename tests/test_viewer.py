@@ -87,6 +87,8 @@ def test_point_budget_changes_live():
     recon = recon_from_episode(analytic_episode(num_frames=3, height=128, width=128))
     with ViewerApp(recon, port=0, max_points=1500) as app:
         assert app.budget_dropdown.options == ("1,500",)  # no smaller step under 1,000 points
+    with ViewerApp(recon, port=0, max_points=10**6) as app:  # the largest frame's points come first
+        assert app.budget_dropdown.options[0] == f"{max(len(p) for p in recon.points_world):,}"
     with ViewerApp(recon, port=0, max_points=4000) as app:
         size_4k = app.point_size_slider.value
         assert app.budget_dropdown.options == ("4,000", "2,000")

@@ -197,8 +197,9 @@ class ViewerApp:
             self.points_dropdown = gui.add_dropdown("Points", tuple(POINT_MODES), initial_value=next(iter(POINT_MODES)))
             self.frustum_checkbox = gui.add_checkbox("Camera frustums", initial_value=True)
             # Fewer points play faster where the browser draws WebGL in software.
-            self.budget_dropdown = gui.add_dropdown("Points per frame", tuple(f"{n:,}" for n in point_budgets(self.max_points)),
-                                                    initial_value=f"{self.max_points:,}")
+            largest = max(len(p) for layer in self._layers() for p in layer.recon.points_world)
+            budgets = point_budgets(min(self.max_points, max(largest, 1)))
+            self.budget_dropdown = gui.add_dropdown("Points per frame", tuple(f"{n:,}" for n in budgets), initial_value=f"{budgets[0]:,}")
         with gui.add_folder("Frame images"):
             self.rgb_image = gui.add_image(np.zeros((8, 8, 3), np.uint8), label="RGB", format="jpeg")
             self.depth_image = gui.add_image(np.zeros((8, 8, 3), np.uint8), label="Depth (turbo, near=blue)", format="jpeg")
@@ -418,7 +419,8 @@ def point_size_range(size: float) -> tuple[float, float, float, float]:
 
 
 def point_budgets(max_points: int) -> list[int]:
-    """The per-frame point budgets offered in the viewer: the given one and smaller steps."""
+    """The per-frame point budgets offered in the viewer: the given one (at most the points a
+    frame has) and smaller steps down to 1,000."""
     return sorted({int(max_points), *(b for b in (max_points // 2, max_points // 5, max_points // 10) if b >= 1000)}, reverse=True)
 
 
