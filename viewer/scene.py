@@ -29,6 +29,7 @@ FRUSTUM_IMAGE_MAX_SIDE = 128
 FRUSTUM_SCALE_OF_DISTANCE = 0.15
 # Percentile of the points' distances from the centre used as the scene radius.
 RADIUS_PERCENTILE = 90
+RADIUS_SAMPLE_PER_FRAME = 10_000
 # Which points are drawn: GUI label -> key.
 POINT_MODES: dict[str, str] = {
     "Per-frame points": "frames",
@@ -100,12 +101,14 @@ class SceneLayer:
         self.max_points = int(max_points)
         first = recon.points_world[0] if len(recon.points_world[0]) else np.concatenate(recon.points_world + [recon.background_points])
         self.centre = np.median(first, axis=0).astype(np.float64) if len(first) else recon.T_world_cam[0, :3, 3].copy()
-        all_local = np.concatenate(recon.points_world + [recon.background_points]) - self.centre
+        clouds = [p for p in recon.points_world + [recon.background_points] if len(p)]
         # The scene's size for framing and for compare mode's offset: most points, not the few far
-        # ones (a floor seen up to the horizon would otherwise make the scene metres wide).
-        self.radius = float(np.percentile(np.linalg.norm(all_local, axis=1), RADIUS_PERCENTILE)) if len(all_local) else 1.0
+        # ones (a floor seen up to the horizon would otherwise make the scene metres wide). From a
+        # fixed sample per frame, so it does not depend on the point budget or cost much at start-up.
+        sample = [p[decimate(len(p), RADIUS_SAMPLE_PER_FRAME, seed=i)] - self.centre for i, p in enumerate(clouds)]
+        self.radius = float(np.percentile(np.linalg.norm(np.concatenate(sample), axis=1), RADIUS_PERCENTILE)) if sample else 1.0
         # Precision from every point, so that it holds for any point budget.
-        max_abs = float(np.abs(all_local).max()) if len(all_local) else 0.0
+        max_abs = max((float(np.abs(p - self.centre).max()) for p in clouds), default=0.0)
         self.precision = "float16" if max_abs * 2.0**-11 <= FLOAT16_MAX_ERROR_M else "float32"
         self._decimate()
         self.depth_limits = depth_range(recon.depth_m)
@@ -185,8 +188,9 @@ class SceneLayer:
             self._root = server.scene.add_frame(f"/{self.name}", show_axes=False, position=tuple(self.offset))
             if self.label:
                 up = -self.recon.T_world_cam[0, :3, 1]  # the first camera's up (OpenCV y points down)
-                self._label_node = server.scene.add_label(f"/{self.name}/label", self.label, position=tuple(self.centre + 0.8 * self.radius * up),
-                                       anchor="bottom-center", font_screen_scale=1.2)
+                self._label_node = server.scene.add_label(
+                    f"/{self.name}/label", self.label, position=tuple(self.centre + 0.8 * self.radius * up),
+                    anchor="bottom-center", font_screen_scale=1.2)
             for i, fr in enumerate(self.frames):
                 mask = fr.dynamic if point_mode == "background+dynamic" else slice(None)
                 self._clouds.append(server.scene.add_point_cloud(
