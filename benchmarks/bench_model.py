@@ -34,7 +34,7 @@ def _peak_rss_mb() -> float:
 
 
 def bench_training(preset_name: str, data: Path, bf16: bool, steps: int, batch_size: int) -> dict:
-    from tesseract4d.trainer import TrainConfig, Trainer
+    from tesseract4d.model.trainer import TrainConfig, Trainer
 
     with tempfile.TemporaryDirectory() as out:
         trainer = Trainer(TrainConfig(data=data, out=Path(out), preset=preset_name, max_steps=steps + 1, bf16=bf16,
@@ -52,10 +52,10 @@ def bench_training(preset_name: str, data: Path, bf16: bool, steps: int, batch_s
 def bench_sampling(preset_name: str, bf16: bool, steps: int, guided: bool, repeats: int) -> dict:
     import torch
 
-    from tesseract4d.model_space import ModelSpace
-    from tesseract4d.models.build import build_codec, build_text_encoder, build_transformer
-    from tesseract4d.pipeline import RGBDNPipeline, make_scheduler
-    from tesseract4d.presets import get_preset
+    from tesseract4d.model.model_space import ModelSpace
+    from tesseract4d.model.build import build_codec, build_text_encoder, build_transformer
+    from tesseract4d.model.pipeline import RGBDNPipeline, make_scheduler
+    from tesseract4d.model.presets import get_preset
 
     preset = get_preset(preset_name)
     codec = build_codec(preset)
@@ -92,7 +92,7 @@ def main(argv: list[str] | None = None) -> int:
     sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
     from model_fixtures import write_synthetic_dataset
 
-    from tesseract4d.presets import get_preset
+    from tesseract4d.model.presets import get_preset
 
     print(f"torch {torch.__version__}, {torch.get_num_threads()} threads, OMP_WAIT_POLICY={os.environ.get('OMP_WAIT_POLICY')}")
     rows = []

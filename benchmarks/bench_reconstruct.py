@@ -1,7 +1,7 @@
 """Benchmark 4D reconstruction: seconds per 16-frame clip for each stage, at 64^2 and 128^2.
 
 Scene: the analytic table + sliding box (viewer.sources.analytic_episode) with depth corrupted
-by 1 % noise and a per-frame scale/shift wobble (reconstruction.evaluate.flickering_depth). Stages
+by 1 % noise and a per-frame scale/shift wobble (tesseract4d.evaluation.episode.flickering_depth). Stages
 (reconstruction.reconstruct.STAGES): flow (DIS flow + dynamic masks), normal_terms (normal
 integration rows), temporal_terms (consistency rows), solve (joint sparse least squares),
 points (world points, colours, normals), tsdf (Open3D VoxelBlockGrid fusion + mesh).
@@ -31,7 +31,7 @@ def main() -> None:
 
     runtime.configure()
     start = time.perf_counter()
-    from reconstruction.evaluate import evaluate_episode, flickering_depth
+    from tesseract4d.evaluation.episode import evaluate_episode, flickering_depth
     from reconstruction.reconstruct import STAGES, ReconConfig, reconstruct_episode
     from viewer.sources import analytic_episode
 

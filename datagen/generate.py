@@ -107,7 +107,7 @@ class Worker:
 
         import torch
 
-        from datagen.previews import write_preview
+        from tesseract4d.previews import write_preview
         from datagen.simulate import EpisodeSimulator
         from tesseract4d.dataset_format import write_episode
 

@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from tesseract4d import dataset_format as df
-from tesseract4d.presets import CONDITION_REPEAT, PIXEL, PRESETS, ModelPreset
+from tesseract4d.model.presets import CONDITION_REPEAT, PIXEL, PRESETS, ModelPreset
 
 MICRO = ModelPreset(
     "micro", PIXEL, 32, 32, 8, CONDITION_REPEAT, "minilm", 8,
@@ -76,7 +76,7 @@ def write_tiny_cogvideox_folder(root: Path) -> Path:
     from diffusers import AutoencoderKLCogVideoX, CogVideoXTransformer3DModel
     from transformers import AutoTokenizer, T5Config, T5EncoderModel
 
-    from tesseract4d.text_encoder import minilm_path
+    from tesseract4d.model.text_encoder import minilm_path
 
     torch.manual_seed(0)
     lc = 4

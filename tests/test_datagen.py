@@ -235,8 +235,8 @@ def test_broken_vulkan_driver_says_how_to_install_one(tmp_path):
 
 
 def test_datagen_modules_import_without_the_simulator():
-    code = ("import sys, datagen.cli, datagen.dataset_cli, datagen.simulate, datagen.generate, datagen.capture, "
-            "datagen.previews; print(','.join(m for m in ('torch', 'mani_skill', 'sapien', 'ray', 'gymnasium') "
+    code = ("import sys, tesseract4d.cli.datagen, tesseract4d.cli.dataset, datagen.simulate, datagen.generate, datagen.capture, "
+            "tesseract4d.previews; print(','.join(m for m in ('torch', 'mani_skill', 'sapien', 'ray', 'gymnasium') "
             "if m in sys.modules))")
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60, cwd=REPO)
     assert proc.returncode == 0, proc.stderr

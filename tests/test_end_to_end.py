@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from tesseract4d.demo import HELDOUT_SEED_START, SHIPPED_CHECKPOINT
+from tesseract4d.cli.demo import HELDOUT_SEED_START, SHIPPED_CHECKPOINT
 
 pytestmark = [pytest.mark.sim, pytest.mark.slow]
 
@@ -126,7 +126,7 @@ def test_viewer_generate_panel_runs_the_shipped_model(heldout):
 
 
 def test_shipped_checkpoint_beats_the_static_world_on_the_moving_region(heldout, tmp_path):
-    from tesseract4d.heldout_eval import HeldoutConfig, evaluate_heldout, format_markdown
+    from tesseract4d.evaluation.heldout import HeldoutConfig, evaluate_heldout, format_markdown
 
     report = evaluate_heldout(HeldoutConfig(checkpoint=SHIPPED_CHECKPOINT, data=heldout, out=tmp_path), progress=False)
     print(format_markdown(report))

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from tesseract4d.instruction_following import direction_score, object_pixel_track, summarize
+from tesseract4d.evaluation.instruction_following import direction_score, object_pixel_track, summarize
 
 H = W = 64
 K = np.array([[50.0, 0, 32], [0, 50.0, 32], [0, 0, 1]])

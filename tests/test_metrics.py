@@ -8,8 +8,8 @@ import json
 import numpy as np
 import pytest
 
-from reconstruction import metrics as M
-from reconstruction.evaluate import evaluate_episode, format_report, json_safe
+from tesseract4d.evaluation import metrics as M
+from tesseract4d.evaluation.episode import evaluate_episode, format_report, json_safe
 from reconstruction.reconstruct import ReconConfig, reconstruct_episode
 from tesseract4d.errors import UserError
 from viewer.sources import analytic_episode

@@ -9,10 +9,10 @@ from model_fixtures import micro_latent_preset, register_preset, synthetic_episo
     write_tiny_cogvideox_folder
 
 from tesseract4d.errors import UserError
-from tesseract4d.model_space import MODALITY_CHANNELS, NUM_CHANNELS, ModelSpace, channel_slices
-from tesseract4d.models.codec import PixelCodec, make_condition
-from tesseract4d.models.rgbdn_transformer import RGBDNTransformer
-from tesseract4d.presets import CONDITION_FIRST, CONDITION_REPEAT, PRESETS, get_preset
+from tesseract4d.model.model_space import MODALITY_CHANNELS, NUM_CHANNELS, ModelSpace, channel_slices
+from tesseract4d.model.codec import PixelCodec, make_condition
+from tesseract4d.model.rgbdn_transformer import RGBDNTransformer
+from tesseract4d.model.presets import CONDITION_FIRST, CONDITION_REPEAT, PRESETS, get_preset
 
 
 def test_model_space_round_trip():
@@ -100,7 +100,7 @@ def test_first_frame_condition_modes():
 
 
 def test_text_encoder_pads_and_caches():
-    from tesseract4d.models.build import build_text_encoder
+    from tesseract4d.model.build import build_text_encoder
 
     enc = build_text_encoder(get_preset("tiny"))
     e = enc.encode(["pick up the red cube", "push the blue cube to the goal", "pick up the red cube"])
@@ -114,9 +114,9 @@ def test_text_encoder_pads_and_caches():
 def test_cogvideox_5b_structure_from_local_folder(tmp_path, monkeypatch):
     """The 5B preset's code path with a tiny random CogVideoX-I2V folder: built through the local
     loader (VAE, T5, transformer with pretrained RGB weights), trained, exported, reloaded, sampled."""
-    from tesseract4d.models.build import build_codec, build_transformer
-    from tesseract4d.predict import load_pipeline, predict_episode
-    from tesseract4d.trainer import TrainConfig, Trainer
+    from tesseract4d.model.build import build_codec, build_transformer
+    from tesseract4d.model.predict import load_pipeline, predict_episode
+    from tesseract4d.model.trainer import TrainConfig, Trainer
 
     preset = register_preset(monkeypatch, micro_latent_preset())
     folder = write_tiny_cogvideox_folder(tmp_path / "pretrained")

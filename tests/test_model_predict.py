@@ -14,8 +14,8 @@ from model_fixtures import MICRO, synthetic_episode, write_synthetic_dataset
 from tesseract4d import cli
 from tesseract4d import dataset_format as df
 from tesseract4d.errors import UserError
-from tesseract4d.presets import PRESETS
-from tesseract4d.predict import load_pipeline, predict_episode, predict_episodes, write_prediction
+from tesseract4d.model.presets import PRESETS
+from tesseract4d.model.predict import load_pipeline, predict_episode, predict_episodes, write_prediction
 
 
 @pytest.fixture(scope="module")
@@ -27,7 +27,7 @@ def micro_registered():
 
 @pytest.fixture(scope="module")
 def checkpoint(micro_registered, tmp_path_factory) -> Path:
-    from tesseract4d.trainer import TrainConfig, Trainer
+    from tesseract4d.model.trainer import TrainConfig, Trainer
 
     root = tmp_path_factory.mktemp("model_predict")
     data = write_synthetic_dataset(root / "data", episodes=2)

@@ -11,7 +11,7 @@ from model_fixtures import MICRO, register_preset, write_synthetic_dataset
 
 from tesseract4d import cli
 from tesseract4d.errors import UserError
-from tesseract4d.trainer import TrainConfig, Trainer, _psnr, list_checkpoints
+from tesseract4d.model.trainer import TrainConfig, Trainer, _psnr, list_checkpoints
 
 
 @pytest.fixture(scope="module")
@@ -117,7 +117,7 @@ def test_overfit_one_clip(tmp_path):
     losses = [trainer.train_step()["loss"] for _ in range(300)]
     assert sum(losses[-10:]) / 10 < 0.1 * losses[0]
 
-    from tesseract4d.pipeline import RGBDNPipeline, make_scheduler
+    from tesseract4d.model.pipeline import RGBDNPipeline, make_scheduler
 
     pipe = RGBDNPipeline(trainer.ema.model, make_scheduler(), trainer.codec, trainer.text_encoder, trainer.preset,
                          trainer.model_space)

@@ -9,7 +9,7 @@ import json
 import numpy as np
 import pytest
 
-from reconstruction.evaluate import evaluate_episode, flickering_depth
+from tesseract4d.evaluation.episode import evaluate_episode, flickering_depth
 from reconstruction.recon4d import Recon4D
 from reconstruction.reconstruct import STAGES, ReconConfig, reconstruct_episode
 from tesseract4d.errors import UserError

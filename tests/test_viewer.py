@@ -13,7 +13,7 @@ import pytest
 
 from reconstruction.recon4d import Recon4D
 from tesseract4d.errors import UserError
-from viewer.colors import colorize_depth, colorize_normals, point_colors, turbo
+from tesseract4d.colors import colorize_depth, colorize_normals, point_colors, turbo
 from viewer.compare import image_metrics, load_report_per_frame
 from viewer.scene import SceneLayer, decimate
 from viewer.sources import analytic_episode, load_source, recon_from_episode

@@ -27,7 +27,7 @@ import numpy as np
 
 from reconstruction.recon4d import Recon4D
 from tesseract4d.errors import UserError
-from viewer.colors import COLOR_MODES, colorize_depth, colorize_normals
+from tesseract4d.colors import COLOR_MODES, colorize_depth, colorize_normals
 from viewer.scene import DEFAULT_MAX_POINTS, POINT_MODES, SceneLayer, configure_rendering, initial_view, make_server, stop_server
 
 # generate(instruction, seed, steps, progress(fraction in [0, 1], message)) -> a new source.

@@ -27,7 +27,7 @@ def model_generator(checkpoint: str | os.PathLike, source: Recon4D) -> Callable[
     def generate(instruction: str, seed: int, steps: int, progress: Callable[[float, str], None]) -> Recon4D:
         try:
             from reconstruction.reconstruct import ReconConfig, reconstruct_episode
-            from tesseract4d.predict import load_pipeline, predict_episode
+            from tesseract4d.model.predict import load_pipeline, predict_episode
         except ImportError as e:
             raise UserError(f"the model code is not available in this install ({e}); update tesseract4d.") from e
         from viewer.sources import first_frame_episode

@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from reconstruction.recon4d import Recon4D
-from viewer.colors import depth_range, point_colors
+from tesseract4d.colors import depth_range, point_colors
 
 DEFAULT_MAX_POINTS = 50_000
 # float16 has 11 significant bits: rounding error at |x| = r is at most r * 2**-11. Use it only

@@ -15,7 +15,7 @@ import torch
 
 from tesseract4d import dataset_format as df
 from tesseract4d.errors import UserError
-from tesseract4d.model_space import ModelSpace
+from tesseract4d.model.model_space import ModelSpace
 
 
 @dataclass

@@ -18,7 +18,7 @@ import dataclasses
 from dataclasses import dataclass, field
 
 from tesseract4d.errors import UserError
-from tesseract4d.model_space import DEFAULT_FAR_M, DEFAULT_NEAR_M
+from tesseract4d.model.model_space import DEFAULT_FAR_M, DEFAULT_NEAR_M
 
 PIXEL = "pixel"
 LATENT = "latent"

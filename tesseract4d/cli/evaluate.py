@@ -55,7 +55,7 @@ def load_prediction(spec: str):
 
 
 def run_heldout(args: argparse.Namespace) -> int:
-    from tesseract4d.heldout_eval import HeldoutConfig, evaluate_heldout, format_markdown
+    from tesseract4d.evaluation.heldout import HeldoutConfig, evaluate_heldout, format_markdown
 
     cfg = HeldoutConfig(checkpoint=args.checkpoint, data=args.heldout, out=args.out, camera=args.camera,
                         num_steps=args.steps, sample_seed=args.sample_seed, max_episodes=args.max_per_task,
@@ -68,7 +68,7 @@ def run_heldout(args: argparse.Namespace) -> int:
 
 
 def run(args: argparse.Namespace) -> int:
-    from reconstruction.evaluate import evaluate_episode, format_report, json_safe
+    from tesseract4d.evaluation.episode import evaluate_episode, format_report, json_safe
     from tesseract4d.dataset_format import atomic_write_text, read_episode, resolve_episode
     from tesseract4d.errors import UserError
 

@@ -12,14 +12,14 @@ import sys
 
 # name -> (module, one-line help). The order is the data flow.
 SUBCOMMANDS: dict[str, tuple[str, str]] = {
-    "datagen": ("datagen.cli", "generate RGB-D-N episodes from ManiSkill motion planners"),
-    "dataset": ("datagen.dataset_cli", "inspect (info) or validate (check) a dataset folder"),
-    "train": ("tesseract4d.train_cli", "train the RGB-D-N video diffusion model"),
-    "predict": ("tesseract4d.predict_cli", "predict the RGB-D-N future from a first frame and an instruction"),
-    "reconstruct": ("reconstruction.cli", "fuse an RGB-D-N video into a consistent 4D point cloud"),
-    "evaluate": ("reconstruction.evaluate_cli", "metrics of a prediction/reconstruction against ground truth"),
-    "view": ("viewer.cli", "open a reconstruction, episode or prediction in the browser viewer"),
-    "demo": ("tesseract4d.demo", "one command: render a scene, predict, reconstruct, view"),
+    "datagen": ("tesseract4d.cli.datagen", "generate RGB-D-N episodes from ManiSkill motion planners"),
+    "dataset": ("tesseract4d.cli.dataset", "inspect (info) or validate (check) a dataset folder"),
+    "train": ("tesseract4d.cli.train", "train the RGB-D-N video diffusion model"),
+    "predict": ("tesseract4d.cli.predict", "predict the RGB-D-N future from a first frame and an instruction"),
+    "reconstruct": ("tesseract4d.cli.reconstruct", "fuse an RGB-D-N video into a consistent 4D point cloud"),
+    "evaluate": ("tesseract4d.cli.evaluate", "metrics of a prediction/reconstruction against ground truth"),
+    "view": ("tesseract4d.cli.view", "open a reconstruction, episode or prediction in the browser viewer"),
+    "demo": ("tesseract4d.cli.demo", "one command: render a scene, predict, reconstruct, view"),
 }
 
 
@@ -74,6 +74,3 @@ def main(argv: list[str] | None = None) -> int:
             return 2
         raise
 
-
-if __name__ == "__main__":
-    sys.exit(main())

@@ -141,7 +141,7 @@ def load_first_frame(cfg: PredictConfig, resolution: tuple[int, int], camera: st
 def run(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
-    from tesseract4d.predict import load_pipeline, predict_episodes, write_prediction
+    from tesseract4d.model.predict import load_pipeline, predict_episodes, write_prediction
 
     cfg = PredictConfig(**{f.name: getattr(args, f.name) for f in dataclasses.fields(PredictConfig)})
     pipe = load_pipeline(cfg.checkpoint, device=cfg.device, bf16=cfg.bf16)

@@ -18,8 +18,8 @@ from typing import Callable
 
 import torch
 
-from tesseract4d.models.codec import make_condition
-from tesseract4d.presets import ModelPreset
+from tesseract4d.model.codec import make_condition
+from tesseract4d.model.presets import ModelPreset
 
 # Layout of an inference checkpoint folder: TRANSFORMER_DIR/{config.json, diffusion_pytorch_model.safetensors}
 # and INFERENCE_CONFIG_FILE (preset, resolution, frames, depth range, text encoder, training summary).

@@ -36,9 +36,9 @@ import numpy as np
 import torch
 
 from tesseract4d.errors import UserError
-from tesseract4d.model_space import MODALITIES, ModelSpace
-from tesseract4d.pipeline import INFERENCE_CONFIG_FILE, TRANSFORMER_DIR
-from tesseract4d.presets import ModelPreset, get_preset
+from tesseract4d.model.model_space import MODALITIES, ModelSpace
+from tesseract4d.model.pipeline import INFERENCE_CONFIG_FILE, TRANSFORMER_DIR
+from tesseract4d.model.presets import ModelPreset, get_preset
 
 CHECKPOINT_PREFIX = "checkpoint-"
 EMA_DIR = "transformer_ema"
@@ -224,8 +224,8 @@ class Trainer:
         from accelerate import Accelerator
         from accelerate.utils import ProjectConfiguration
 
-        from tesseract4d.clips import ClipDataset
-        from tesseract4d.models.build import build_codec, build_text_encoder, build_transformer
+        from tesseract4d.model.clips import ClipDataset
+        from tesseract4d.model.build import build_codec, build_text_encoder, build_transformer
 
         self.preset = get_preset(config.preset)
         self.cfg = config.resolved(self.preset)
@@ -285,7 +285,7 @@ class Trainer:
         g = self._step_generator(step)
         clips, texts = self.data.sample_batch(cfg.batch_size, g)  # (b, T, 7, H, W)
         b = clips.shape[0]
-        from tesseract4d.models.codec import make_condition
+        from tesseract4d.model.codec import make_condition
 
         x0 = self.codec.encode(clips.to(self.device), generator=g)  # (b, t', c, h, w)
         first = self.codec.encode(clips[:, :1].to(self.device), generator=g)  # (b, 1, c, h, w)
@@ -380,7 +380,7 @@ class Trainer:
     # ------------------------------------------------------------------ validation
     def validate(self) -> dict[str, float]:
         """Sample the validation clips with the EMA weights; write GT|prediction videos, return PSNRs."""
-        from tesseract4d.pipeline import RGBDNPipeline, make_scheduler
+        from tesseract4d.model.pipeline import RGBDNPipeline, make_scheduler
 
         idx = self.data.validation_indices(self.cfg.val_clips)
         if not idx:
@@ -469,7 +469,7 @@ def _psnr(a: torch.Tensor, b: torch.Tensor) -> float:
 
 def _write_validation_video(folder: Path, episode_id: str, gt: torch.Tensor, pred: torch.Tensor, space: ModelSpace) -> Path:
     """One MP4: ground truth RGB|depth|normal on top, prediction below (datagen's preview writer)."""
-    from datagen.previews import write_preview
+    from tesseract4d.previews import write_preview
     from tesseract4d.dataset_format import CameraFrames, Episode
 
     g_rgb, g_depth, g_normal = space.decode(gt)

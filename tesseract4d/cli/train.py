@@ -13,11 +13,11 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from tesseract4d.presets import PRESETS
+from tesseract4d.model.presets import PRESETS
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from tesseract4d.trainer import TrainConfig
+    from tesseract4d.model.trainer import TrainConfig
 
     d = TrainConfig()
     parser.add_argument("--preset", default=d.preset, choices=list(PRESETS), help="model preset (default %(default)s)")
@@ -45,7 +45,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from tesseract4d.errors import UserError
-    from tesseract4d.trainer import TrainConfig, Trainer, export_checkpoint
+    from tesseract4d.model.trainer import TrainConfig, Trainer, export_checkpoint
 
     if args.export is not None:
         folder = export_checkpoint(args.export, args.to)

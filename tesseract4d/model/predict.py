@@ -22,9 +22,9 @@ import torch
 
 from tesseract4d import dataset_format as df
 from tesseract4d.errors import UserError
-from tesseract4d.model_space import ModelSpace
-from tesseract4d.pipeline import INFERENCE_CONFIG_FILE, TRANSFORMER_DIR, RGBDNPipeline, make_scheduler
-from tesseract4d.presets import PRESETS, preset_from_dict
+from tesseract4d.model.model_space import ModelSpace
+from tesseract4d.model.pipeline import INFERENCE_CONFIG_FILE, TRANSFORMER_DIR, RGBDNPipeline, make_scheduler
+from tesseract4d.model.presets import PRESETS, preset_from_dict
 
 
 def load_pipeline(checkpoint: str | os.PathLike, device: str = "cpu", bf16: bool = False) -> RGBDNPipeline:
@@ -33,8 +33,8 @@ def load_pipeline(checkpoint: str | os.PathLike, device: str = "cpu", bf16: bool
     Raises UserError when the folder is missing, is not a tesseract4d checkpoint, names an unknown
     preset, or holds weights that do not match its preset.
     """
-    from tesseract4d.models.build import build_codec, build_text_encoder
-    from tesseract4d.models.rgbdn_transformer import RGBDNTransformer
+    from tesseract4d.model.build import build_codec, build_text_encoder
+    from tesseract4d.model.rgbdn_transformer import RGBDNTransformer
 
     ckpt = Path(checkpoint)
     if not ckpt.is_dir():
@@ -71,7 +71,7 @@ def _load_transformer(folder: Path, preset, codec):
     """RGBDNTransformer from ``folder``, checked against the preset (clear error if they differ)."""
     from safetensors.torch import load_file
 
-    from tesseract4d.models.rgbdn_transformer import RGBDNTransformer
+    from tesseract4d.model.rgbdn_transformer import RGBDNTransformer
 
     saved = json.loads((folder / "config.json").read_text())
     expected_channels = dict(codec.modality_channels)
@@ -184,7 +184,7 @@ def predict_episodes(
 def write_prediction(episode: df.Episode, out_dir: str | os.PathLike) -> Path:
     """Write a predicted episode as a one-episode dataset folder (``out_dir``) with its MP4 preview
     (RGB | depth | normal); returns the episode's .h5 path."""
-    from datagen.previews import write_preview
+    from tesseract4d.previews import write_preview
 
     path = df.write_episode_dataset(out_dir, episode)
     write_preview(out_dir, episode)

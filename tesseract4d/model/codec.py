@@ -12,8 +12,8 @@ from __future__ import annotations
 
 import torch
 
-from tesseract4d.model_space import MODALITIES, MODALITY_CHANNELS, channel_slices
-from tesseract4d.presets import CONDITION_REPEAT
+from tesseract4d.model.model_space import MODALITIES, MODALITY_CHANNELS, channel_slices
+from tesseract4d.model.presets import CONDITION_REPEAT
 
 
 class PixelCodec:

@@ -3,7 +3,7 @@
 For every episode of a held-out dataset (seeds never used in training, instructions from the
 held-out paraphrases: ``tesseract4d datagen --seed-start 100000 --instruction-split heldout``)
 the model predicts the clip from the episode's first frame and instruction, and three methods
-are scored against the simulator's ground truth with ``reconstruction.evaluate``:
+are scored against the simulator's ground truth with ``tesseract4d.evaluation.episode``:
 
 - ``model``: the prediction after the reconstruction's consistency step (normal integration +
   temporal consistency), i.e. what `tesseract4d demo` shows;
@@ -13,7 +13,7 @@ are scored against the simulator's ground truth with ``reconstruction.evaluate``
 
 Every metric is reported over all pixels and over the moving region (ground-truth pixels that
 change over the clip), plus the instruction-following measure of
-:mod:`tesseract4d.instruction_following` for the tasks it covers.
+:mod:`tesseract4d.evaluation.instruction_following` for the tasks it covers.
 """
 
 from __future__ import annotations
@@ -93,11 +93,11 @@ def evaluate_heldout(cfg: HeldoutConfig, progress: bool = True) -> dict:
     """Run the evaluation; returns the report (also written to cfg.out when given)."""
     from tqdm import tqdm
 
-    from reconstruction.evaluate import evaluate_episode, json_safe
-    from reconstruction.metrics import moving_region_mask
+    from tesseract4d.evaluation.episode import evaluate_episode, json_safe
+    from tesseract4d.evaluation.metrics import moving_region_mask
     from reconstruction.reconstruct import ReconConfig, reconstruct_episode
-    from tesseract4d.instruction_following import TARGET_OBJECT, direction_score, summarize
-    from tesseract4d.predict import load_pipeline, predict_episode
+    from tesseract4d.evaluation.instruction_following import TARGET_OBJECT, direction_score, summarize
+    from tesseract4d.model.predict import load_pipeline, predict_episode
 
     data = Path(cfg.data)
     df.read_info(data)

@@ -18,7 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from reconstruction import metrics as M
+from tesseract4d.evaluation import metrics as M
 from reconstruction.recon4d import Recon4D
 from tesseract4d.dataset_format import Episode
 from tesseract4d.errors import UserError

@@ -17,8 +17,7 @@ from pathlib import Path
 
 from tesseract4d.errors import UserError
 
-PROJECT_ROOT = Path(__file__).resolve().parent.parent
-SHIPPED_CHECKPOINT = Path(__file__).resolve().parent / "checkpoints" / "tiny"
+SHIPPED_CHECKPOINT = Path(__file__).resolve().parent.parent / "checkpoints" / "tiny"
 # Training data uses seeds below this; demo and held-out evaluation use seeds from here on.
 HELDOUT_SEED_START = 100_000
 
@@ -82,7 +81,7 @@ def run_demo(cfg: DemoConfig) -> dict[str, Path]:
     from datagen.simulate import render_first_frame
     from reconstruction.reconstruct import ReconConfig, reconstruct_episode
     from tesseract4d import dataset_format as df
-    from tesseract4d.predict import load_pipeline, predict_episode, write_prediction
+    from tesseract4d.model.predict import load_pipeline, predict_episode, write_prediction
     from viewer.export import export_html
 
     if not Path(cfg.checkpoint).is_dir():

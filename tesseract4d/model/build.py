@@ -11,7 +11,7 @@ import os
 from pathlib import Path
 
 from tesseract4d.errors import UserError
-from tesseract4d.presets import LATENT, PIXEL, ModelPreset
+from tesseract4d.model.presets import LATENT, PIXEL, ModelPreset
 
 # Keys of a plain CogVideoX transformer -> keys inside RGBDNTransformer.
 _KEY_MAP = (("patch_embed.proj.", "backbone.patch_embed.proj.projs.rgb."), ("proj_out.", "backbone.proj_out.heads.rgb."))
@@ -33,7 +33,7 @@ _TEXT_ENCODERS: dict[tuple, object] = {}
 
 def build_text_encoder(preset: ModelPreset, pretrained_dir=None, device="cpu"):
     """The preset's frozen text encoder; one instance per process and configuration (it is only read)."""
-    from tesseract4d.text_encoder import TextEncoder
+    from tesseract4d.model.text_encoder import TextEncoder
 
     path = _require_pretrained(preset, pretrained_dir, "text_encoder").parent if preset.text_encoder == "t5" else None
     key = (preset.text_encoder, preset.max_text_tokens, str(path), str(device))
@@ -43,7 +43,7 @@ def build_text_encoder(preset: ModelPreset, pretrained_dir=None, device="cpu"):
 
 
 def build_codec(preset: ModelPreset, pretrained_dir=None):
-    from tesseract4d.models.codec import PixelCodec, VaeCodec
+    from tesseract4d.model.codec import PixelCodec, VaeCodec
 
     if preset.space == PIXEL:
         return PixelCodec()
@@ -55,7 +55,7 @@ def build_codec(preset: ModelPreset, pretrained_dir=None):
 def build_transformer(preset: ModelPreset, codec, pretrained_dir=None):
     """A fresh RGBDNTransformer for training: random (pixel presets) or the pretrained CogVideoX
     backbone with new zero-initialised depth/normal projections and heads copied from RGB (latent)."""
-    from tesseract4d.models.rgbdn_transformer import RGBDNTransformer
+    from tesseract4d.model.rgbdn_transformer import RGBDNTransformer
 
     if preset.space == PIXEL:
         model = RGBDNTransformer(dict(preset.backbone), dict(codec.modality_channels))

@@ -25,7 +25,7 @@ from diffusers.configuration_utils import ConfigMixin, register_to_config
 from diffusers.models.embeddings import get_3d_rotary_pos_embed
 from diffusers.models.modeling_utils import ModelMixin
 
-from tesseract4d.model_space import MODALITIES
+from tesseract4d.model.model_space import MODALITIES
 
 TIMESTEP_SCALE = 1000.0
 
