@@ -1,10 +1,13 @@
-"""Colour modes for points and the side-panel images (numpy only, no I/O).
+"""The colour maps of depth and normals, for MP4 previews and the viewer alike (no I/O).
 
-Every function returns uint8 RGB. Depth uses the "turbo" colormap over a fixed range per
-source (so colours mean the same depth in every frame); normals map [-1, 1] to [0, 255].
+Every function returns uint8 RGB. Depth uses the "turbo" colormap (OpenCV's table) over a
+fixed range per clip or source (so colours mean the same depth in every frame): near is blue,
+far is red; the range is the valid depths' ``DEPTH_PERCENTILES``. Normals map [-1, 1] to [0, 255].
 """
 
 from __future__ import annotations
+
+import functools
 
 import numpy as np
 
@@ -19,33 +22,34 @@ STATIC_RGB = np.array([90, 140, 200], np.uint8)
 DYNAMIC_RGB = np.array([245, 130, 30], np.uint8)
 INVALID_RGB = np.array([0, 0, 0], np.uint8)
 
-# Turbo colormap control points (Google's turbo, sampled at 9 stops), linearly interpolated.
-_TURBO_STOPS = np.array(
-    [
-        [48, 18, 59], [65, 105, 225], [40, 170, 230], [24, 220, 180], [120, 250, 90],
-        [200, 230, 50], [250, 170, 40], [230, 90, 20], [122, 4, 3],
-    ],
-    np.float32,
-)
+# The depth range: these percentiles of the valid depths. The far end is well below the
+# maximum because a far background would otherwise take most of the colour range.
+DEPTH_PERCENTILES = (2.0, 90.0)
+TURBO_LEVELS = 256
+
+
+@functools.lru_cache(maxsize=1)
+def _turbo_table() -> np.ndarray:
+    """(TURBO_LEVELS, 3) uint8 RGB: OpenCV's TURBO colormap, level 0 (blue) to 255 (red)."""
+    import cv2
+
+    levels = np.arange(TURBO_LEVELS, dtype=np.uint8)[:, None]  # (256, 1) one-channel image
+    return np.ascontiguousarray(cv2.applyColorMap(levels, cv2.COLORMAP_TURBO)[:, 0, ::-1])  # BGR -> RGB
 
 
 def turbo(x: np.ndarray) -> np.ndarray:
-    """Map values in [0, 1] (any shape) to uint8 RGB (shape + (3,)); values are clipped."""
+    """Map values in [0, 1] (any shape) to uint8 RGB (shape + (3,)); values are clipped, NaN is 0."""
     x = np.clip(np.nan_to_num(np.asarray(x, np.float32)), 0.0, 1.0)
-    pos = x * (len(_TURBO_STOPS) - 1)
-    lo = np.minimum(pos.astype(np.int32), len(_TURBO_STOPS) - 2)
-    frac = (pos - lo)[..., None]
-    rgb = _TURBO_STOPS[lo] * (1.0 - frac) + _TURBO_STOPS[lo + 1] * frac
-    return rgb.astype(np.uint8)
+    return _turbo_table()[((TURBO_LEVELS - 1) * x).astype(np.int32)]
 
 
-def depth_range(depths: np.ndarray, low_pct: float = 2.0, high_pct: float = 98.0) -> tuple[float, float]:
+def depth_range(depths: np.ndarray) -> tuple[float, float]:
     """Robust (near, far) in metres from valid (> 0, finite) depth samples of any shape."""
     d = np.asarray(depths, np.float32)
     d = d[np.isfinite(d) & (d > 0)]
     if d.size == 0:
         return 0.0, 1.0
-    near, far = np.percentile(d, [low_pct, high_pct])
+    near, far = np.percentile(d, DEPTH_PERCENTILES)
     if far - near < 1e-6:
         far = near + 1e-3
     return float(near), float(far)
@@ -54,7 +58,7 @@ def depth_range(depths: np.ndarray, low_pct: float = 2.0, high_pct: float = 98.0
 def colorize_depth(depth_m: np.ndarray, near: float, far: float) -> np.ndarray:
     """Depth (…) in metres to turbo RGB (…, 3); 0 / non-finite depth is black."""
     d = np.asarray(depth_m, np.float32)
-    rgb = turbo((d - near) / (far - near))
+    rgb = turbo((d - near) / max(far - near, 1e-6))
     rgb[~(np.isfinite(d) & (d > 0))] = INVALID_RGB
     return rgb
 

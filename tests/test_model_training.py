@@ -11,7 +11,8 @@ from model_fixtures import MICRO, register_preset, write_synthetic_dataset
 
 from tesseract4d import cli
 from tesseract4d.errors import UserError
-from tesseract4d.model.trainer import TrainConfig, Trainer, _psnr, list_checkpoints
+from tesseract4d.model.trainer import TrainConfig, Trainer, list_checkpoints
+from tesseract4d.psnr import rgb_psnr
 
 
 @pytest.fixture(scope="module")
@@ -124,8 +125,8 @@ def test_overfit_one_clip(tmp_path):
     clip, text = trainer.data.clip(0)
     pred = pipe(clip[None, 0], [text], num_inference_steps=4, generator=torch.Generator().manual_seed(0))[0]
     gt = (clip + 1) / 2
-    psnr = _psnr((pred + 1) / 2, gt)
-    static = _psnr(gt[:1].expand_as(gt), gt)
-    noise = _psnr(torch.rand(gt.shape, generator=torch.Generator().manual_seed(0)), gt)
+    psnr = rgb_psnr(((pred + 1) / 2).clamp(0, 1), gt)
+    static = rgb_psnr(gt[:1].expand_as(gt), gt)
+    noise = rgb_psnr(torch.rand(gt.shape, generator=torch.Generator().manual_seed(0)), gt)
     # Measured: 35.5 dB vs 21.1 dB static world vs 8.5 dB noise.
     assert psnr > 28.0 and psnr > static + 6.0 and psnr > noise + 15.0, (psnr, static, noise)

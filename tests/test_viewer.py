@@ -14,6 +14,7 @@ import pytest
 from reconstruction.recon4d import Recon4D
 from tesseract4d.errors import UserError
 from tesseract4d.colors import colorize_depth, colorize_normals, point_colors, turbo
+from tesseract4d.psnr import PSNR_MAX_DB
 from viewer.compare import image_metrics, load_report_per_frame
 from viewer.scene import SceneLayer, decimate
 from viewer.sources import analytic_episode, load_source, recon_from_episode
@@ -104,7 +105,7 @@ def test_image_metrics_and_report(tmp_path):
     a = recon_from_episode(analytic_episode(num_frames=3, height=32, width=32, seed=0))
     b = recon_from_episode(analytic_episode(num_frames=3, height=32, width=32, seed=1))
     same = image_metrics(a, a)
-    assert len(same) == 3 and same[0]["psnr_rgb_db"] == float("inf") and same[0]["depth_absrel"] == 0.0
+    assert len(same) == 3 and same[0]["psnr_rgb_db"] == PSNR_MAX_DB and same[0]["depth_absrel"] == 0.0
     diff = image_metrics(a, b)
     assert diff[0]["psnr_rgb_db"] < 40 and diff[0]["depth_absrel"] > 0
     (tmp_path / "r.json").write_text(json.dumps({"episodes": [{"per_frame": {"psnr": [1.0, 2.0], "absrel": [0.1, 0.2]}}]}))

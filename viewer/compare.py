@@ -1,8 +1,9 @@
 """Per-frame metrics shown in compare mode: read from an evaluation report, or computed cheaply.
 
 The cheap metrics compare the images of a prediction and its ground truth pixel by pixel
-(same camera, same resolution): RGB PSNR (dB), depth AbsRel and mean normal angle error (deg).
-They are what the viewer shows when no ``tesseract4d evaluate`` report is given.
+(same camera, same resolution): RGB PSNR (dB), depth AbsRel and mean normal angle error (deg),
+as defined in :mod:`tesseract4d.evaluation.metrics`. They are what the viewer shows when no
+``tesseract4d evaluate`` report is given.
 """
 
 from __future__ import annotations
@@ -11,9 +12,8 @@ import json
 import os
 from pathlib import Path
 
-import numpy as np
-
 from reconstruction.recon4d import Recon4D
+from tesseract4d.evaluation.metrics import depth_metrics, normal_metrics, rgb_psnr
 from tesseract4d.errors import UserError
 
 
@@ -24,16 +24,11 @@ def image_metrics(pred: Recon4D, gt: Recon4D) -> list[dict[str, float]]:
         return []
     out = []
     for t in range(min(pred.num_frames, gt.num_frames)):
-        mse = np.mean((pred.rgb[t].astype(np.float32) - gt.rgb[t].astype(np.float32)) ** 2)
-        psnr = float(10 * np.log10(255.0**2 / mse)) if mse > 0 else float("inf")
-        d_p, d_g = pred.depth_m[t], gt.depth_m[t]
-        both = (d_p > 0) & (d_g > 0) & np.isfinite(d_p) & np.isfinite(d_g)
-        absrel = float(np.mean(np.abs(d_p[both] - d_g[both]) / d_g[both])) if both.any() else float("nan")
-        n_p, n_g = pred.normal_cam[t], gt.normal_cam[t]
-        has_n = (np.linalg.norm(n_p, axis=-1) > 0.5) & (np.linalg.norm(n_g, axis=-1) > 0.5)
-        cos = np.sum(n_p[has_n] * n_g[has_n], -1) / (np.linalg.norm(n_p[has_n], axis=-1) * np.linalg.norm(n_g[has_n], axis=-1))
-        normal_deg = float(np.degrees(np.mean(np.arccos(np.clip(cos, -1, 1))))) if has_n.any() else float("nan")
-        out.append({"psnr_rgb_db": psnr, "depth_absrel": absrel, "normal_deg": normal_deg})
+        out.append({
+            "psnr_rgb_db": rgb_psnr(pred.rgb[t], gt.rgb[t]),
+            "depth_absrel": depth_metrics(pred.depth_m[t], gt.depth_m[t])["abs_rel"],
+            "normal_deg": normal_metrics(pred.normal_cam[t], gt.normal_cam[t])["mean_deg"],
+        })
     return out
 
 

@@ -19,13 +19,9 @@ import numpy as np
 from reconstruction.recon4d import MANIFEST, Recon4D
 from tesseract4d.dataset_format import CameraFrames, Episode
 from tesseract4d.errors import UserError
+from tesseract4d.motion import depth_tolerance_m
 from tesseract4d.geometry import depth_to_world_points, rotate_vectors, unproject_depth, transform_points
 
-# A pixel is "moving" when it is nearer than the farthest surface seen there over time (for a
-# static camera, that farthest surface is the static background that moving things pass in
-# front of) by more than this much (metres, plus a fraction of the depth).
-DYNAMIC_TOL_M = 0.01
-DYNAMIC_TOL_REL = 0.01
 # Two camera poses closer than this (metres / rotation-matrix entries) count as the same camera.
 STATIC_CAMERA_TOL = 1e-4
 
@@ -84,7 +80,9 @@ def recon_from_episode(episode: Episode, camera: str | None = None) -> Recon4D:
         depth_valid = np.where(valid, depth, 0.0)
         farthest_t = np.argmax(depth_valid, axis=0)  # (H, W) the frame that sees the background
         farthest = np.take_along_axis(depth_valid, farthest_t[None], 0)[0]  # (H, W), 0 = never valid
-        dynamic_px = valid & (depth < farthest - (DYNAMIC_TOL_M + DYNAMIC_TOL_REL * farthest))
+        # A pixel is moving when it is nearer than the farthest surface seen there over time (for a
+        # static camera, the background that moving things pass in front of) beyond the tolerance.
+        dynamic_px = valid & (depth < farthest - depth_tolerance_m(farthest))
         rows, cols = np.nonzero(farthest > 0)
         pts_cam = unproject_depth(farthest, cam.K[0])[rows, cols]
         background = (

@@ -8,9 +8,7 @@ Definitions (what the report's numbers mean):
   ``max(pred / gt, gt / pred)`` below 1.25 / 1.25²; valid pixels only (gt > 0 and pred > 0, finite).
 * ``normal_metrics``: angle between unit normals in degrees (mean, median) and the share of
   pixels under 11.25°; pixels where both normals exist.
-* ``rgb_psnr``: 10 log10(peak² / MSE) in dB (peak 255 for integer images, 1 for float images),
-  at most ``PSNR_MAX_DB`` (identical images, e.g. a prediction's conditioning frame, would give
-  infinity and make every average infinite).
+* ``rgb_psnr``: defined in :mod:`tesseract4d.psnr` (shared with training validation).
 * ``rgb_ssim``: SSIM of Wang et al. 2004 (11x11 Gaussian window, σ = 1.5, K1 = 0.01,
   K2 = 0.03) on each colour channel, averaged.
 
@@ -21,22 +19,14 @@ from __future__ import annotations
 
 import numpy as np
 
+from tesseract4d.motion import MOVING_DEPTH_TOL_M, MOVING_DEPTH_TOL_REL, MOVING_RGB_TOL, depth_tolerance_m
+from tesseract4d.psnr import PSNR_MAX_DB, peak_value, pixel_mask, rgb_psnr
+
+__all__ = ["PSNR_MAX_DB", "rgb_psnr", "chamfer_l1_m", "depth_metrics", "normal_metrics", "rgb_ssim", "ssim_map",
+           "moving_region_mask"]
+
 DELTA = 1.25
 NORMAL_GOOD_DEG = 11.25
-PSNR_MAX_DB = 100.0
-# Ground truth pixels differing from frame 0 by more than this count as moving.
-MOVING_RGB_TOL = 20  # 0-255, any channel
-MOVING_DEPTH_TOL_M = 0.01
-MOVING_DEPTH_TOL_REL = 0.01
-
-
-def _select(mask: np.ndarray | None, shape: tuple[int, ...]) -> np.ndarray:
-    if mask is None:
-        return np.ones(shape, bool)
-    mask = np.asarray(mask, bool)
-    if mask.shape != shape:
-        raise ValueError(f"mask shape {mask.shape} does not match the images' {shape}")
-    return mask
 
 
 def chamfer_l1_m(points_a: np.ndarray, points_b: np.ndarray) -> float:
@@ -59,7 +49,7 @@ def depth_metrics(pred_m: np.ndarray, gt_m: np.ndarray, mask: np.ndarray | None 
     pred, gt = np.asarray(pred_m, np.float64), np.asarray(gt_m, np.float64)
     if pred.shape != gt.shape:
         raise ValueError(f"depth shapes differ: pred {pred.shape}, gt {gt.shape}")
-    ok = _select(mask, gt.shape) & np.isfinite(pred) & np.isfinite(gt) & (pred > 0) & (gt > 0)
+    ok = pixel_mask(mask, gt.shape) & np.isfinite(pred) & np.isfinite(gt) & (pred > 0) & (gt > 0)
     if not ok.any():
         return {"abs_rel": float("nan"), "delta1": float("nan"), "delta2": float("nan")}
     p, g = pred[ok], gt[ok]
@@ -78,7 +68,7 @@ def normal_metrics(pred: np.ndarray, gt: np.ndarray, mask: np.ndarray | None = N
     if pred.shape != gt.shape or pred.shape[-1] != 3:
         raise ValueError(f"normal shapes must match and end in 3: pred {pred.shape}, gt {gt.shape}")
     len_p, len_g = np.linalg.norm(pred, axis=-1), np.linalg.norm(gt, axis=-1)
-    ok = _select(mask, gt.shape[:-1]) & np.isfinite(len_p) & np.isfinite(len_g) & (len_p > 0.5) & (len_g > 0.5)
+    ok = pixel_mask(mask, gt.shape[:-1]) & np.isfinite(len_p) & np.isfinite(len_g) & (len_p > 0.5) & (len_g > 0.5)
     if not ok.any():
         return {"mean_deg": float("nan"), "median_deg": float("nan"), "within_11_25": float("nan")}
     cos = np.sum(pred[ok] * gt[ok], -1) / (len_p[ok] * len_g[ok])
@@ -90,28 +80,11 @@ def normal_metrics(pred: np.ndarray, gt: np.ndarray, mask: np.ndarray | None = N
     }
 
 
-def _peak(img: np.ndarray) -> float:
-    return 255.0 if np.issubdtype(np.asarray(img).dtype, np.integer) else 1.0
-
-
-def rgb_psnr(pred: np.ndarray, gt: np.ndarray, mask: np.ndarray | None = None) -> float:
-    """PSNR (dB) of images (..., H, W, C); ``mask`` (..., H, W) selects pixels."""
-    p, g = np.asarray(pred, np.float64), np.asarray(gt, np.float64)
-    if p.shape != g.shape:
-        raise ValueError(f"image shapes differ: pred {p.shape}, gt {g.shape}")
-    ok = _select(mask, g.shape[:-1])
-    if not ok.any():
-        return float("nan")
-    mse = float(np.mean((p[ok] - g[ok]) ** 2))
-    floor = _peak(gt) ** 2 * 10 ** (-PSNR_MAX_DB / 10)
-    return float(10.0 * np.log10(_peak(gt) ** 2 / max(mse, floor)))
-
-
 def ssim_map(pred: np.ndarray, gt: np.ndarray) -> np.ndarray:
     """Per-pixel SSIM (H, W) of two (H, W, C) or (H, W) images, averaged over channels."""
     import cv2
 
-    peak = _peak(gt)
+    peak = peak_value(gt)
     p = np.asarray(pred, np.float64) / peak
     g = np.asarray(gt, np.float64) / peak
     if p.shape != g.shape:
@@ -132,7 +105,7 @@ def ssim_map(pred: np.ndarray, gt: np.ndarray) -> np.ndarray:
 def rgb_ssim(pred: np.ndarray, gt: np.ndarray, mask: np.ndarray | None = None) -> float:
     """Mean SSIM of two (H, W, C) images, over ``mask`` (H, W) if given."""
     m = ssim_map(pred, gt)
-    ok = _select(mask, m.shape)
+    ok = pixel_mask(mask, m.shape)
     return float(m[ok].mean()) if ok.any() else float("nan")
 
 
@@ -142,14 +115,14 @@ def moving_region_mask(frames, rgb_tol: float = MOVING_RGB_TOL, depth_tol_m: flo
 
     ``frames``: a CameraFrames (or anything with ``rgb`` (T, H, W, 3) and ``depth_m`` (T, H, W)).
     Frame t > 0: pixels whose RGB (any channel) or depth differs from frame 0 beyond the
-    tolerances. Frame 0 has nothing to differ from; it gets the pixels that change in any later
+    tolerances (:mod:`tesseract4d.motion`). Frame 0 has nothing to differ from; it gets the pixels that change in any later
     frame (what is about to move, or be uncovered).
     """
     rgb = np.asarray(frames.rgb, np.int16)
     depth = np.asarray(frames.depth_m, np.float64)
     depth = np.where(np.isfinite(depth), depth, 0.0)
     rgb_change = np.abs(rgb - rgb[:1]).max(-1) > rgb_tol
-    depth_change = np.abs(depth - depth[:1]) > depth_tol_m + depth_tol_rel * np.maximum(depth, depth[:1])
+    depth_change = np.abs(depth - depth[:1]) > depth_tolerance_m(np.maximum(depth, depth[:1]), depth_tol_m, depth_tol_rel)
     moving = rgb_change | depth_change
     moving[0] = moving[1:].any(0) if len(moving) > 1 else False
     return moving

@@ -36,6 +36,7 @@ import numpy as np
 import torch
 
 from tesseract4d.errors import UserError
+from tesseract4d.psnr import rgb_psnr
 from tesseract4d.model.model_space import MODALITIES, ModelSpace
 from tesseract4d.model.pipeline import INFERENCE_CONFIG_FILE, TRANSFORMER_DIR
 from tesseract4d.model.presets import ModelPreset, get_preset
@@ -395,10 +396,10 @@ class Trainer:
         logs = {}
         psnr_pred, psnr_static = [], []
         for k, i in enumerate(idx):
-            gt_rgb = (clips[k] + 1) / 2
-            pr_rgb = (pred[k] + 1) / 2
-            psnr_pred.append(_psnr(pr_rgb[:, :3], gt_rgb[:, :3]))
-            psnr_static.append(_psnr(gt_rgb[:1, :3].expand_as(gt_rgb[:, :3]), gt_rgb[:, :3]))
+            gt_rgb = ((clips[k] + 1) / 2).float()
+            pr_rgb = ((pred[k] + 1) / 2).float()
+            psnr_pred.append(rgb_psnr(pr_rgb[:, :3].clamp(0, 1), gt_rgb[:, :3].clamp(0, 1)))
+            psnr_static.append(rgb_psnr(gt_rgb[:1, :3].expand_as(gt_rgb[:, :3]).clamp(0, 1), gt_rgb[:, :3].clamp(0, 1)))
             _write_validation_video(folder, self.data.sources[i].episode_id, clips[k], pred[k], self.model_space)
         self.ema.model.eval()
         logs["val/psnr_rgb"] = float(np.mean(psnr_pred))
@@ -459,12 +460,6 @@ def _allow_new_accelerator(mixed_precision: str) -> None:
 
     if AcceleratorState._shared_state and str(AcceleratorState._shared_state.get("_mixed_precision", mixed_precision)) != mixed_precision:
         AcceleratorState._reset_state(reset_partial_state=True)
-
-
-def _psnr(a: torch.Tensor, b: torch.Tensor) -> float:
-    """PSNR in dB of images in [0, 1]."""
-    mse = float(((a.clamp(0, 1) - b.clamp(0, 1)) ** 2).mean())
-    return 10 * math.log10(1.0 / max(mse, 1e-10))
 
 
 def _write_validation_video(folder: Path, episode_id: str, gt: torch.Tensor, pred: torch.Tensor, space: ModelSpace) -> Path:
