@@ -54,6 +54,9 @@ PREVIEWS_DIR = "previews"
 EPISODE_TEMPLATE = "episodes/{env_id}/seed_{seed:06d}.h5"
 PREVIEW_TEMPLATE = "previews/{env_id}/seed_{seed:06d}.mp4"
 PARTIAL_SUFFIX = ".partial.h5"
+# Scene seeds: training data uses seeds below this; the demo and held-out evaluation use seeds
+# from here on (`datagen --seed-start HELDOUT_SEED_START --instruction-split heldout`).
+HELDOUT_SEED_START = 100_000
 
 DEPTH_ENCODING = "float32 metres along the OpenCV camera +z axis; 0 = no measurement"
 NORMAL_CONVENTION = "float16 unit vectors in the OpenCV camera frame (x right, y down, z forward); 0 = no measurement"

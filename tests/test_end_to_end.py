@@ -13,7 +13,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from tesseract4d.cli.demo import HELDOUT_SEED_START, SHIPPED_CHECKPOINT
+from tesseract4d.dataset_format import HELDOUT_SEED_START
+from tesseract4d.model.checkpoint import SHIPPED_CHECKPOINT
 
 pytestmark = [pytest.mark.sim, pytest.mark.slow]
 
@@ -44,7 +45,7 @@ def test_shipped_checkpoint_is_small_and_self_describing():
     assert size_mb < 30, f"shipped checkpoint is {size_mb:.1f} MB"
     names = {p.relative_to(SHIPPED_CHECKPOINT).as_posix() for p in files}
     assert {"transformer/config.json", "transformer/diffusion_pytorch_model.safetensors", "tesseract4d_config.json",
-            "MODEL_CARD.md"} <= names
+            "scheduler/scheduler_config.json", "MODEL_CARD.md"} <= names
     assert not any(n.endswith((".pt", ".pth", ".pkl", ".bin")) for n in names), "weights must be safetensors"
 
 

@@ -15,11 +15,9 @@ import json
 from dataclasses import dataclass
 from pathlib import Path
 
+from tesseract4d.dataset_format import HELDOUT_SEED_START
 from tesseract4d.errors import UserError
-
-SHIPPED_CHECKPOINT = Path(__file__).resolve().parent.parent / "checkpoints" / "tiny"
-# Training data uses seeds below this; demo and held-out evaluation use seeds from here on.
-HELDOUT_SEED_START = 100_000
+from tesseract4d.model.checkpoint import SHIPPED_CHECKPOINT
 
 
 @dataclass

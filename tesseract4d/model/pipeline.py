@@ -21,12 +21,6 @@ import torch
 from tesseract4d.model.codec import make_condition
 from tesseract4d.model.presets import ModelPreset
 
-# Layout of an inference checkpoint folder: TRANSFORMER_DIR/{config.json, diffusion_pytorch_model.safetensors}
-# and INFERENCE_CONFIG_FILE (preset, resolution, frames, depth range, text encoder, training summary).
-TRANSFORMER_DIR = "transformer"
-INFERENCE_CONFIG_FILE = "tesseract4d_config.json"
-
-
 def make_scheduler():
     """The few-step sampler: flow-matching Euler over sigmas 1 -> 0."""
     from diffusers import FlowMatchEulerDiscreteScheduler

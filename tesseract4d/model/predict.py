@@ -12,7 +12,6 @@ normals are unit vectors in the OpenCV camera frame.
 
 from __future__ import annotations
 
-import json
 import os
 from pathlib import Path
 from typing import Callable
@@ -23,7 +22,8 @@ import torch
 from tesseract4d import dataset_format as df
 from tesseract4d.errors import UserError
 from tesseract4d.model.model_space import ModelSpace
-from tesseract4d.model.pipeline import INFERENCE_CONFIG_FILE, TRANSFORMER_DIR, RGBDNPipeline, make_scheduler
+from tesseract4d.model.checkpoint import INFERENCE_CONFIG_FILE, load_scheduler, load_transformer, read_inference_config
+from tesseract4d.model.pipeline import RGBDNPipeline
 from tesseract4d.model.presets import PRESETS, preset_from_dict
 
 
@@ -34,64 +34,27 @@ def load_pipeline(checkpoint: str | os.PathLike, device: str = "cpu", bf16: bool
     preset, or holds weights that do not match its preset.
     """
     from tesseract4d.model.build import build_codec, build_text_encoder
-    from tesseract4d.model.rgbdn_transformer import RGBDNTransformer
 
     ckpt = Path(checkpoint)
-    if not ckpt.is_dir():
-        raise UserError(f"checkpoint {ckpt} not found; pass a folder written by `tesseract4d train` (RUN/final) "
-                        f"or `tesseract4d train --export RUN --to DIR`")
-    cfg_path = ckpt / INFERENCE_CONFIG_FILE
-    weights = ckpt / TRANSFORMER_DIR / "diffusion_pytorch_model.safetensors"
-    if not cfg_path.is_file() or not weights.is_file():
-        hint = " (a training checkpoint: export it with `tesseract4d train --export RUN`)" if (ckpt / "trainer_state.json").is_file() else ""
-        raise UserError(f"{ckpt} is not a tesseract4d inference checkpoint: it needs {INFERENCE_CONFIG_FILE} and "
-                        f"{TRANSFORMER_DIR}/diffusion_pytorch_model.safetensors{hint}")
+    cfg = read_inference_config(ckpt)
     try:
-        cfg = json.loads(cfg_path.read_text())
         preset = preset_from_dict(cfg["preset"])
-    except (json.JSONDecodeError, KeyError, TypeError) as e:
-        raise UserError(f"{cfg_path} is corrupt ({type(e).__name__}: {e}); re-export the checkpoint") from e
+    except (KeyError, TypeError) as e:
+        raise UserError(f"{ckpt / INFERENCE_CONFIG_FILE} is corrupt ({type(e).__name__}: {e}); re-export the checkpoint") from e
     if cfg["preset"].get("name") not in PRESETS:
         raise UserError(f"{ckpt} uses preset {cfg['preset'].get('name')!r}, unknown to this tesseract4d "
                         f"(known: {', '.join(PRESETS)}); update tesseract4d or use a matching checkpoint")
     pretrained = cfg.get("pretrained_dir")
     codec = build_codec(preset, pretrained)
-    transformer = _load_transformer(ckpt / TRANSFORMER_DIR, preset, codec)
+    transformer = load_transformer(ckpt, preset, codec.modality_channels)
     text_encoder = build_text_encoder(preset, pretrained, device=device)
     if transformer.backbone.config.text_embed_dim != text_encoder.dim:
         raise UserError(f"{ckpt}: the transformer expects {transformer.backbone.config.text_embed_dim}-d text "
                         f"embeddings but the {preset.text_encoder} encoder gives {text_encoder.dim}")
     space = ModelSpace(**cfg["model_space"])
-    pipe = RGBDNPipeline(transformer, make_scheduler(), codec, text_encoder, preset, space,
+    pipe = RGBDNPipeline(transformer, load_scheduler(ckpt, cfg), codec, text_encoder, preset, space,
                          camera_name=cfg.get("camera_name"), bf16=bf16, config=cfg)
     return pipe.to(device)
-
-
-def _load_transformer(folder: Path, preset, codec):
-    """RGBDNTransformer from ``folder``, checked against the preset (clear error if they differ)."""
-    from safetensors.torch import load_file
-
-    from tesseract4d.model.rgbdn_transformer import RGBDNTransformer
-
-    saved = json.loads((folder / "config.json").read_text())
-    expected_channels = dict(codec.modality_channels)
-    if saved.get("modality_channels") != expected_channels:
-        raise UserError(f"{folder} has modality channels {saved.get('modality_channels')} but preset "
-                        f"{preset.name!r} needs {expected_channels}; the weights belong to another preset")
-    if preset.backbone:
-        mismatch = {k: (saved.get("backbone_config", {}).get(k), v) for k, v in preset.backbone.items()
-                    if saved.get("backbone_config", {}).get(k) != v}
-        if mismatch:
-            raise UserError(f"{folder} does not match preset {preset.name!r}: "
-                            + ", ".join(f"{k} is {a}, preset has {b}" for k, (a, b) in mismatch.items()))
-    model = RGBDNTransformer(saved["backbone_config"], saved["modality_channels"])
-    state = load_file(str(folder / "diffusion_pytorch_model.safetensors"))
-    try:
-        model.load_state_dict(state)
-    except RuntimeError as e:
-        raise UserError(f"{folder}: weights do not match the config of preset {preset.name!r} "
-                        f"({str(e).splitlines()[0]} ...); re-export the checkpoint") from e
-    return model.eval()
 
 
 def _first_frame_arrays(first_frame: df.Episode, camera: str | None) -> tuple[str, df.CameraFrames]:

@@ -38,7 +38,7 @@ import torch
 from tesseract4d.errors import UserError
 from tesseract4d.psnr import rgb_psnr
 from tesseract4d.model.model_space import MODALITIES, ModelSpace
-from tesseract4d.model.pipeline import INFERENCE_CONFIG_FILE, TRANSFORMER_DIR
+from tesseract4d.model.checkpoint import INFERENCE_CONFIG_FILE, TRANSFORMER_DIR, WEIGHTS_FILE, format_header, write_inference_files
 from tesseract4d.model.presets import ModelPreset, get_preset
 
 CHECKPOINT_PREFIX = "checkpoint-"
@@ -178,8 +178,7 @@ def list_checkpoints(run: Path) -> list[Path]:
 def inference_config(preset: ModelPreset, model_space: ModelSpace, text_encoder, *, camera: str | None,
                      pretrained: Path | None, training: dict) -> dict:
     return {
-        "format": "tesseract4d-checkpoint",
-        "version": 1,
+        **format_header(),
         "preset": preset.to_dict(),
         "resolution": [preset.height, preset.width],
         "num_frames": preset.num_frames,
@@ -209,7 +208,7 @@ def export_checkpoint(run: str | os.PathLike, to: str | os.PathLike | None = Non
     tmp.mkdir(parents=True)
     shutil.copytree(ckpt / EMA_DIR, tmp / TRANSFORMER_DIR)
     state = json.loads((ckpt / STATE_FILE).read_text())
-    (tmp / INFERENCE_CONFIG_FILE).write_text(json.dumps(state["inference_config"], indent=2))
+    write_inference_files(tmp, {**state["inference_config"], **format_header()})
     shutil.rmtree(to, ignore_errors=True)
     os.replace(tmp, to)
     return to
@@ -367,7 +366,7 @@ class Trainer:
                             f"{self.preset.name!r} in {', '.join(diff)}; resume with the same preset or use a new --out")
         model = self.accelerator.unwrap_model(self.model)
         for target, sub in ((model, TRANSFORMER_DIR), (self.ema.model, EMA_DIR)):
-            weights = load_file(str(ckpt / sub / "diffusion_pytorch_model.safetensors"))
+            weights = load_file(str(ckpt / sub / WEIGHTS_FILE))
             try:
                 target.load_state_dict(weights)
             except RuntimeError as e:

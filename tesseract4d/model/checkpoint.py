@@ -1,0 +1,112 @@
+"""The inference checkpoint format: the one module that knows a checkpoint folder's layout.
+
+    CKPT/tesseract4d_config.json        INFERENCE_CONFIG_FILE: format, version, preset, resolution,
+                                        frames, depth range, text encoder, camera, training summary
+    CKPT/transformer/config.json        TRANSFORMER_DIR: the RGBDNTransformer, diffusers format
+    CKPT/transformer/diffusion_pytorch_model.safetensors     WEIGHTS_FILE (EMA weights)
+    CKPT/scheduler/scheduler_config.json                     SCHEDULER_DIR: the sampler's settings
+
+Versions: 1 had no scheduler folder (it sampled with ``pipeline.make_scheduler()``'s settings, which are
+what it was trained for); 2 saves the scheduler with the weights. A checkpoint of another format or
+of a newer version fails with a message that says what to do.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+from tesseract4d.errors import UserError
+
+FORMAT = "tesseract4d-checkpoint"
+FORMAT_VERSION = 2
+READABLE_VERSIONS = (1, 2)
+INFERENCE_CONFIG_FILE = "tesseract4d_config.json"
+TRANSFORMER_DIR = "transformer"
+SCHEDULER_DIR = "scheduler"
+WEIGHTS_FILE = "diffusion_pytorch_model.safetensors"  # diffusers' name for safetensors weights
+MODEL_CONFIG_FILE = "config.json"  # diffusers' name for a model's config
+SCHEDULER_CONFIG_FILE = "scheduler_config.json"  # diffusers' name for a scheduler's config
+# The checkpoint shipped with the package: the default of `predict`, `demo`, `evaluate --heldout`
+# and the viewer's Generate panel.
+SHIPPED_CHECKPOINT = Path(__file__).resolve().parent.parent / "checkpoints" / "tiny"
+
+
+def format_header() -> dict:
+    """The fields that open every INFERENCE_CONFIG_FILE."""
+    return {"format": FORMAT, "version": FORMAT_VERSION}
+
+
+def write_inference_files(folder: str | os.PathLike, inference_config: dict) -> None:
+    """Write INFERENCE_CONFIG_FILE (opening with :func:`format_header`) and the scheduler into
+    ``folder``; the transformer is written by its own ``save_pretrained``."""
+    from tesseract4d.model.pipeline import make_scheduler
+
+    folder = Path(folder)
+    (folder / INFERENCE_CONFIG_FILE).write_text(json.dumps(inference_config, indent=2))
+    make_scheduler().save_pretrained(folder / SCHEDULER_DIR)
+
+
+def read_inference_config(checkpoint: str | os.PathLike) -> dict:
+    """INFERENCE_CONFIG_FILE of a checkpoint folder, checked for format and version; UserError
+    with the fix when the folder is not a (readable) inference checkpoint."""
+    ckpt = Path(checkpoint)
+    if not ckpt.is_dir():
+        raise UserError(f"checkpoint {ckpt} not found; pass a folder written by `tesseract4d train` (RUN/final) "
+                        f"or `tesseract4d train --export RUN --to DIR`")
+    cfg_path = ckpt / INFERENCE_CONFIG_FILE
+    if not cfg_path.is_file() or not (ckpt / TRANSFORMER_DIR / WEIGHTS_FILE).is_file():
+        hint = " (a training checkpoint: export it with `tesseract4d train --export RUN`)" if (ckpt / "trainer_state.json").is_file() else ""
+        raise UserError(f"{ckpt} is not a tesseract4d inference checkpoint: it needs {INFERENCE_CONFIG_FILE} and "
+                        f"{TRANSFORMER_DIR}/{WEIGHTS_FILE}{hint}")
+    try:
+        cfg = json.loads(cfg_path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+        raise UserError(f"{cfg_path} is corrupt ({type(e).__name__}: {e}); re-export the checkpoint") from e
+    if not isinstance(cfg, dict) or cfg.get("format") != FORMAT:
+        raise UserError(f"{cfg_path} is not a {FORMAT} config; pass a folder written by `tesseract4d train`")
+    version = cfg.get("version")
+    if version not in READABLE_VERSIONS:
+        raise UserError(f"{ckpt} is checkpoint format version {version!r}; this tesseract4d reads versions "
+                        f"{', '.join(map(str, READABLE_VERSIONS))}: update tesseract4d, or re-export the checkpoint with this one")
+    return cfg
+
+
+def load_scheduler(checkpoint: str | os.PathLike, config: dict):
+    """The checkpoint's sampler: SCHEDULER_DIR when saved (version 2), else the version-1 sampler."""
+    from diffusers import FlowMatchEulerDiscreteScheduler
+
+    from tesseract4d.model.pipeline import make_scheduler
+
+    folder = Path(checkpoint) / SCHEDULER_DIR
+    if config["version"] == 1:
+        return make_scheduler()
+    if not (folder / SCHEDULER_CONFIG_FILE).is_file():
+        raise UserError(f"{folder / SCHEDULER_CONFIG_FILE} is missing; re-export the checkpoint with `tesseract4d train --export RUN`")
+    return FlowMatchEulerDiscreteScheduler.from_pretrained(folder)
+
+
+def load_transformer(checkpoint: str | os.PathLike, preset, modality_channels: dict[str, int]):
+    """The checkpoint's RGBDNTransformer (``from_pretrained``), checked against the preset and the
+    codec's ``modality_channels`` first, so a mismatch says which setting differs."""
+    from tesseract4d.model.rgbdn_transformer import RGBDNTransformer
+
+    folder = Path(checkpoint) / TRANSFORMER_DIR
+    saved = json.loads((folder / MODEL_CONFIG_FILE).read_text())
+    expected_channels = dict(modality_channels)
+    if saved.get("modality_channels") != expected_channels:
+        raise UserError(f"{folder} has modality channels {saved.get('modality_channels')} but preset "
+                        f"{preset.name!r} needs {expected_channels}; the weights belong to another preset")
+    if preset.backbone:
+        mismatch = {k: (saved.get("backbone_config", {}).get(k), v) for k, v in preset.backbone.items()
+                    if saved.get("backbone_config", {}).get(k) != v}
+        if mismatch:
+            raise UserError(f"{folder} does not match preset {preset.name!r}: "
+                            + ", ".join(f"{k} is {a}, preset has {b}" for k, (a, b) in mismatch.items()))
+    try:
+        model = RGBDNTransformer.from_pretrained(folder)
+    except (RuntimeError, ValueError, OSError) as e:
+        raise UserError(f"{folder}: weights do not match the config of preset {preset.name!r} "
+                        f"({str(e).splitlines()[0]} ...); re-export the checkpoint") from e
+    return model.eval()
