@@ -1,7 +1,7 @@
 """Benchmark 4D reconstruction: seconds per 16-frame clip for each stage, at 64^2 and 128^2.
 
-Scene: the analytic table + sliding box (viewer.sources.analytic_episode) with depth corrupted
-by 1 % noise and a per-frame scale/shift wobble (tesseract4d.evaluation.episode.flickering_depth). Stages
+Scene: the analytic table + sliding box (tests/synthetic_scene.py: analytic_episode) with depth corrupted
+by 1 % noise and a per-frame scale/shift wobble (flickering_depth, same module). Stages
 (reconstruction.reconstruct.STAGES): flow (DIS flow + dynamic masks), normal_terms (normal
 integration rows), temporal_terms (consistency rows), solve (joint sparse least squares),
 points (world points, colours, normals), tsdf (Open3D VoxelBlockGrid fusion + mesh).
@@ -16,7 +16,9 @@ from __future__ import annotations
 import argparse
 import json
 import statistics
+import sys
 import time
+from pathlib import Path
 
 
 def main() -> None:
@@ -31,9 +33,11 @@ def main() -> None:
 
     runtime.configure()
     start = time.perf_counter()
-    from tesseract4d.evaluation.episode import evaluate_episode, flickering_depth
+    from tesseract4d.evaluation.episode import evaluate_episode
     from reconstruction.reconstruct import STAGES, ReconConfig, reconstruct_episode
-    from viewer.sources import analytic_episode
+
+    sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
+    from synthetic_scene import analytic_episode, flickering_depth
 
     results = {"frames": args.frames, "sizes": {}}
     first = True

@@ -24,7 +24,9 @@ setting, not something the viewer can choose).
 from __future__ import annotations
 
 import argparse
+import sys
 import time
+from pathlib import Path
 
 TARGET_FPS = 15
 
@@ -60,9 +62,9 @@ ROWS = {
 
 def measure(recon, label: str, window: tuple[int, int], max_points: int, flags: list[str], seconds: float,
             warmup_s: float, play_fps: int) -> dict:
-    from viewer import browser
+    import browser  # tests/browser.py, on sys.path since main()
+    from browser import chromium, wait_until_drawn
     from viewer.app import ViewerApp
-    from viewer.browser import chromium, wait_until_drawn
 
     t_start = time.perf_counter()
     app = ViewerApp(recon, port=0, max_points=max_points)
@@ -107,8 +109,11 @@ def main() -> None:
     if unknown:
         parser.error(f"unknown rows {unknown}; choose from {', '.join(ROWS)}")
 
+    sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
+    from synthetic_scene import analytic_episode
+
+    from reconstruction.backproject import recon_from_episode
     from viewer.app import MAX_FPS
-    from viewer.sources import analytic_episode, recon_from_episode
 
     recon = recon_from_episode(analytic_episode(num_frames=args.frames, height=args.resolution, width=args.resolution))
     rows = []

@@ -11,7 +11,7 @@ Steps of :func:`reconstruct_episode`:
    with the background weight where both pixels are static and the dynamic weight elsewhere
    (``consistency.py``); a regulariser ties each pixel to the input depth;
 5. one sparse least-squares solve over the whole clip (conjugate gradients);
-6. per-frame world points, colours, normals and labels;
+6. per-frame world points, colours, normals and labels (``backproject.py``);
 7. TSDF fusion of the static pixels (``fusion.py``).
 
 The paper optimises frame after frame, each frame tied to the already refined previous one. We
@@ -29,10 +29,11 @@ from typing import Callable
 
 import numpy as np
 
+from reconstruction.backproject import frame_points
 from reconstruction.recon4d import Recon4D
 from tesseract4d.dataset_format import CameraFrames, Episode
 from tesseract4d.errors import UserError
-from tesseract4d.geometry import normals_from_depth, rotate_vectors, transform_points, unproject_depth
+from tesseract4d.geometry import normals_from_depth
 
 
 @dataclass
@@ -192,16 +193,11 @@ def reconstruct_episode(
     start = time.perf_counter()
     normal_cam = normal_in.copy()
     has_normal = np.linalg.norm(normal_in, axis=-1) > 0.5
-    points, colors, normals, dyn = [], [], [], []
     for t in range(T):
         missing = valid[t] & ~has_normal[t]
         if missing.any():
             normal_cam[t][missing] = normals_from_depth(depth[t], K[t])[missing]
-        pts_cam = unproject_depth(depth[t], K[t])[valid[t]]
-        points.append(transform_points(T_world_cam[t], pts_cam).astype(np.float32))
-        colors.append(rgb[t][valid[t]])
-        normals.append(rotate_vectors(T_world_cam[t], normal_cam[t][valid[t]]).astype(np.float32))
-        dyn.append(dynamic[t][valid[t]])
+    points, colors, normals, dyn = frame_points(rgb, depth, normal_cam, valid, K, T_world_cam, dynamic)
     timings["points"] = time.perf_counter() - start
     tick()
 

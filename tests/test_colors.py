@@ -7,7 +7,8 @@ import numpy as np
 from tesseract4d.colors import DEPTH_PERCENTILES, colorize_depth, depth_range, turbo
 from tesseract4d.previews import preview_frames
 from viewer.scene import SceneLayer
-from viewer.sources import analytic_episode, recon_from_episode
+from reconstruction.backproject import recon_from_episode
+from synthetic_scene import analytic_episode
 
 
 def test_previews_and_viewer_colour_the_same_depth_alike():

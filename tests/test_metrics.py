@@ -12,7 +12,7 @@ from tesseract4d.evaluation import metrics as M
 from tesseract4d.evaluation.episode import evaluate_episode, format_report, json_safe
 from reconstruction.reconstruct import ReconConfig, reconstruct_episode
 from tesseract4d.errors import UserError
-from viewer.sources import analytic_episode
+from synthetic_scene import analytic_episode
 
 
 def test_chamfer_identity_shift_and_empty():

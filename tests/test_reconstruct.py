@@ -9,12 +9,12 @@ import json
 import numpy as np
 import pytest
 
-from tesseract4d.evaluation.episode import evaluate_episode, flickering_depth
+from tesseract4d.evaluation.episode import evaluate_episode
 from reconstruction.recon4d import Recon4D
 from reconstruction.reconstruct import STAGES, ReconConfig, reconstruct_episode
 from tesseract4d.errors import UserError
 from tesseract4d.geometry import depth_to_world_points
-from viewer.sources import analytic_episode
+from synthetic_scene import analytic_episode, flickering_depth, look_at_pose
 
 FRAMES, SIZE = 16, 64
 NOISE_REL = 0.01  # per-pixel depth noise (fraction of depth)
@@ -240,7 +240,6 @@ def orbiting_table(frames: int = FRAMES, size: int = SIZE):
     """A static checkered table (plane z = 0) seen by a camera that orbits it: all image motion
     is the camera's own."""
     from tesseract4d.dataset_format import CameraFrames, Episode
-    from viewer.sources import look_at_pose
 
     f = 0.5 * size / np.tan(np.deg2rad(30))
     K = np.array([[f, 0, size / 2], [0, f, size / 2], [0, 0, 1]])

@@ -17,7 +17,9 @@ from tesseract4d.colors import colorize_depth, colorize_normals, point_colors, t
 from tesseract4d.psnr import PSNR_MAX_DB
 from viewer.compare import image_metrics, load_report_per_frame
 from viewer.scene import SceneLayer, decimate
-from viewer.sources import analytic_episode, load_source, recon_from_episode
+from reconstruction.backproject import recon_from_episode
+from synthetic_scene import analytic_episode
+from viewer.sources import load_source
 
 CLI = str(Path(sys.executable).with_name("tesseract4d"))
 

@@ -12,8 +12,9 @@ import time
 import pytest
 
 from reconstruction.recon4d import Recon4D
-from viewer.browser import canvas_image, chromium, drawn_fraction, image_change, wait_until_changed, wait_until_drawn
-from viewer.sources import analytic_episode, recon_from_episode
+from browser import canvas_image, chromium, drawn_fraction, image_change, wait_until_changed, wait_until_drawn
+from reconstruction.backproject import recon_from_episode
+from synthetic_scene import analytic_episode
 
 pytestmark = pytest.mark.browser
 NUM_FRAMES = 6

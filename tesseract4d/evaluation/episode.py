@@ -149,27 +149,6 @@ def evaluate_episode(pred: Episode | Recon4D, gt: Episode, camera: str | None = 
     }
 
 
-def flickering_depth(episode: Episode, noise_rel: float = 0.01, wobble_scale: float = 0.03,
-                     wobble_shift_m: float = 0.02, seed: int = 0) -> Episode:
-    """A copy of ``episode`` whose depth is corrupted the way a generated video's flickers:
-    per-pixel noise (a fraction ``noise_rel`` of the depth) and a per-frame scale and shift
-    wobble (sinusoids of amplitude ``wobble_scale`` and ``wobble_shift_m``, about zero-mean over
-    a clip). The stress input of the reconstruction tests and benchmark."""
-    import copy
-
-    rng = np.random.default_rng(seed)
-    out = copy.deepcopy(episode)
-    for cam in out.cameras.values():
-        T = len(cam.depth_m)
-        phase = rng.uniform(0, 2 * np.pi)
-        scale = 1 + wobble_scale * np.sin(1.7 * np.arange(T) + phase)
-        shift = wobble_shift_m * np.cos(2.3 * np.arange(T) + phase)
-        valid = cam.depth_m > 0
-        noisy = cam.depth_m * (1 + noise_rel * rng.standard_normal(cam.depth_m.shape))
-        cam.depth_m = np.where(valid, noisy * scale[:, None, None] + shift[:, None, None], 0).astype(np.float32)
-    return out
-
-
 def json_safe(obj):
     """The report with NaN/inf floats replaced by None (strict JSON)."""
     if isinstance(obj, dict):

@@ -1,18 +1,20 @@
-"""Drive the viewer in a real headless Chromium (Debian's /usr/bin/chromium via Playwright).
+"""Drive the viewer in a real headless Chromium through Playwright: Debian's /usr/bin/chromium,
+or the browser named by the environment variable ``TESSERACT4D_CHROMIUM``.
 
-Used by the browser tests and the benchmark. WebGL renders in software (SwiftShader), so a
+Used by the browser tests and the viewer benchmark (which puts ``tests/`` on ``sys.path``). WebGL renders in software (SwiftShader), so a
 scene is drawn a few seconds after the page loads; :func:`wait_until_drawn` polls for it.
 """
 
 from __future__ import annotations
 
 import contextlib
+import os
 import time
 from typing import Iterator
 
 import numpy as np
 
-CHROMIUM = "/usr/bin/chromium"
+CHROMIUM = os.environ.get("TESSERACT4D_CHROMIUM", "/usr/bin/chromium")
 CHROMIUM_ARGS = [
     "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run", "--disable-background-networking",
     "--disable-component-update", "--disable-sync", "--use-angle=swiftshader", "--enable-unsafe-swiftshader",

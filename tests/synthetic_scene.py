@@ -1,0 +1,108 @@
+"""The synthetic RGB-D-N scene of the tests and benchmarks (no simulator needed).
+
+* :func:`analytic_episode`: a checkered table and a sliding box, ray-cast exactly (RGB, metric
+  depth, camera-frame normals, K, T_world_cam), in the dataset format;
+* :func:`flickering_depth`: the same episode with depth corrupted the way a generated video's
+  flickers (the stress input of the reconstruction tests and benchmark);
+* :func:`look_at_pose`: a camera pose looking at a point.
+
+Benchmarks import it the way they import ``model_fixtures`` (``tests/`` on ``sys.path``).
+"""
+
+from __future__ import annotations
+
+import copy
+
+import numpy as np
+
+from tesseract4d.dataset_format import CameraFrames, Episode
+
+
+def look_at_pose(eye: np.ndarray, target: np.ndarray, up: np.ndarray = np.array([0.0, 0.0, 1.0])) -> np.ndarray:
+    """Camera→world (4, 4), OpenCV axes (x right, y down, z forward), looking from eye at target."""
+    forward = np.asarray(target, np.float64) - np.asarray(eye, np.float64)
+    forward /= np.linalg.norm(forward)
+    right = np.cross(forward, up)
+    right /= np.linalg.norm(right)
+    down = np.cross(forward, right)
+    T = np.eye(4)
+    T[:3, :3] = np.stack([right, down, forward], axis=1)
+    T[:3, 3] = eye
+    return T
+
+
+def analytic_episode(num_frames: int = 6, height: int = 96, width: int = 96, seed: int = 0,
+                     instruction: str = "push the box to the right") -> Episode:
+    """A ray-cast RGB-D-N episode: a checkered table plane z=0 and a 16 cm box sliding
+    along the x = y diagonal (across the camera's view).
+
+    The seed shifts the box's start, so different seeds give visibly different scenes.
+    """
+    fov = np.deg2rad(60.0)
+    f = 0.5 * width / np.tan(fov / 2)
+    K = np.array([[f, 0, width / 2], [0, f, height / 2], [0, 0, 1]], np.float64)
+    T_world_cam = look_at_pose(np.array([0.7, -0.7, 0.6]), np.array([0.0, 0.0, 0.05]))
+    u, v = np.meshgrid(np.arange(width) + 0.5, np.arange(height) + 0.5)
+    rays_cam = np.stack([(u - K[0, 2]) / f, (v - K[1, 2]) / f, np.ones_like(u)], -1)  # (H, W, 3), z = 1
+    R, origin = T_world_cam[:3, :3], T_world_cam[:3, 3]
+    rays = rays_cam @ R.T  # world directions scaled so that the camera z component is 1
+    half = 0.08
+    start = -0.25 + 0.1 * (seed % 5)
+    rgb = np.zeros((num_frames, height, width, 3), np.uint8)
+    depth = np.zeros((num_frames, height, width), np.float32)
+    normal_cam = np.zeros((num_frames, height, width, 3), np.float32)
+    for t in range(num_frames):
+        s = start + 0.5 * t / max(num_frames - 1, 1)  # slides across the view, along x = y
+        centre = np.array([s * np.sqrt(0.5), s * np.sqrt(0.5), half])
+        # Plane z = 0: origin_z + s * ray_z = 0, s is the camera z-depth since ray_cam_z = 1.
+        with np.errstate(divide="ignore", invalid="ignore"):
+            s_plane = -origin[2] / rays[..., 2]
+        hit_plane = np.isfinite(s_plane) & (s_plane > 0)
+        p = origin + s_plane[..., None] * rays
+        hit_plane &= (np.abs(p[..., 0]) < 1.0) & (np.abs(p[..., 1]) < 1.0)
+        # Axis-aligned box by the slab method.
+        lo, hi = centre - half, centre + half
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t1, t2 = (lo - origin) / rays, (hi - origin) / rays
+        t_near = np.nanmax(np.minimum(t1, t2), axis=-1)
+        t_far = np.nanmin(np.maximum(t1, t2), axis=-1)
+        hit_box = (t_near <= t_far) & (t_near > 0)
+        entry_axis = np.argmax(np.minimum(t1, t2), axis=-1)
+        box_front = hit_box & (~hit_plane | (t_near < s_plane))
+        d = np.where(box_front, t_near, np.where(hit_plane, s_plane, 0.0))
+        depth[t] = d
+        checker = ((np.floor(p[..., 0] / 0.1) + np.floor(p[..., 1] / 0.1)) % 2).astype(bool)
+        plane_rgb = np.where(checker[..., None], [200, 200, 190], [110, 110, 100])
+        rgb[t] = np.where(box_front[..., None], [220, 40, 40], np.where(hit_plane[..., None], plane_rgb, 0))
+        n_world = np.zeros((height, width, 3))
+        n_world[hit_plane] = [0.0, 0.0, 1.0]
+        axis_n = np.eye(3)[entry_axis] * -np.sign(np.take_along_axis(rays, entry_axis[..., None], -1))
+        n_world[box_front] = axis_n[box_front]
+        normal_cam[t] = n_world @ R  # world -> camera: R^T n, row-vector form
+    return Episode(
+        env_id="Analytic-v0", seed=seed, instruction=instruction,
+        cameras={"base_camera": CameraFrames(
+            rgb=rgb, depth_m=depth, normal_cam=normal_cam,
+            K=np.repeat(K[None], num_frames, 0), T_world_cam=np.repeat(T_world_cam[None], num_frames, 0),
+        )},
+        frame_steps=np.arange(num_frames, dtype=np.int32), fps=10.0, source="simulation",
+    )
+
+
+def flickering_depth(episode: Episode, noise_rel: float = 0.01, wobble_scale: float = 0.03,
+                     wobble_shift_m: float = 0.02, seed: int = 0) -> Episode:
+    """A copy of ``episode`` whose depth is corrupted the way a generated video's flickers:
+    per-pixel noise (a fraction ``noise_rel`` of the depth) and a per-frame scale and shift
+    wobble (sinusoids of amplitude ``wobble_scale`` and ``wobble_shift_m``, about zero-mean over
+    a clip). The stress input of the reconstruction tests and benchmark."""
+    rng = np.random.default_rng(seed)
+    out = copy.deepcopy(episode)
+    for cam in out.cameras.values():
+        T = len(cam.depth_m)
+        phase = rng.uniform(0, 2 * np.pi)
+        scale = 1 + wobble_scale * np.sin(1.7 * np.arange(T) + phase)
+        shift = wobble_shift_m * np.cos(2.3 * np.arange(T) + phase)
+        valid = cam.depth_m > 0
+        noisy = cam.depth_m * (1 + noise_rel * rng.standard_normal(cam.depth_m.shape))
+        cam.depth_m = np.where(valid, noisy * scale[:, None, None] + shift[:, None, None], 0).astype(np.float32)
+    return out
