@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import importlib
 import subprocess
 import sys
 
@@ -40,3 +41,18 @@ def test_import_is_light():
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
     assert proc.returncode == 0, proc.stderr
     assert proc.stdout.strip() == "", f"heavy modules imported at package import: {proc.stdout}"
+
+
+@pytest.mark.parametrize("name, argv", [("predict", []), ("demo", []), ("evaluate", ["--heldout", "data"]), ("view", ["recon"])])
+def test_model_defaults_come_from_the_shipped_checkpoint(name, argv):
+    # One source for the defaults: the shipped checkpoint, and its preset's sampler steps and frames
+    # (None here, resolved from the checkpoint when it is loaded).
+    import argparse
+
+    from tesseract4d.model.checkpoint import SHIPPED_CHECKPOINT
+
+    parser = argparse.ArgumentParser()
+    importlib.import_module(f"tesseract4d.cli.{name}").add_arguments(parser)
+    args = parser.parse_args(argv)
+    assert args.checkpoint == SHIPPED_CHECKPOINT
+    assert getattr(args, "steps", None) is None and getattr(args, "num_frames", None) is None

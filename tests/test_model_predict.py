@@ -146,3 +146,10 @@ def test_predict_cli_episode_and_files(checkpoint, tmp_path, capsys):
     assert "not found" in capsys.readouterr().err
     assert cli.main(["predict", "--checkpoint", str(checkpoint), "--out", str(tmp_path / "o4")]) == 2
     assert "exactly one way" in capsys.readouterr().err
+
+
+def test_frames_and_steps_default_to_the_checkpoint_preset(pipe):
+    calls = []
+    ep = predict_episode(pipe, synthetic_episode(5, frames=1), "push the square to the right",
+                         progress=lambda step, total: calls.append((step, total)))
+    assert ep.num_frames == MICRO.num_frames and calls[-1] == (MICRO.num_steps, MICRO.num_steps)

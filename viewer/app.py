@@ -36,6 +36,8 @@ PANEL_IMAGE_MAX_SIDE = 256
 MAX_FPS = 30
 PANEL_REFRESH_WHILE_PLAYING_S = 0.5
 COMPARE_LAYOUTS = ("Side by side", "Prediction only", "Ground truth only")
+# Range of the Generate panel's sampler steps.
+MIN_STEPS, MAX_STEPS = 1, 1000
 
 
 def check_port_free(host: str, port: int) -> None:
@@ -70,7 +72,7 @@ class ViewerApp:
                  max_points: int = DEFAULT_MAX_POINTS, compare: Recon4D | None = None,
                  metrics: list[dict] | None = None, generate: Generator | None = None,
                  generate_unavailable_reason: str = "Start the viewer with --checkpoint CKPT to generate.",
-                 title: str = "tesseract4d"):
+                 generate_steps: int | None = None, title: str = "tesseract4d"):
         self.host, self.port, self.max_points, self.title = host, int(port), int(max_points), title
         self.layer = SceneLayer(source, "prediction" if compare is not None else "scene", max_points,
                                 label="prediction" if compare is not None else None)
@@ -78,6 +80,7 @@ class ViewerApp:
         self._metrics = metrics
         self._generate = generate
         self._generate_unavailable_reason = generate_unavailable_reason
+        self._generate_steps = generate_steps  # the Steps box's first value (the checkpoint preset's)
         self.server = None
         self._lock = threading.RLock()
         self._stop = threading.Event()
@@ -104,12 +107,12 @@ class ViewerApp:
             from viewer.compare import load_report_per_frame
 
             rows = load_report_per_frame(metrics)
-        generate = None
+        generate = steps = None
         if checkpoint is not None:
-            from viewer.generate import model_generator
+            from viewer.generate import checkpoint_steps, model_generator
 
-            generate = model_generator(checkpoint, source)
-        return cls(source, compare=gt, metrics=rows, generate=generate, **kwargs)
+            generate, steps = model_generator(checkpoint, source), checkpoint_steps(checkpoint)
+        return cls(source, compare=gt, metrics=rows, generate=generate, generate_steps=steps, **kwargs)
 
     # ------------------------------------------------------------------ lifecycle
 
@@ -220,7 +223,8 @@ class ViewerApp:
             instruction = str(self.layer.recon.metadata.get("instruction", ""))
             self.instruction_text = gui.add_text("Instruction", initial_value=instruction)
             self.seed_number = gui.add_number("Seed", initial_value=0, min=0, step=1)
-            self.steps_number = gui.add_number("Steps", initial_value=10, min=1, max=1000, step=1)
+            self.steps_number = gui.add_number("Steps", initial_value=self._generate_steps or MIN_STEPS, min=MIN_STEPS,
+                                               max=MAX_STEPS, step=1)
             self.generate_button = gui.add_button("Generate", disabled=self._generate is None)
             self.progress_bar = gui.add_progress_bar(0.0, visible=False)
             self.status_md = gui.add_markdown("Ready." if self._generate is not None else self._generate_unavailable_reason)

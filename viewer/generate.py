@@ -18,6 +18,13 @@ from tesseract4d.errors import UserError
 PREDICT_SHARE = 0.8
 
 
+def checkpoint_steps(checkpoint: str | os.PathLike) -> int:
+    """The sampler steps a checkpoint's preset uses (read from its config; the model is not loaded)."""
+    from tesseract4d.model.checkpoint import read_inference_config
+
+    return int(read_inference_config(checkpoint)["preset"]["num_steps"])
+
+
 def model_generator(checkpoint: str | os.PathLike, source: Recon4D) -> Callable[[str, int, int, Callable[[float, str], None]], Recon4D]:
     checkpoint = Path(checkpoint)
     if not checkpoint.is_dir():

@@ -27,8 +27,8 @@ class DemoConfig:
     instruction: str | None = None
     checkpoint: Path = SHIPPED_CHECKPOINT
     out: Path = Path("demo_out")
-    num_frames: int = 16
-    steps: int = 10
+    num_frames: int | None = None  # None: one clip of the checkpoint's preset
+    steps: int | None = None  # None: the checkpoint preset's
     sample_seed: int = 0
     camera: str = "close"
     host: str = "127.0.0.1"
@@ -45,8 +45,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="instruction text (default: a held-out paraphrase generated for the scene)")
     parser.add_argument("--checkpoint", type=Path, default=d.checkpoint, help="model checkpoint folder (default: the shipped tiny model)")
     parser.add_argument("--out", type=Path, default=d.out, help="output folder (default %(default)s)")
-    parser.add_argument("--num-frames", type=int, default=d.num_frames, help="frames to predict (default %(default)s)")
-    parser.add_argument("--steps", type=int, default=d.steps, help="sampler steps (default %(default)s)")
+    parser.add_argument("--num-frames", type=int, help="frames to predict (default: one clip, the checkpoint preset's length)")
+    parser.add_argument("--steps", type=int, help="sampler steps (default: the checkpoint preset's)")
     parser.add_argument("--sample-seed", type=int, default=d.sample_seed, help="diffusion noise seed (default %(default)s)")
     parser.add_argument("--camera", default=d.camera, help="camera preset to render the first frame from (default %(default)s)")
     parser.add_argument("--host", default=d.host, help="viewer host (default %(default)s)")
@@ -86,11 +86,13 @@ def run_demo(cfg: DemoConfig) -> dict[str, Path]:
         raise UserError(f"checkpoint {cfg.checkpoint} not found; pass --checkpoint DIR (a folder written by `tesseract4d train --export`).")
     out = Path(cfg.out)
     out.mkdir(parents=True, exist_ok=True)
-    (out / "demo_config.json").write_text(json.dumps(dataclasses.asdict(cfg), indent=2, default=str))
     stages = tqdm(total=4, desc="demo", unit="stage")
 
     stages.set_postfix_str(f"render {cfg.task} seed {cfg.seed}")
     pipeline = load_pipeline(cfg.checkpoint)
+    # The resolved config: frames and steps the checkpoint's preset gives when not set.
+    cfg = dataclasses.replace(cfg, num_frames=cfg.num_frames or pipeline.num_frames, steps=cfg.steps or pipeline.preset.num_steps)
+    (out / "demo_config.json").write_text(json.dumps(dataclasses.asdict(cfg), indent=2, default=str))
     height, width = pipeline.resolution
     first = render_first_frame(cfg.task, cfg.seed, height=height, width=width, camera=cfg.camera)
     instruction = cfg.instruction if cfg.instruction is not None else first.instruction

@@ -25,6 +25,9 @@ import argparse
 import json
 from pathlib import Path
 
+from tesseract4d.dataset_format import HELDOUT_SEED_START
+from tesseract4d.model.checkpoint import SHIPPED_CHECKPOINT
+
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("pred", nargs="?", help="reconstruction folder, or a predicted episode (.h5 / folder / DIR/ENV_ID/SEED)")
@@ -36,10 +39,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="evaluation range in metres: depth, normal and Chamfer metrics count only pixels whose true "
                              "depth is at most M (default: all pixels; held-out evaluation: the checkpoint's depth range)")
     held = parser.add_argument_group("held-out evaluation of a model (instead of PRED --gt)")
-    held.add_argument("--checkpoint", type=Path, help="model checkpoint folder (e.g. tesseract4d/checkpoints/tiny)")
-    held.add_argument("--heldout", type=Path, help="held-out dataset folder (datagen --seed-start 100000 --instruction-split heldout)")
+    held.add_argument("--checkpoint", type=Path, default=SHIPPED_CHECKPOINT,
+                      help="model checkpoint folder (default: the shipped tiny model)")
+    held.add_argument("--heldout", type=Path,
+                      help=f"held-out dataset folder (datagen --seed-start {HELDOUT_SEED_START} --instruction-split heldout)")
     held.add_argument("--out", type=Path, help="folder for report.json and report.md")
-    held.add_argument("--steps", type=int, default=10, help="sampler steps (default %(default)s)")
+    held.add_argument("--steps", type=int, help="sampler steps (default: the checkpoint preset's)")
     held.add_argument("--sample-seed", type=int, default=0, help="diffusion noise seed (default %(default)s)")
     held.add_argument("--max-per-task", type=int, help="episodes per task at most (default: all)")
 
@@ -72,9 +77,9 @@ def run(args: argparse.Namespace) -> int:
     from tesseract4d.dataset_format import atomic_write_text, read_episode, resolve_episode
     from tesseract4d.errors import UserError
 
-    if args.checkpoint is not None or args.heldout is not None:
-        if args.checkpoint is None or args.heldout is None or args.pred is not None:
-            raise UserError("held-out evaluation takes --checkpoint CKPT --heldout DIR (and no PRED)")
+    if args.heldout is not None:
+        if args.pred is not None:
+            raise UserError("held-out evaluation takes --heldout DIR [--checkpoint CKPT] (and no PRED)")
         return run_heldout(args)
     if args.pred is None or args.gt is None:
         raise UserError("give PRED --gt EPISODE, or --checkpoint CKPT --heldout DIR; see `tesseract4d evaluate --help`")

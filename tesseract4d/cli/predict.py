@@ -24,12 +24,14 @@ from pathlib import Path
 
 import numpy as np
 
+from tesseract4d.dataset_format import HELDOUT_SEED_START
 from tesseract4d.errors import UserError
+from tesseract4d.model.checkpoint import SHIPPED_CHECKPOINT
 
 
 @dataclass
 class PredictConfig:
-    checkpoint: Path | None = None
+    checkpoint: Path = SHIPPED_CHECKPOINT
     instruction: str | None = None
     task: str | None = None
     seed: int | None = None
@@ -39,8 +41,8 @@ class PredictConfig:
     K: Path | None = None
     normal: Path | None = None
     out: Path = Path("prediction")
-    num_frames: int = 16
-    steps: int = 10
+    num_frames: int | None = None  # None: one clip of the checkpoint's preset
+    steps: int | None = None  # None: the checkpoint preset's
     sample_seed: int = 0
     num_samples: int = 1
     text_guidance: float | None = None
@@ -51,7 +53,8 @@ class PredictConfig:
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     d = PredictConfig()
-    parser.add_argument("--checkpoint", type=Path, required=True, help="inference checkpoint folder (RUN/final or --export output)")
+    parser.add_argument("--checkpoint", type=Path, default=d.checkpoint,
+                        help="inference checkpoint folder (RUN/final or --export output; default: the shipped tiny model)")
     parser.add_argument("--instruction", help="what should happen (default: the episode's / scene's own instruction)")
     src = parser.add_argument_group("first frame (one of)")
     src.add_argument("--task", help="ManiSkill task id to render, with --seed")
@@ -62,8 +65,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     src.add_argument("--K", type=Path, help="3x3 pixel intrinsics: .npy, .txt or .json")
     src.add_argument("--normal", type=Path, help="optional (H, W, 3) .npy unit normals, OpenCV camera frame")
     parser.add_argument("--out", type=Path, default=d.out, help="output folder (default %(default)s)")
-    parser.add_argument("--num-frames", type=int, default=d.num_frames, help="frames to predict; more than one clip continues autoregressively (default %(default)s)")
-    parser.add_argument("--steps", type=int, default=d.steps, help="sampler steps (default %(default)s)")
+    parser.add_argument("--num-frames", type=int, help="frames to predict; more than one clip continues autoregressively "
+                        "(default: one clip, the checkpoint preset's length)")
+    parser.add_argument("--steps", type=int, help="sampler steps (default: the checkpoint preset's)")
     parser.add_argument("--sample-seed", type=int, default=d.sample_seed, help="noise seed (default %(default)s)")
     parser.add_argument("--num-samples", type=int, default=d.num_samples, help="samples to draw in one batch (default %(default)s)")
     parser.add_argument("--text-guidance", type=float, help="text guidance scale (default: the checkpoint preset's)")
@@ -127,7 +131,7 @@ def load_first_frame(cfg: PredictConfig, resolution: tuple[int, int], camera: st
         raise UserError("give the first frame in exactly one way: --task ID --seed S, --episode PATH, or --rgb/--depth/--K")
     if cfg.task is not None:
         if cfg.seed is None:
-            raise UserError("--task needs --seed (scene seeds from 100000 on are never used in training)")
+            raise UserError(f"--task needs --seed (scene seeds from {HELDOUT_SEED_START} on are never used in training)")
         from datagen.simulate import render_first_frame
 
         return render_first_frame(cfg.task, cfg.seed, height=resolution[0], width=resolution[1], camera=camera or "close")
@@ -145,6 +149,8 @@ def run(args: argparse.Namespace) -> int:
 
     cfg = PredictConfig(**{f.name: getattr(args, f.name) for f in dataclasses.fields(PredictConfig)})
     pipe = load_pipeline(cfg.checkpoint, device=cfg.device, bf16=cfg.bf16)
+    # The resolved config: frames and steps the checkpoint's preset gives when not set.
+    cfg = dataclasses.replace(cfg, num_frames=cfg.num_frames or pipe.num_frames, steps=cfg.steps or pipe.preset.num_steps)
     first = load_first_frame(cfg, pipe.resolution, pipe.camera_name)
     instruction = cfg.instruction if cfg.instruction is not None else first.instruction
     bar = tqdm(desc="predict", unit="step")

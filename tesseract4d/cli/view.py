@@ -11,6 +11,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from tesseract4d.model.checkpoint import SHIPPED_CHECKPOINT
 from viewer.scene import DEFAULT_MAX_POINTS
 
 
@@ -22,7 +23,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--compare", metavar="GT_PATH", help="ground truth of the same episode, shown beside PATH")
     parser.add_argument("--metrics", type=Path, metavar="REPORT_JSON",
                         help="per-frame metrics from `tesseract4d evaluate` for compare mode (default: cheap image metrics)")
-    parser.add_argument("--checkpoint", type=Path, help="model checkpoint; enables the Generate panel")
+    parser.add_argument("--checkpoint", type=Path, default=SHIPPED_CHECKPOINT,
+                        help="model checkpoint of the Generate panel (default: the shipped tiny model)")
     parser.add_argument("--camera", help="which camera of an episode to show (default: the first)")
     parser.add_argument("--max-points", type=int, default=DEFAULT_MAX_POINTS,
                         help="point budget per frame sent to the browser (default %(default)s)")

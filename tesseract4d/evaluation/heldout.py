@@ -49,7 +49,7 @@ class HeldoutConfig:
     data: Path
     out: Path | None = None  # where report.json / report.md go; None = print only
     camera: str | None = None  # None = the dataset's first camera
-    num_steps: int = 10
+    num_steps: int | None = None  # None: the checkpoint preset's
     sample_seed: int = 0
     max_episodes: int | None = None  # per task; None = all
     # Evaluation range of the geometric metrics; None = the checkpoint's depth range (its far
@@ -71,7 +71,7 @@ def select_episodes(data: Path, max_per_task: int | None) -> list[Path]:
     files = df.list_episode_files(data)
     if not files:
         raise UserError(f"{data} holds no episodes; write a held-out set with `tesseract4d datagen ... "
-                        f"--seed-start 100000 --instruction-split heldout --out {data}`")
+                        f"--seed-start {df.HELDOUT_SEED_START} --instruction-split heldout --out {data}`")
     if max_per_task is None:
         return files
     kept, count = [], {}

@@ -1,8 +1,8 @@
 """Prediction: first RGB-D-N frame + instruction -> predicted RGB-D-N episode (dataset format).
 
     pipe = load_pipeline("runs/tiny/final")
-    first = render_first_frame("PickCube-v1", 100000, height=64, width=64)   # or read_episode(...)
-    pred = predict_episode(pipe, first, "pick up the red cube", num_frames=16, seed=0)
+    first = render_first_frame("PickCube-v1", HELDOUT_SEED_START, height=64, width=64)   # or read_episode(...)
+    pred = predict_episode(pipe, first, "pick up the red cube", seed=0)  # the preset's frames and steps
     write_prediction(pred, "out/prediction")      # episode .h5 + MP4 preview (RGB | depth | normal)
 
 The predicted episode keeps the first frame's env id, seed, intrinsics and (static) camera pose;
@@ -71,16 +71,17 @@ def predict_episode(
     first_frame: df.Episode,
     instruction: str,
     *,
-    num_frames: int = 16,
+    num_frames: int | None = None,
     seed: int = 0,
-    num_steps: int = 10,
+    num_steps: int | None = None,
     text_guidance: float | None = None,
     image_guidance: float | None = None,
     camera: str | None = None,
     progress: Callable[[int, int], None] | None = None,
 ) -> df.Episode:
     """Predict ``num_frames`` RGB-D-N frames from frame 0 of ``first_frame`` (its first camera, or
-    ``camera``) and ``instruction``. Guidance scales default to the checkpoint's preset.
+    ``camera``) and ``instruction``. Frames (one clip), sampler steps and guidance scales default to
+    the checkpoint's preset.
 
     Raises UserError for an empty instruction or a first frame whose resolution is not the model's.
     """
@@ -96,9 +97,9 @@ def predict_episodes(
     instruction: str,
     *,
     num_samples: int = 1,
-    num_frames: int = 16,
+    num_frames: int | None = None,
     seed: int = 0,
-    num_steps: int = 10,
+    num_steps: int | None = None,
     text_guidance: float | None = None,
     image_guidance: float | None = None,
     camera: str | None = None,
@@ -108,6 +109,8 @@ def predict_episodes(
     generator seeded with ``seed`` (same arguments, same episodes)."""
     if not isinstance(instruction, str) or not instruction.strip():
         raise UserError("the instruction is empty; say what should happen, e.g. --instruction \"pick up the red cube\"")
+    num_frames = pipeline.num_frames if num_frames is None else int(num_frames)
+    num_steps = pipeline.preset.num_steps if num_steps is None else int(num_steps)
     if num_frames < 1 or num_steps < 1 or num_samples < 1:
         raise UserError("--num-frames, --steps and --num-samples must be at least 1")
     cam_name, cam = _first_frame_arrays(first_frame, camera)
