@@ -103,6 +103,7 @@ def evaluate_heldout(cfg: HeldoutConfig, progress: bool = True) -> dict:
     df.read_info(data)
     files = select_episodes(data, cfg.max_episodes)
     pipeline = load_pipeline(cfg.checkpoint)
+    cfg = dataclasses.replace(cfg, num_steps=cfg.num_steps or pipeline.preset.num_steps)  # resolved, for the report
     max_depth_m = cfg.max_depth_m if cfg.max_depth_m is not None else float(pipeline.model_space.far_m)
     rows, scores = [], {m: [] for m in METHODS}
     bar = tqdm(files, desc="held-out", unit="episode", disable=not progress)
