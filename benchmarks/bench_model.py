@@ -90,7 +90,7 @@ def main(argv: list[str] | None = None) -> int:
     import torch
 
     sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
-    from model_fixtures import write_synthetic_dataset
+    from synthetic_scene import write_synthetic_dataset
 
     from tesseract4d.model.presets import get_preset
 

@@ -19,3 +19,34 @@ def artifacts_dir() -> Path:
     """A folder for files a person may want to look at after the run (screenshots, previews)."""
     ARTIFACTS_DIR.mkdir(parents=True, exist_ok=True)
     return ARTIFACTS_DIR
+
+
+@pytest.fixture(scope="session")
+def micro_preset():
+    """The micro preset (model_fixtures.MICRO) registered in PRESETS for the whole run, so that
+    tests train, export and load it by name."""
+    from model_fixtures import MICRO
+
+    from tesseract4d.model.presets import PRESETS
+
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setitem(PRESETS, MICRO.name, MICRO)
+        yield MICRO
+
+
+# The one simulator dataset of the run: a PickCube-v1 episode from `tesseract4d datagen` with
+# every option of the real thing (two cameras, randomised colours and lighting, camera jitter,
+# MP4 preview). Generated once, read by the datagen, reconstruction and dataset tests.
+SIM_TASK, SIM_SIZE, SIM_FRAMES, SIM_CAMERAS = "PickCube-v1", 64, 16, ("close", "base_camera")
+
+
+@pytest.fixture(scope="session")
+def sim_dataset(tmp_path_factory) -> Path:
+    from tesseract4d.cli import main
+
+    out = tmp_path_factory.mktemp("sim_dataset") / "ds"
+    argv = ["datagen", "--tasks", SIM_TASK, "--episodes", "1", "--out", str(out), "--resolution", str(SIM_SIZE),
+            "--frames", str(SIM_FRAMES), "--cameras", ",".join(SIM_CAMERAS), "--randomize-colors",
+            "--randomize-lighting", "--camera-jitter", "0.02", "--quiet"]
+    assert main(argv) == 0
+    return out

@@ -1,14 +1,11 @@
-"""Test helpers of the model tests: a synthetic RGB-D-N dataset, a micro preset, a tiny random
-CogVideoX-5B-I2V-shaped model folder."""
+"""Test helpers of the model tests: a micro preset, a tiny random CogVideoX-5B-I2V-shaped model
+folder. Their synthetic RGB-D-N data is in ``synthetic_scene.py``."""
 
 from __future__ import annotations
 
 import dataclasses
 from pathlib import Path
 
-import numpy as np
-
-from tesseract4d import dataset_format as df
 from tesseract4d.model.presets import CONDITION_REPEAT, PIXEL, PRESETS, ModelPreset
 
 MICRO = ModelPreset(
@@ -20,44 +17,6 @@ MICRO = ModelPreset(
     lr=2e-3, warmup_steps=5, batch_size=2, ema_decay=0.9, text_dropout=0.1, image_dropout=0.05,
     num_steps=4, text_guidance=1.0, image_guidance=1.0,
 )
-
-INSTRUCTIONS = {1: "push the square to the right", -1: "push the square to the left"}
-
-
-def synthetic_episode(seed: int, frames: int = 8, size: int = 32, direction: int = 1) -> df.Episode:
-    """A square moving sideways in front of a tilted plane: RGB, metric depth, normals, K."""
-    rng = np.random.default_rng(seed)
-    f = size * 1.0
-    K = np.array([[f, 0, size / 2], [0, f, size / 2], [0, 0, 1]], np.float64)
-    v, u = np.mgrid[0:size, 0:size]
-    plane_depth = (0.9 + 0.3 * v / size).astype(np.float32)
-    plane_normal = np.array([0.0, -0.3, -1.0], np.float32)
-    plane_normal /= np.linalg.norm(plane_normal)
-    colour = rng.integers(120, 256, 3)
-    x0, y0 = int(rng.integers(4, size // 2)), int(rng.integers(6, size - 14))
-    rgb = np.zeros((frames, size, size, 3), np.uint8)
-    depth = np.zeros((frames, size, size), np.float32)
-    normal = np.zeros((frames, size, size, 3), np.float32)
-    for t in range(frames):
-        rgb[t] = (40 + 100 * v[..., None] / size).astype(np.uint8)
-        depth[t] = plane_depth
-        normal[t] = plane_normal
-        x = x0 + direction * t
-        rgb[t, y0:y0 + 8, x:x + 8] = colour
-        depth[t, y0:y0 + 8, x:x + 8] = 0.5
-        normal[t, y0:y0 + 8, x:x + 8] = (0.0, 0.0, -1.0)
-    cam = df.CameraFrames(rgb=rgb, depth_m=depth, normal_cam=normal, K=np.repeat(K[None], frames, 0),
-                          T_world_cam=np.repeat(np.eye(4)[None], frames, 0))
-    return df.Episode(env_id="Synthetic-v0", seed=seed, instruction=INSTRUCTIONS[direction], cameras={"close": cam},
-                      frame_steps=np.arange(frames, dtype=np.int32), success=True)
-
-
-def write_synthetic_dataset(root: Path, episodes: int = 4, frames: int = 8, size: int = 32) -> Path:
-    df.init_dataset(root, df.DatasetInfo(height=size, width=size, cameras=["close"]))
-    for seed in range(episodes):
-        df.write_episode(root, synthetic_episode(seed, frames, size, direction=1 if seed % 2 == 0 else -1))
-    return root
-
 
 def register_preset(monkeypatch, preset: ModelPreset = MICRO) -> ModelPreset:
     monkeypatch.setitem(PRESETS, preset.name, preset)

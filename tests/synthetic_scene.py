@@ -4,7 +4,9 @@
   depth, camera-frame normals, K, T_world_cam), in the dataset format;
 * :func:`flickering_depth`: the same episode with depth corrupted the way a generated video's
   flickers (the stress input of the reconstruction tests and benchmark);
-* :func:`look_at_pose`: a camera pose looking at a point.
+* :func:`look_at_pose`: a camera pose looking at a point;
+* :func:`synthetic_episode` / :func:`write_synthetic_dataset`: a square sliding left or right in
+  front of a tilted plane, with the instruction that says which way: the model tests' training data.
 
 Benchmarks import it the way they import ``model_fixtures`` (``tests/`` on ``sys.path``).
 """
@@ -12,9 +14,11 @@ Benchmarks import it the way they import ``model_fixtures`` (``tests/`` on ``sys
 from __future__ import annotations
 
 import copy
+from pathlib import Path
 
 import numpy as np
 
+from tesseract4d import dataset_format as df
 from tesseract4d.dataset_format import CameraFrames, Episode
 
 
@@ -106,3 +110,41 @@ def flickering_depth(episode: Episode, noise_rel: float = 0.01, wobble_scale: fl
         noisy = cam.depth_m * (1 + noise_rel * rng.standard_normal(cam.depth_m.shape))
         cam.depth_m = np.where(valid, noisy * scale[:, None, None] + shift[:, None, None], 0).astype(np.float32)
     return out
+
+
+INSTRUCTIONS = {1: "push the square to the right", -1: "push the square to the left"}
+
+
+def synthetic_episode(seed: int, frames: int = 8, size: int = 32, direction: int = 1) -> df.Episode:
+    """A square moving sideways in front of a tilted plane: RGB, metric depth, normals, K."""
+    rng = np.random.default_rng(seed)
+    f = size * 1.0
+    K = np.array([[f, 0, size / 2], [0, f, size / 2], [0, 0, 1]], np.float64)
+    v, u = np.mgrid[0:size, 0:size]
+    plane_depth = (0.9 + 0.3 * v / size).astype(np.float32)
+    plane_normal = np.array([0.0, -0.3, -1.0], np.float32)
+    plane_normal /= np.linalg.norm(plane_normal)
+    colour = rng.integers(120, 256, 3)
+    x0, y0 = int(rng.integers(4, size // 2)), int(rng.integers(6, size - 14))
+    rgb = np.zeros((frames, size, size, 3), np.uint8)
+    depth = np.zeros((frames, size, size), np.float32)
+    normal = np.zeros((frames, size, size, 3), np.float32)
+    for t in range(frames):
+        rgb[t] = (40 + 100 * v[..., None] / size).astype(np.uint8)
+        depth[t] = plane_depth
+        normal[t] = plane_normal
+        x = x0 + direction * t
+        rgb[t, y0:y0 + 8, x:x + 8] = colour
+        depth[t, y0:y0 + 8, x:x + 8] = 0.5
+        normal[t, y0:y0 + 8, x:x + 8] = (0.0, 0.0, -1.0)
+    cam = df.CameraFrames(rgb=rgb, depth_m=depth, normal_cam=normal, K=np.repeat(K[None], frames, 0),
+                          T_world_cam=np.repeat(np.eye(4)[None], frames, 0))
+    return df.Episode(env_id="Synthetic-v0", seed=seed, instruction=INSTRUCTIONS[direction], cameras={"close": cam},
+                      frame_steps=np.arange(frames, dtype=np.int32), success=True)
+
+
+def write_synthetic_dataset(root: Path, episodes: int = 4, frames: int = 8, size: int = 32) -> Path:
+    df.init_dataset(root, df.DatasetInfo(height=size, width=size, cameras=["close"]))
+    for seed in range(episodes):
+        df.write_episode(root, synthetic_episode(seed, frames, size, direction=1 if seed % 2 == 0 else -1))
+    return root

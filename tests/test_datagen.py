@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import SIM_CAMERAS, SIM_FRAMES, SIM_SIZE
 
 from datagen.instructions import TEMPLATES, direction_words, make_instruction, scene_attributes
 from datagen.simulate import frame_indices
@@ -63,13 +64,9 @@ def test_frame_indices_are_evenly_spaced_and_keep_both_ends():
 
 
 @pytest.fixture(scope="module")
-def small_dataset(tmp_path_factory):
-    out = tmp_path_factory.mktemp("datagen") / "ds"
-    argv = ["datagen", "--tasks", "PickCube-v1", "--episodes", "1", "--out", str(out), "--resolution", "32",
-            "--frames", "4", "--cameras", "close,base_camera", "--randomize-colors", "--randomize-lighting",
-            "--camera-jitter", "0.02", "--quiet"]
-    assert main(argv) == 0
-    return out
+def small_dataset(sim_dataset):
+    """The run's simulator dataset (conftest.py): PickCube-v1, two cameras, randomised, jittered."""
+    return sim_dataset
 
 
 @pytest.mark.sim
@@ -77,11 +74,11 @@ def test_datagen_writes_a_complete_episode(small_dataset):
     files = list_episode_files(small_dataset)
     assert len(files) == 1
     ep = read_episode(files[0])
-    assert ep.success is True and ep.num_frames == 4 and ep.control_mode == "pd_joint_pos"
+    assert ep.success is True and ep.num_frames == SIM_FRAMES and ep.control_mode == "pd_joint_pos"
     assert ep.frame_steps[0] == 0 and ep.frame_steps[-1] == len(ep.actions) > 10
-    assert set(ep.cameras) == {"close", "base_camera"}
+    assert set(ep.cameras) == set(SIM_CAMERAS)
     for cam in ep.cameras.values():
-        assert cam.rgb.shape == (4, 32, 32, 3) and cam.rgb.std() > 5
+        assert cam.rgb.shape == (SIM_FRAMES, SIM_SIZE, SIM_SIZE, 3) and cam.rgb.std() > 5
         assert (cam.depth_m > 0).mean() > 0.9 and cam.depth_m.max() < 20
         norms = np.linalg.norm(cam.normal_cam, axis=-1)
         assert np.abs(norms[cam.depth_m > 0] - 1).max() < 5e-3
@@ -98,7 +95,7 @@ def test_datagen_writes_a_complete_episode(small_dataset):
     report = json.loads((small_dataset / "datagen_report.json").read_text())
     assert report["tasks"]["PickCube-v1"]["successes"] == 1
     config = json.loads((small_dataset / "datagen_config.json").read_text())
-    assert config["sim"]["height"] == 32 and config["tasks"] == ["PickCube-v1"]
+    assert config["sim"]["height"] == SIM_SIZE and config["tasks"] == ["PickCube-v1"]
 
 
 @pytest.mark.sim
@@ -111,7 +108,7 @@ def test_preview_is_browser_playable_h264(small_dataset):
     frames = [f for f in reader]
     reader.close()
     assert meta["codec"] == "h264" and "yuv420p" in meta.get("pix_fmt", "")
-    assert len(frames) == 4 and frames[0].shape[1] == 3 * frames[0].shape[0]  # RGB | depth | normal
+    assert len(frames) == SIM_FRAMES and frames[0].shape[1] == 3 * frames[0].shape[0]  # RGB | depth | normal
 
 
 @pytest.mark.sim
@@ -136,7 +133,7 @@ def test_stored_metadata_re_simulates_the_episode(small_dataset):
 def test_dataset_info_and_check(small_dataset, capsys, tmp_path):
     assert main(["dataset", "info", str(small_dataset)]) == 0
     out = capsys.readouterr().out
-    assert "episodes  1" in out and "PickCube-v1" in out and "frames 4" in out
+    assert "episodes  1" in out and "PickCube-v1" in out and f"frames {SIM_FRAMES}" in out
     assert main(["dataset", "check", str(small_dataset)]) == 0
     assert "1 ok, 0 bad" in capsys.readouterr().out
     # A truncated shard in a copy: check names it and fails; the good data is untouched.
@@ -149,7 +146,7 @@ def test_dataset_info_and_check(small_dataset, capsys, tmp_path):
     assert main(["dataset", "check", str(copy)]) == 1
     out = capsys.readouterr().out
     assert f"BAD  {shard}" in out and "corrupt or truncated" in out
-    assert read_episode(list_episode_files(small_dataset)[0]).num_frames == 4
+    assert read_episode(list_episode_files(small_dataset)[0]).num_frames == SIM_FRAMES
 
 
 # --------------------------------------------------------------------------- resume

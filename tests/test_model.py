@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
-from model_fixtures import micro_latent_preset, register_preset, synthetic_episode, write_synthetic_dataset, \
-    write_tiny_cogvideox_folder
+from model_fixtures import micro_latent_preset, register_preset, write_tiny_cogvideox_folder
+from synthetic_scene import synthetic_episode, write_synthetic_dataset
 
 from tesseract4d.errors import UserError
 from tesseract4d.model.model_space import MODALITY_CHANNELS, NUM_CHANNELS, ModelSpace, channel_slices

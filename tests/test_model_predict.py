@@ -9,7 +9,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from model_fixtures import MICRO, synthetic_episode, write_synthetic_dataset
+from model_fixtures import MICRO
+from synthetic_scene import synthetic_episode, write_synthetic_dataset
 
 from tesseract4d import cli
 from tesseract4d import dataset_format as df
@@ -19,14 +20,7 @@ from tesseract4d.model.predict import load_pipeline, predict_episode, predict_ep
 
 
 @pytest.fixture(scope="module")
-def micro_registered():
-    PRESETS[MICRO.name] = MICRO
-    yield MICRO
-    PRESETS.pop(MICRO.name, None)
-
-
-@pytest.fixture(scope="module")
-def checkpoint(micro_registered, tmp_path_factory) -> Path:
+def checkpoint(micro_preset, tmp_path_factory) -> Path:
     from tesseract4d.model.trainer import TrainConfig, Trainer
 
     root = tmp_path_factory.mktemp("model_predict")

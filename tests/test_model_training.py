@@ -7,7 +7,8 @@ from pathlib import Path
 
 import pytest
 import torch
-from model_fixtures import MICRO, register_preset, write_synthetic_dataset
+from model_fixtures import MICRO, register_preset
+from synthetic_scene import write_synthetic_dataset
 
 from tesseract4d import cli
 from tesseract4d.errors import UserError
@@ -20,9 +21,7 @@ def dataset(tmp_path_factory) -> Path:
     return write_synthetic_dataset(tmp_path_factory.mktemp("model_train") / "data", episodes=4)
 
 
-@pytest.fixture(autouse=True)
-def micro(monkeypatch):
-    return register_preset(monkeypatch)
+pytestmark = pytest.mark.usefixtures("micro_preset")
 
 
 def _config(data: Path, out: Path, **kw) -> TrainConfig:

@@ -214,16 +214,12 @@ def test_reconstruct_and_evaluate_cli(scene, tmp_path, capsys):
 
 
 @pytest.fixture(scope="module")
-def pickcube(tmp_path_factory):
-    """One real PickCube-v1 episode rendered by ManiSkill (64^2, 16 frames)."""
-    from tesseract4d.cli import main
+def pickcube(sim_dataset):
+    """One real PickCube-v1 episode rendered by ManiSkill (the run's simulator dataset, conftest.py),
+    its close camera."""
     from tesseract4d.dataset_format import list_episode_files, read_episode
 
-    root = tmp_path_factory.mktemp("pickcube")
-    rc = main(["datagen", "--tasks", "PickCube-v1", "--episodes", "1", "--out", str(root), "--resolution", str(SIZE),
-               "--frames", str(FRAMES), "--no-previews", "--quiet"])
-    assert rc == 0
-    return read_episode(list_episode_files(root)[0])
+    return read_episode(list_episode_files(sim_dataset)[0], cameras=["close"])
 
 
 @pytest.mark.sim
