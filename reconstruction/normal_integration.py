@@ -112,7 +112,7 @@ def log_depth_gradients(normal_cam: np.ndarray, K: np.ndarray) -> tuple[np.ndarr
     Returns (d log z / du (H, W), d log z / dv (H, W), usable (H, W) bool): usable where the
     normal exists and its ray is not near grazing.
     """
-    from tesseract4d.geometry import pixel_grid
+    from tesseract4d.geometry import MIN_NORMAL_LENGTH, pixel_grid
 
     n = np.asarray(normal_cam, np.float64)
     K = np.asarray(K, np.float64)
@@ -123,7 +123,7 @@ def log_depth_gradients(normal_cam: np.ndarray, K: np.ndarray) -> tuple[np.ndarr
     ray = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones_like(u)], -1)
     n_dot_r = (n * ray).sum(-1)
     cosine = np.abs(n_dot_r) / np.linalg.norm(ray, axis=-1)
-    usable = (length > 0.5) & np.isfinite(length) & (cosine > MIN_RAY_COSINE)
+    usable = (length > MIN_NORMAL_LENGTH) & np.isfinite(length) & (cosine > MIN_RAY_COSINE)
     safe = np.where(usable, n_dot_r, 1.0)
     gu = np.where(usable, -n[..., 0] / (K[0, 0] * safe), 0.0)
     gv = np.where(usable, -n[..., 1] / (K[1, 1] * safe), 0.0)

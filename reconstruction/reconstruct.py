@@ -33,7 +33,7 @@ from reconstruction.backproject import frame_points
 from reconstruction.recon4d import Recon4D
 from tesseract4d.dataset_format import CameraFrames, Episode
 from tesseract4d.errors import UserError
-from tesseract4d.geometry import normals_from_depth
+from tesseract4d.geometry import MIN_NORMAL_LENGTH, normals_from_depth
 
 
 @dataclass
@@ -192,7 +192,7 @@ def reconstruct_episode(
 
     start = time.perf_counter()
     normal_cam = normal_in.copy()
-    has_normal = np.linalg.norm(normal_in, axis=-1) > 0.5
+    has_normal = np.linalg.norm(normal_in, axis=-1) > MIN_NORMAL_LENGTH
     for t in range(T):
         missing = valid[t] & ~has_normal[t]
         if missing.any():

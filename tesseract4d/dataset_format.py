@@ -41,7 +41,6 @@ import re
 import uuid
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Iterator
 
 import numpy as np
 
@@ -409,12 +408,6 @@ def read_episode_attrs(path: str | os.PathLike) -> dict:
             }
     except (OSError, KeyError, ValueError, IndexError) as e:
         raise DatasetFormatError(f"{path} is corrupt or truncated ({type(e).__name__}: {e}). Delete it and regenerate it.") from e
-
-
-def iter_episodes(root: str | os.PathLike, cameras: list[str] | None = None) -> Iterator[Episode]:
-    read_info(root)
-    for p in list_episode_files(root):
-        yield read_episode(p, cameras=cameras)
 
 
 def resolve_episode(spec: str | os.PathLike) -> Path:

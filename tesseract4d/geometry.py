@@ -8,6 +8,10 @@ from __future__ import annotations
 
 import numpy as np
 
+# A stored normal counts as measured when it is longer than this: normals are unit vectors or
+# zero ("no measurement"), and float16 storage keeps unit ones within 1e-3 of length 1.
+MIN_NORMAL_LENGTH = 0.5
+
 
 def invert_pose(T_a_b: np.ndarray) -> np.ndarray:
     """Inverse of a rigid transform (…, 4, 4): returns T_b_a."""

@@ -28,6 +28,7 @@ import numpy as np
 
 from tesseract4d import dataset_format as df
 from tesseract4d.errors import UserError
+from tesseract4d.evaluation.instruction_following import RIGHT_WAY_COSINE
 
 METHODS = ("model", "model_raw", "static")
 METHOD_LABELS = {"model": "model + consistency", "model_raw": "model, no consistency", "static": "static world"}
@@ -180,7 +181,7 @@ def format_markdown(report: dict) -> str:
             cells = [f"**{_fmt(v, key)}**" if v is not None and v == best else _fmt(v, key) for v in vals]
             lines.append(f"| {label} | {region} | " + " | ".join(cells) + " |")
     follow = report["instruction_following"]
-    lines.append("| instruction following: moved the right way (cos > 0.5) | target object | "
+    lines.append(f"| instruction following: moved the right way (cos > {RIGHT_WAY_COSINE:g}) | target object | "
                  + " | ".join(_fmt(follow[m].get("right_way"), "") for m in METHODS) + " |")
     lines.append("| instruction following: mean cosine | target object | "
                  + " | ".join(_fmt(follow[m].get("mean_cosine"), "") for m in METHODS) + " |")

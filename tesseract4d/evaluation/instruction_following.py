@@ -26,6 +26,9 @@ import numpy as np
 from tesseract4d.geometry import invert_pose, project_points, transform_points
 
 # The object each task's instruction is about (the one whose motion the instruction fixes).
+# A clip moved its target object "the right way" when the cosine between the predicted and the
+# true displacement exceeds this (within 60 degrees).
+RIGHT_WAY_COSINE = 0.5
 TARGET_OBJECT = {
     "PickCube-v1": "cube",
     "PushCube-v1": "cube",
@@ -122,7 +125,7 @@ def direction_score(task: str, gt_rgb: np.ndarray, gt_segmentation: np.ndarray, 
 
 
 def summarize(scores: list[DirectionScore]) -> dict:
-    """Mean cosine, share of clips moved the right way (cosine > 0.5), endpoint error, tracker noise."""
+    """Mean cosine, share of clips moved the right way (cosine > RIGHT_WAY_COSINE), endpoint error, tracker noise."""
     valid = [s for s in scores if s.valid]
     if not valid:
         return {"episodes": 0}
@@ -130,7 +133,7 @@ def summarize(scores: list[DirectionScore]) -> dict:
     return {
         "episodes": len(valid),
         "mean_cosine": float(cos.mean()),
-        "right_way": float((cos > 0.5).mean()),
+        "right_way": float((cos > RIGHT_WAY_COSINE).mean()),
         "endpoint_error_px": float(np.mean([s.endpoint_error_px for s in valid])),
         "tracker_px": float(np.nanmean([s.tracker_px for s in valid])),
     }

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from tesseract4d.geometry import MIN_NORMAL_LENGTH
 from tesseract4d.motion import MOVING_DEPTH_TOL_M, MOVING_DEPTH_TOL_REL, MOVING_RGB_TOL, depth_tolerance_m
 from tesseract4d.psnr import PSNR_MAX_DB, peak_value, pixel_mask, rgb_psnr
 
@@ -62,13 +63,14 @@ def depth_metrics(pred_m: np.ndarray, gt_m: np.ndarray, mask: np.ndarray | None 
 
 
 def normal_metrics(pred: np.ndarray, gt: np.ndarray, mask: np.ndarray | None = None) -> dict[str, float]:
-    """mean_deg, median_deg, within_11_25 over pixels where both normals exist (length > 0.5).
+    """mean_deg, median_deg, within_11_25 over pixels where both normals exist (longer than
+    ``geometry.MIN_NORMAL_LENGTH``).
     pred, gt: (..., 3)."""
     pred, gt = np.asarray(pred, np.float64), np.asarray(gt, np.float64)
     if pred.shape != gt.shape or pred.shape[-1] != 3:
         raise ValueError(f"normal shapes must match and end in 3: pred {pred.shape}, gt {gt.shape}")
     len_p, len_g = np.linalg.norm(pred, axis=-1), np.linalg.norm(gt, axis=-1)
-    ok = pixel_mask(mask, gt.shape[:-1]) & np.isfinite(len_p) & np.isfinite(len_g) & (len_p > 0.5) & (len_g > 0.5)
+    ok = pixel_mask(mask, gt.shape[:-1]) & np.isfinite(len_p) & np.isfinite(len_g) & (len_p > MIN_NORMAL_LENGTH) & (len_g > MIN_NORMAL_LENGTH)
     if not ok.any():
         return {"mean_deg": float("nan"), "median_deg": float("nan"), "within_11_25": float("nan")}
     cos = np.sum(pred[ok] * gt[ok], -1) / (len_p[ok] * len_g[ok])

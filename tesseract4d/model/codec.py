@@ -20,7 +20,6 @@ class PixelCodec:
     """Identity codec: the network sees model-space pixels."""
 
     temporal_compression = 1
-    spatial_compression = 1
 
     def __init__(self) -> None:
         self.modality_channels = dict(MODALITY_CHANNELS)
@@ -45,7 +44,6 @@ class VaeCodec:
         self.vae = vae.eval().requires_grad_(False)
         self.scaling = float(vae.config.scaling_factor)
         self.temporal_compression = int(vae.config.temporal_compression_ratio)
-        self.spatial_compression = 2 ** (len(vae.config.block_out_channels) - 1)
         lc = int(vae.config.latent_channels)
         self.modality_channels = {name: lc for name in MODALITIES}
 

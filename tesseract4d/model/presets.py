@@ -44,7 +44,6 @@ class ModelPreset:
     backbone: dict = field(default_factory=dict)
     near_m: float = DEFAULT_NEAR_M
     far_m: float = DEFAULT_FAR_M
-    needs_pretrained: bool = False
     # training defaults
     lr: float = 3e-4
     warmup_steps: int = 200
@@ -77,7 +76,7 @@ PRESETS: dict[str, ModelPreset] = {
     for p in [
         ModelPreset("tiny", PIXEL, 64, 64, 16, CONDITION_REPEAT, "minilm", 32, backbone=_tiny_backbone(64, 4, 4)),
         ModelPreset("tiny-128", PIXEL, 128, 128, 16, CONDITION_REPEAT, "minilm", 32, backbone=_tiny_backbone(128, 8, 4)),
-        ModelPreset("cogvideox-5b", LATENT, 480, 720, 49, CONDITION_FIRST, "t5", 226, needs_pretrained=True,
+        ModelPreset("cogvideox-5b", LATENT, 480, 720, 49, CONDITION_FIRST, "t5", 226,
                     lr=1e-4, warmup_steps=1000, batch_size=1, ema_decay=0.99, num_steps=50, text_guidance=7.5),
     ]
 }

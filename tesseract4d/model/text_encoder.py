@@ -6,7 +6,7 @@ Two encoders, both offline:
   model folder, e.g. CogVideoX-5B-I2V; d = 4096 there).
 
 Padding positions are zero vectors. The "no text" embedding used for classifier-free guidance is all
-zeros (``null_embedding``), never an encoded empty string.
+zeros (the pipeline's ``torch.zeros_like`` of the text embedding), never an encoded empty string.
 """
 
 from __future__ import annotations
@@ -64,10 +64,6 @@ class TextEncoder:
         self.model.eval().requires_grad_(False).to(self.device)
         self.dim = int(self.model.config.hidden_size if hasattr(self.model.config, "hidden_size") else self.model.config.d_model)
         self._cache: dict[str, torch.Tensor] = {}
-
-    def null_embedding(self, batch: int = 1) -> torch.Tensor:
-        """(batch, L, d) zeros: the unconditional text input."""
-        return torch.zeros(batch, self.max_tokens, self.dim)
 
     @torch.no_grad()
     def encode(self, instructions: list[str]) -> torch.Tensor:

@@ -39,7 +39,7 @@ from tesseract4d.errors import UserError
 from tesseract4d.psnr import rgb_psnr
 from tesseract4d.model.model_space import MODALITIES, ModelSpace
 from tesseract4d.model.checkpoint import INFERENCE_CONFIG_FILE, TRANSFORMER_DIR, WEIGHTS_FILE, format_header, write_inference_files
-from tesseract4d.model.presets import ModelPreset, get_preset
+from tesseract4d.model.presets import ModelPreset, get_preset, preset_from_dict
 
 CHECKPOINT_PREFIX = "checkpoint-"
 EMA_DIR = "transformer_ema"
@@ -359,7 +359,7 @@ class Trainer:
         from safetensors.torch import load_file
 
         state = json.loads((ckpt / STATE_FILE).read_text())
-        saved = state["preset"]
+        saved = preset_from_dict(state["preset"]).to_dict()  # fields this version no longer has do not count
         if saved != self.preset.to_dict():
             diff = sorted(k for k in set(saved) | set(self.preset.to_dict()) if saved.get(k) != self.preset.to_dict().get(k))
             raise UserError(f"{ckpt} was trained with preset {saved.get('name')!r}, which differs from --preset "
