@@ -291,21 +291,9 @@ def run_datagen(cfg: DatagenConfig, progress: bool = True) -> dict:
 
     cfg.validate()
     check_vulkan_env()
-    root = Path(cfg.out)
-    open_dataset(cfg)
-    remove_partial_files(root)
-    _remove_partial_previews(root)
-    atomic_write_text(root / CONFIG_FILE, cfg.to_json())
-
+    root = _prepare_output(cfg)
     cap = cfg.attempts_cap()
-    previous = read_attempts(root)
-    tried: dict[str, set[int]] = {t: set() for t in cfg.tasks}
-    for r in previous:  # failed seeds are not retried; a logged success whose file is gone is redone
-        if r["env_id"] in tried and not r["success"]:
-            tried[r["env_id"]].add(int(r["seed"]))
-    successes = {t: len(_existing_seeds(root, t)) for t in cfg.tasks}
-    for t in cfg.tasks:
-        tried[t] |= _existing_seeds(root, t)
+    tried, successes = _seeds_done(cfg, root)
     next_seed = {t: cfg.seed_start for t in cfg.tasks}
     in_flight = Counter()
 
@@ -355,21 +343,44 @@ def run_datagen(cfg: DatagenConfig, progress: bool = True) -> dict:
         bar.close()
         pool.shutdown()
     wall = time.perf_counter() - t_start
+    this_run = {"attempts": run_attempts, "episodes_written": run_successes, "frames_rendered": run_frames,
+                "wall_seconds": round(wall, 2), "frames_per_second": round(run_frames / wall, 2) if wall > 0 else None,
+                "workers": cfg.workers}
+    return _write_report(cfg, root, this_run)
+
+
+def _prepare_output(cfg: DatagenConfig) -> Path:
+    """Open (or create) the dataset folder, clear what a killed run left half-written, save the config."""
+    root = Path(cfg.out)
+    open_dataset(cfg)
+    remove_partial_files(root)
+    _remove_partial_previews(root)
+    atomic_write_text(root / CONFIG_FILE, cfg.to_json())
+    return root
+
+
+def _seeds_done(cfg: DatagenConfig, root: Path) -> tuple[dict[str, set[int]], dict[str, int]]:
+    """Per task, the seeds not to try again (failed before, or written) and the successes on disk."""
+    tried: dict[str, set[int]] = {t: set() for t in cfg.tasks}
+    for r in read_attempts(root):  # failed seeds are not retried; a logged success whose file is gone is redone
+        if r["env_id"] in tried and not r["success"]:
+            tried[r["env_id"]].add(int(r["seed"]))
+    successes = {t: len(_existing_seeds(root, t)) for t in cfg.tasks}
+    for t in cfg.tasks:
+        tried[t] |= _existing_seeds(root, t)
+    return tried, successes
+
+
+def _write_report(cfg: DatagenConfig, root: Path, this_run: dict) -> dict:
+    """The report of the dataset and of this run, written to ``DIR/datagen_report.json``."""
     tasks_report = summarize(root, cfg.tasks)
     for t in cfg.tasks:
         tasks_report[t]["complete"] = tasks_report[t]["successes"] >= cfg.episodes
     report = {
         "tasks": tasks_report,
-        "this_run": {
-            "attempts": run_attempts,
-            "episodes_written": run_successes,
-            "frames_rendered": run_frames,
-            "wall_seconds": round(wall, 2),
-            "frames_per_second": round(run_frames / wall, 2) if wall > 0 else None,
-            "workers": cfg.workers,
-        },
+        "this_run": this_run,
         "episodes_wanted_per_task": cfg.episodes,
-        "max_attempts_per_task": cap,
+        "max_attempts_per_task": cfg.attempts_cap(),
     }
     atomic_write_text(root / REPORT_FILE, json.dumps(report, indent=2, sort_keys=True))
     return report

@@ -21,6 +21,9 @@ from tesseract4d.dataset_format import CameraFrames, Episode
 from tesseract4d.errors import UserError
 
 # Passed to gym.make; stored per episode so it can be re-simulated with the same settings.
+# Random streams of an episode, seeded with [episode seed, stream]: independent of each other
+# and of the planner's, so changing one never changes another.
+APPEARANCE_STREAM, INSTRUCTION_STREAM = 104729, 31337
 ENV_KWARGS = {"obs_mode": "none", "sim_backend": "physx_cpu", "render_backend": "cpu"}
 
 VULKAN_FIX = (
@@ -188,20 +191,22 @@ class EpisodeSimulator:
         return self._render(seed, [env.states[0]], np.zeros(1, np.int64), np.zeros((0, action_dim), np.float32),
                             success=None)
 
-    def _render(self, seed: int, states: list[dict], steps: np.ndarray, actions: np.ndarray, success) -> Episode:
-        from datagen.instructions import make_instruction, scene_attributes
-
-        cfg, spec = self.config, self.spec
-        base = self.env.unwrapped
-        renderer = self._renderer
-        base.set_state_dict(states[0])
+    def _set_up_scene(self, seed: int) -> tuple[list, dict]:
+        """Place the (jittered) cameras and set colours and lighting for this seed."""
+        cfg, spec, base = self.config, self.spec, self.env.unwrapped
         views = episode_views(cfg.cameras, self.env_id, seed, cfg.camera_jitter_m, base_env=base)
-        renderer.set_views(base, views)
-        appearance = renderer.set_appearance(
-            base, {name: getattr(base, dict(spec.objects)[name]) for name in spec.colorable}, np.random.default_rng([seed, 104729]), cfg.randomize_colors, cfg.randomize_lighting
-        )
+        self._renderer.set_views(base, views)
+        colorable = {name: getattr(base, dict(spec.objects)[name]) for name in spec.colorable}
+        appearance = self._renderer.set_appearance(base, colorable, np.random.default_rng([seed, APPEARANCE_STREAM]),
+                                                   cfg.randomize_colors, cfg.randomize_lighting)
+        return views, appearance
+
+    def _capture(self, states: list[dict], views: list) -> tuple[dict[str, CameraFrames], np.ndarray, dict[str, np.ndarray]]:
+        """Per camera, the frames of every state; the robot's joint positions (T, D) and each
+        object's pose (T, 7) at those states."""
+        base, renderer = self.env.unwrapped, self._renderer
         per_cam: dict[str, list] = {v.name: [] for v in views}
-        actors = {name: getattr(base, attr) for name, attr in spec.objects}
+        actors = {name: getattr(base, attr) for name, attr in self.spec.objects}
         qpos, poses = [], {name: [] for name in actors}
         for state in states:
             base.set_state_dict(state)
@@ -224,11 +229,28 @@ class EpisodeSimulator:
             for name, fs in per_cam.items()
         }
         object_poses = {name: np.stack(p).astype(np.float32) for name, p in poses.items()}  # (T, 7)
+        return cameras, np.stack(qpos).astype(np.float32), object_poses
+
+    def _instruction(self, seed: int, object_poses: dict[str, np.ndarray], colors: dict[str, str]) -> tuple[str, dict]:
+        """The instruction for the scene at its first state, and the attributes it was made from."""
+        from datagen.instructions import make_instruction, scene_attributes
+
+        attributes = scene_attributes(self.env_id, {n: p[0, :3] for n, p in object_poses.items()}, colors)
+        instruction = make_instruction(self.env_id, attributes, np.random.default_rng([seed, INSTRUCTION_STREAM]),
+                                       split=self.config.instruction_split)
+        return instruction, attributes
+
+    def _render(self, seed: int, states: list[dict], steps: np.ndarray, actions: np.ndarray, success) -> Episode:
+        """Replay the recorded states with the episode's cameras and appearance: RGB-D-N frames,
+        robot and object poses, and the instruction for the scene."""
+        cfg, spec = self.config, self.spec
+        base = self.env.unwrapped
+        base.set_state_dict(states[0])
+        views, appearance = self._set_up_scene(seed)
+        cameras, qpos, object_poses = self._capture(states, views)
         colors = {name: appearance["colors"].get(name, default)
                   for name, default in zip(spec.colorable, spec.default_colors)}
-        attributes = scene_attributes(self.env_id, {n: p[0, :3] for n, p in object_poses.items()}, colors)
-        instruction = make_instruction(self.env_id, attributes, np.random.default_rng([seed, 31337]),
-                                       split=cfg.instruction_split)
+        instruction, attributes = self._instruction(seed, object_poses, colors)
         control_freq = float(base.control_freq)
         span = int(steps[-1] - steps[0]) if len(steps) > 1 else 0
         fps = control_freq * (len(steps) - 1) / span if span else control_freq
@@ -239,7 +261,7 @@ class EpisodeSimulator:
             cameras=cameras,
             frame_steps=np.asarray(steps, np.int32),
             actions=np.asarray(actions, np.float32),  # (S, A)
-            qpos=np.stack(qpos).astype(np.float32),  # (T, D)
+            qpos=qpos,  # (T, D)
             object_poses=object_poses,
             success=success,
             control_mode=CONTROL_MODE,

@@ -185,7 +185,17 @@ class ViewerApp:
     # ------------------------------------------------------------------ GUI
 
     def _build_gui(self) -> None:
+        """The side panel, one folder per step, then the callbacks."""
         gui = self.server.gui
+        self._build_playback(gui)
+        self._build_display(gui)
+        self._build_frame_images(gui)
+        self._build_compare(gui)
+        self._build_generate(gui)
+        self._connect_callbacks()
+        self._update_panels(0)
+
+    def _build_playback(self, gui) -> None:
         T = self.num_frames
         with gui.add_folder("Playback"):
             self.frame_slider = gui.add_slider("Frame", min=0, max=max(T - 1, 1), step=1, initial_value=0, disabled=T < 2)
@@ -193,6 +203,8 @@ class ViewerApp:
             self.fps_slider = gui.add_slider("FPS", min=1, max=MAX_FPS, step=1,
                                              initial_value=int(np.clip(round(self.layer.recon.fps), 1, MAX_FPS)))
             self.loop_checkbox = gui.add_checkbox("Loop", initial_value=True)
+
+    def _build_display(self, gui) -> None:
         with gui.add_folder("Display"):
             self.color_dropdown = gui.add_dropdown("Colour", tuple(COLOR_MODES), initial_value="RGB")
             lo, hi, step, size = point_size_range(self.layer.default_point_size)
@@ -203,22 +215,29 @@ class ViewerApp:
             largest = max(len(p) for layer in self._layers() for p in layer.recon.points_world)
             budgets = point_budgets(min(self.max_points, max(largest, 1)))
             self.budget_dropdown = gui.add_dropdown("Points per frame", tuple(f"{n:,}" for n in budgets), initial_value=f"{budgets[0]:,}")
+
+    def _build_frame_images(self, gui) -> None:
         with gui.add_folder("Frame images"):
             self.rgb_image = gui.add_image(np.zeros((8, 8, 3), np.uint8), label="RGB", format="jpeg")
             self.depth_image = gui.add_image(np.zeros((8, 8, 3), np.uint8), label="Depth (turbo, near=blue)", format="jpeg")
             self.normal_image = gui.add_image(np.zeros((8, 8, 3), np.uint8), label="Normal (camera frame)", format="jpeg")
+
+    def _build_compare(self, gui) -> None:
         self.layout_dropdown = None
         self.metrics_md = None
-        if self.gt_layer is not None:
-            with gui.add_folder("Compare"):
-                self.layout_dropdown = gui.add_dropdown("Layout", COMPARE_LAYOUTS, initial_value=COMPARE_LAYOUTS[0])
-                gui.add_markdown("Left: prediction. Right: ground truth.")
-                self.metrics_md = gui.add_markdown("")
-            if self._metrics is None:
-                from viewer.compare import image_metrics
+        if self.gt_layer is None:
+            return
+        with gui.add_folder("Compare"):
+            self.layout_dropdown = gui.add_dropdown("Layout", COMPARE_LAYOUTS, initial_value=COMPARE_LAYOUTS[0])
+            gui.add_markdown("Left: prediction. Right: ground truth.")
+            self.metrics_md = gui.add_markdown("")
+        if self._metrics is None:
+            from viewer.compare import image_metrics
 
-                self._metrics = image_metrics(self.layer.recon, self.gt_layer.recon)
-            self.layout_dropdown.on_update(lambda _: self._apply_layout())
+            self._metrics = image_metrics(self.layer.recon, self.gt_layer.recon)
+        self.layout_dropdown.on_update(lambda _: self._apply_layout())
+
+    def _build_generate(self, gui) -> None:
         with gui.add_folder("Generate"):
             instruction = str(self.layer.recon.metadata.get("instruction", ""))
             self.instruction_text = gui.add_text("Instruction", initial_value=instruction)
@@ -229,6 +248,7 @@ class ViewerApp:
             self.progress_bar = gui.add_progress_bar(0.0, visible=False)
             self.status_md = gui.add_markdown("Ready." if self._generate is not None else self._generate_unavailable_reason)
 
+    def _connect_callbacks(self) -> None:
         self.frame_slider.on_update(lambda _: self._show_frame(int(self.frame_slider.value)))
         self.color_dropdown.on_update(lambda _: self._recolor())
         self.point_size_slider.on_update(lambda _: self._resize_points())
@@ -237,7 +257,6 @@ class ViewerApp:
         self.budget_dropdown.on_update(lambda _: self._change_budget(int(self.budget_dropdown.value.replace(",", ""))))
         self.play_checkbox.on_update(lambda _: self._on_play_toggled())
         self.generate_button.on_click(lambda _: self._start_generation())
-        self._update_panels(0)
 
     def _color_mode(self) -> str:
         return COLOR_MODES[self.color_dropdown.value]

@@ -230,13 +230,7 @@ class Trainer:
         self.preset = get_preset(config.preset)
         self.cfg = config.resolved(self.preset)
         cfg = self.cfg
-        if cfg.data is None:
-            raise UserError("pass --data DIR (a dataset folder written by `tesseract4d datagen`)")
-        unknown = set(cfg.loss_weights) - set(MODALITIES)
-        if unknown:
-            raise UserError(f"unknown loss weight(s) {sorted(unknown)}; modalities are {', '.join(MODALITIES)}")
-        if sum(cfg.loss_weights.get(m, 0.0) for m in MODALITIES) <= 0:
-            raise UserError("the loss weights must not all be zero")
+        _check_config(cfg)
         self.out = Path(cfg.out)
         existing = list_checkpoints(self.out)
         if existing and not cfg.resume:
@@ -450,6 +444,17 @@ class Trainer:
 
     def _request_stop(self, signum, frame) -> None:
         self._stop_requested = True
+
+
+def _check_config(cfg: TrainConfig) -> None:
+    """UserError, with the fix, for a config that cannot train."""
+    if cfg.data is None:
+        raise UserError("pass --data DIR (a dataset folder written by `tesseract4d datagen`)")
+    unknown = set(cfg.loss_weights) - set(MODALITIES)
+    if unknown:
+        raise UserError(f"unknown loss weight(s) {sorted(unknown)}; modalities are {', '.join(MODALITIES)}")
+    if sum(cfg.loss_weights.get(m, 0.0) for m in MODALITIES) <= 0:
+        raise UserError("the loss weights must not all be zero")
 
 
 def _allow_new_accelerator(mixed_precision: str) -> None:
