@@ -93,7 +93,7 @@ class ViewerApp:
     @classmethod
     def from_path(cls, path: str | os.PathLike, *, compare: str | os.PathLike | None = None,
                   metrics: str | os.PathLike | None = None, checkpoint: str | os.PathLike | None = None,
-                  camera: str | None = None, **kwargs) -> "ViewerApp":
+                  camera: str | None = None, precision: str = "auto", **kwargs) -> "ViewerApp":
         """Open PATH (reconstruction folder or dataset episode); see :func:`viewer.sources.load_source`."""
         from viewer.sources import load_source
 
@@ -108,7 +108,7 @@ class ViewerApp:
         if checkpoint is not None:
             from viewer.generate import model_generator
 
-            generate = model_generator(checkpoint, source)
+            generate = model_generator(checkpoint, source, precision=precision)
         return cls(source, compare=gt, metrics=rows, generate=generate, **kwargs)
 
     # ------------------------------------------------------------------ lifecycle

@@ -18,7 +18,9 @@ from tesseract4d.errors import UserError
 PREDICT_SHARE = 0.8
 
 
-def model_generator(checkpoint: str | os.PathLike, source: Recon4D) -> Callable[[str, int, int, Callable[[float, str], None]], Recon4D]:
+def model_generator(checkpoint: str | os.PathLike, source: Recon4D,
+                    precision: str = "auto") -> Callable[[str, int, int, Callable[[float, str], None]], Recon4D]:
+    """``precision``: auto|fp32|bf16 for the model (tesseract4d/precision.py)."""
     checkpoint = Path(checkpoint)
     if not checkpoint.is_dir():
         raise UserError(f"checkpoint {checkpoint} not found; pass --checkpoint DIR (a folder written by `tesseract4d train`).")
@@ -34,7 +36,7 @@ def model_generator(checkpoint: str | os.PathLike, source: Recon4D) -> Callable[
 
         if "pipeline" not in cache:
             progress(0.0, f"loading {checkpoint}")
-            cache["pipeline"] = load_pipeline(checkpoint)
+            cache["pipeline"] = load_pipeline(checkpoint, precision=precision)
         first = first_frame_episode(source)
         pred = predict_episode(
             cache["pipeline"], first, instruction, num_frames=source.num_frames, seed=seed, num_steps=steps,

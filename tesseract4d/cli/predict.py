@@ -46,10 +46,12 @@ class PredictConfig:
     text_guidance: float | None = None
     image_guidance: float | None = None
     device: str = "cpu"
-    bf16: bool = False
+    precision: str = "auto"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+    from tesseract4d.precision import add_precision_argument
+
     d = PredictConfig()
     parser.add_argument("--checkpoint", type=Path, required=True, help="inference checkpoint folder (RUN/final or --export output)")
     parser.add_argument("--instruction", help="what should happen (default: the episode's / scene's own instruction)")
@@ -69,7 +71,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--text-guidance", type=float, help="text guidance scale (default: the checkpoint preset's)")
     parser.add_argument("--image-guidance", type=float, help="first-frame guidance scale (default: the checkpoint preset's)")
     parser.add_argument("--device", default=d.device, help="torch device (default %(default)s)")
-    parser.add_argument("--bf16", action="store_true", help="bf16 autocast")
+    add_precision_argument(parser)
 
 
 def _read_K(path: Path) -> np.ndarray:
@@ -144,7 +146,7 @@ def run(args: argparse.Namespace) -> int:
     from tesseract4d.model.predict import load_pipeline, predict_episodes, write_prediction
 
     cfg = PredictConfig(**{f.name: getattr(args, f.name) for f in dataclasses.fields(PredictConfig)})
-    pipe = load_pipeline(cfg.checkpoint, device=cfg.device, bf16=cfg.bf16)
+    pipe = load_pipeline(cfg.checkpoint, device=cfg.device, precision=cfg.precision)
     first = load_first_frame(cfg, pipe.resolution, pipe.camera_name)
     instruction = cfg.instruction if cfg.instruction is not None else first.instruction
     bar = tqdm(desc="predict", unit="step")

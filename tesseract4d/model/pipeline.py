@@ -38,7 +38,8 @@ class RGBDNPipeline:
     """First frame + instruction -> RGB-D-N clip, all in model space (see model_space.py).
 
     Components: ``transformer`` (RGBDNTransformer), ``scheduler`` (a diffusers flow-matching
-    scheduler), ``codec`` (PixelCodec / VaeCodec), ``text_encoder`` (TextEncoder).
+    scheduler), ``codec`` (PixelCodec / VaeCodec), ``text_encoder`` (TextEncoder). ``bf16``: run the transformer under bf16
+    autocast (resolved by tesseract4d.precision from auto|fp32|bf16); fp32 otherwise.
     """
 
     def __init__(self, transformer, scheduler, codec, text_encoder, preset: ModelPreset, model_space,
