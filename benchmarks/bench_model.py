@@ -1,5 +1,8 @@
 """Benchmark the RGB-D-N model: training steps/s and sampling seconds per clip, fp32 vs bf16.
 
+The first line names the CPU model and ISA and the precision `--precision auto` picks on it: bf16
+speed differs by an order of magnitude between CPUs with and without native bf16 (see tesseract4d/precision.py).
+
 Training: the trainer's own step (batch of clips, forward, loss, backward, grad clip, AdamW, EMA) on
 synthetic clips of the preset's size. Sampling: one clip of the preset's length through the
 pipeline (flow-match Euler) at 10/25/50 steps, with the preset's guidance (text guidance 1.5 = two
@@ -37,7 +40,8 @@ def bench_training(preset_name: str, data: Path, bf16: bool, steps: int, batch_s
     from tesseract4d.model.trainer import TrainConfig, Trainer
 
     with tempfile.TemporaryDirectory() as out:
-        trainer = Trainer(TrainConfig(data=data, out=Path(out), preset=preset_name, max_steps=steps + 1, bf16=bf16,
+        trainer = Trainer(TrainConfig(data=data, out=Path(out), preset=preset_name, max_steps=steps + 1,
+                                      precision="bf16" if bf16 else "fp32",
                                       batch_size=batch_size, val_every=0, ckpt_every=0, progress=False))
         trainer.train_step()  # warm-up (allocations, text encoding)
         _reset_peak_rss()
@@ -94,6 +98,10 @@ def main(argv: list[str] | None = None) -> int:
 
     from tesseract4d.model.presets import get_preset
 
+    from tesseract4d.precision import describe_cpu, resolve_precision
+
+    auto = resolve_precision("auto", "cpu", warn=False)
+    print(f"CPU: {describe_cpu()}; --precision auto -> {auto.name}")
     print(f"torch {torch.__version__}, {torch.get_num_threads()} threads, OMP_WAIT_POLICY={os.environ.get('OMP_WAIT_POLICY')}")
     rows = []
     for name in args.presets.split(","):
@@ -116,6 +124,7 @@ def main(argv: list[str] | None = None) -> int:
     header = ("preset", "precision", "what", "speed", "peak RSS MB")
     widths = [max(len(str(x)) for x in col) for col in zip(header, *rows)]
     print()
+    print(f"CPU: {describe_cpu()}")
     for row in (header, tuple("-" * w for w in widths), *rows):
         print("  ".join(str(x).ljust(w) for x, w in zip(row, widths)))
     return 0

@@ -96,7 +96,7 @@ class ViewerApp:
     @classmethod
     def from_path(cls, path: str | os.PathLike, *, compare: str | os.PathLike | None = None,
                   metrics: str | os.PathLike | None = None, checkpoint: str | os.PathLike | None = None,
-                  camera: str | None = None, **kwargs) -> "ViewerApp":
+                  camera: str | None = None, precision: str = "auto", **kwargs) -> "ViewerApp":
         """Open PATH (reconstruction folder or dataset episode); see :func:`viewer.sources.load_source`."""
         from viewer.sources import load_source
 
@@ -111,7 +111,7 @@ class ViewerApp:
         if checkpoint is not None:
             from viewer.generate import checkpoint_steps, model_generator
 
-            generate, steps = model_generator(checkpoint, source), checkpoint_steps(checkpoint)
+            generate, steps = model_generator(checkpoint, source, precision=precision), checkpoint_steps(checkpoint)
         return cls(source, compare=gt, metrics=rows, generate=generate, generate_steps=steps, **kwargs)
 
     # ------------------------------------------------------------------ lifecycle

@@ -25,7 +25,9 @@ def checkpoint_steps(checkpoint: str | os.PathLike) -> int:
     return int(read_inference_config(checkpoint)["preset"]["num_steps"])
 
 
-def model_generator(checkpoint: str | os.PathLike, source: Recon4D) -> Callable[[str, int, int, Callable[[float, str], None]], Recon4D]:
+def model_generator(checkpoint: str | os.PathLike, source: Recon4D,
+                    precision: str = "auto") -> Callable[[str, int, int, Callable[[float, str], None]], Recon4D]:
+    """``precision``: auto|fp32|bf16 for the model (tesseract4d/precision.py)."""
     checkpoint = Path(checkpoint)
     if not checkpoint.is_dir():
         raise UserError(f"checkpoint {checkpoint} not found; pass --checkpoint DIR (a folder written by `tesseract4d train`).")
@@ -41,7 +43,7 @@ def model_generator(checkpoint: str | os.PathLike, source: Recon4D) -> Callable[
 
         if "pipeline" not in cache:
             progress(0.0, f"loading {checkpoint}")
-            cache["pipeline"] = load_pipeline(checkpoint)
+            cache["pipeline"] = load_pipeline(checkpoint, precision=precision)
         first = first_frame_episode(source)
         pred = predict_episode(
             cache["pipeline"], first, instruction, num_frames=source.num_frames, seed=seed, num_steps=steps,

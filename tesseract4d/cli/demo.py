@@ -34,9 +34,12 @@ class DemoConfig:
     host: str = "127.0.0.1"
     port: int = 8080
     headless: bool = False
+    precision: str = "auto"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+    from tesseract4d.precision import add_precision_argument
+
     d = DemoConfig()
     parser.add_argument("--task", default=d.task, help="ManiSkill task id (default %(default)s)")
     parser.add_argument("--seed", type=int, default=d.seed,
@@ -52,13 +55,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--host", default=d.host, help="viewer host (default %(default)s)")
     parser.add_argument("--port", type=int, default=d.port, help="viewer port (default %(default)s)")
     parser.add_argument("--headless", action="store_true", help="write the outputs and exit without serving the viewer")
+    add_precision_argument(parser)
 
 
 def run(args: argparse.Namespace) -> int:
     cfg = DemoConfig(
         task=args.task, seed=args.seed, instruction=args.instruction, checkpoint=args.checkpoint, out=args.out,
         num_frames=args.num_frames, steps=args.steps, sample_seed=args.sample_seed, camera=args.camera,
-        host=args.host, port=args.port, headless=args.headless,
+        host=args.host, port=args.port, headless=args.headless, precision=args.precision,
     )
     outputs = run_demo(cfg)
     print(f"instruction: {outputs['instruction'].read_text().strip()}")
@@ -89,7 +93,7 @@ def run_demo(cfg: DemoConfig) -> dict[str, Path]:
     stages = tqdm(total=4, desc="demo", unit="stage")
 
     stages.set_postfix_str(f"render {cfg.task} seed {cfg.seed}")
-    pipeline = load_pipeline(cfg.checkpoint)
+    pipeline = load_pipeline(cfg.checkpoint, precision=cfg.precision)
     # The resolved config: frames and steps the checkpoint's preset gives when not set.
     cfg = dataclasses.replace(cfg, num_frames=cfg.num_frames or pipeline.num_frames, steps=cfg.steps or pipeline.preset.num_steps)
     (out / "demo_config.json").write_text(json.dumps(dataclasses.asdict(cfg), indent=2, default=str))

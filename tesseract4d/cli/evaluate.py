@@ -30,6 +30,8 @@ from tesseract4d.model.checkpoint import SHIPPED_CHECKPOINT
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+    from tesseract4d.precision import add_precision_argument
+
     parser.add_argument("pred", nargs="?", help="reconstruction folder, or a predicted episode (.h5 / folder / DIR/ENV_ID/SEED)")
     parser.add_argument("--gt", help="ground-truth episode (.h5 / folder / DIR/ENV_ID/SEED)")
     parser.add_argument("--camera", help="camera to compare (default: the ground truth's first)")
@@ -47,6 +49,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     held.add_argument("--steps", type=int, help="sampler steps (default: the checkpoint preset's)")
     held.add_argument("--sample-seed", type=int, default=0, help="diffusion noise seed (default %(default)s)")
     held.add_argument("--max-per-task", type=int, help="episodes per task at most (default: all)")
+    add_precision_argument(held)
 
 
 def load_prediction(spec: str):
@@ -64,7 +67,7 @@ def run_heldout(args: argparse.Namespace) -> int:
 
     cfg = HeldoutConfig(checkpoint=args.checkpoint, data=args.heldout, out=args.out, camera=args.camera,
                         num_steps=args.steps, sample_seed=args.sample_seed, max_episodes=args.max_per_task,
-                        max_depth_m=args.max_depth)
+                        max_depth_m=args.max_depth, precision=args.precision)
     report = evaluate_heldout(cfg)
     print(format_markdown(report))
     if args.out:

@@ -48,10 +48,12 @@ class PredictConfig:
     text_guidance: float | None = None
     image_guidance: float | None = None
     device: str = "cpu"
-    bf16: bool = False
+    precision: str = "auto"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+    from tesseract4d.precision import add_precision_argument
+
     d = PredictConfig()
     parser.add_argument("--checkpoint", type=Path, default=d.checkpoint,
                         help="inference checkpoint folder (RUN/final or --export output; default: the shipped tiny model)")
@@ -73,7 +75,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--text-guidance", type=float, help="text guidance scale (default: the checkpoint preset's)")
     parser.add_argument("--image-guidance", type=float, help="first-frame guidance scale (default: the checkpoint preset's)")
     parser.add_argument("--device", default=d.device, help="torch device (default %(default)s)")
-    parser.add_argument("--bf16", action="store_true", help="bf16 autocast")
+    add_precision_argument(parser)
 
 
 def _read_K(path: Path) -> np.ndarray:
@@ -148,7 +150,7 @@ def run(args: argparse.Namespace) -> int:
     from tesseract4d.model.predict import load_pipeline, predict_episodes, write_prediction
 
     cfg = PredictConfig(**{f.name: getattr(args, f.name) for f in dataclasses.fields(PredictConfig)})
-    pipe = load_pipeline(cfg.checkpoint, device=cfg.device, bf16=cfg.bf16)
+    pipe = load_pipeline(cfg.checkpoint, device=cfg.device, precision=cfg.precision)
     # The resolved config: frames and steps the checkpoint's preset gives when not set.
     cfg = dataclasses.replace(cfg, num_frames=cfg.num_frames or pipe.num_frames, steps=cfg.steps or pipe.preset.num_steps)
     first = load_first_frame(cfg, pipe.resolution, pipe.camera_name)

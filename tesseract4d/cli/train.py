@@ -1,6 +1,6 @@
 """Train the RGB-D-N video diffusion model on a dataset folder, or export a run's EMA weights.
 
-  tesseract4d train --preset tiny --data data/train --out runs/tiny --max-minutes 60 --bf16
+  tesseract4d train --preset tiny --data data/train --out runs/tiny --max-minutes 60
   tesseract4d train --out runs/tiny --resume --data data/train      # continue exactly where it stopped
   tesseract4d train --export runs/tiny --to checkpoints/tiny        # inference folder (EMA weights)
 
@@ -18,6 +18,7 @@ from tesseract4d.model.presets import PRESETS
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     from tesseract4d.model.trainer import TrainConfig
+    from tesseract4d.precision import add_precision_argument
 
     d = TrainConfig()
     parser.add_argument("--preset", default=d.preset, choices=list(PRESETS), help="model preset (default %(default)s)")
@@ -30,7 +31,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--batch-size", type=int, help="clips per step (default: the preset's)")
     parser.add_argument("--lr", type=float, help="peak learning rate (default: the preset's)")
     parser.add_argument("--warmup-steps", type=int, help="linear warm-up steps (default: the preset's)")
-    parser.add_argument("--bf16", action="store_true", help="bf16 autocast (1.2-1.7x faster on CPUs with AMX)")
+    add_precision_argument(parser)
     parser.add_argument("--resume", action="store_true", help="continue from the latest checkpoint in --out")
     parser.add_argument("--val-every", type=int, default=d.val_every, help="validation videos every K steps, 0 = never (default %(default)s)")
     parser.add_argument("--ckpt-every", type=int, default=d.ckpt_every, help="checkpoint every K steps (default %(default)s)")
@@ -60,7 +61,7 @@ def run(args: argparse.Namespace) -> int:
     cfg = TrainConfig(
         data=args.data, out=args.out, preset=args.preset, pretrained=args.pretrained, max_steps=args.max_steps,
         max_minutes=args.max_minutes, batch_size=args.batch_size, lr=args.lr, warmup_steps=args.warmup_steps,
-        bf16=args.bf16, resume=args.resume, val_every=args.val_every, ckpt_every=args.ckpt_every, seed=args.seed,
+        precision=args.precision, resume=args.resume, val_every=args.val_every, ckpt_every=args.ckpt_every, seed=args.seed,
         camera=args.camera, progress=not args.no_progress, loss_weights=weights,
     )
     final = Trainer(cfg).train()

@@ -12,6 +12,7 @@ import argparse
 from pathlib import Path
 
 from tesseract4d.model.checkpoint import SHIPPED_CHECKPOINT
+from tesseract4d.precision import add_precision_argument
 from viewer.scene import DEFAULT_MAX_POINTS
 
 
@@ -28,6 +29,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--camera", help="which camera of an episode to show (default: the first)")
     parser.add_argument("--max-points", type=int, default=DEFAULT_MAX_POINTS,
                         help="point budget per frame sent to the browser (default %(default)s)")
+    add_precision_argument(parser)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -47,6 +49,6 @@ def run(args: argparse.Namespace) -> int:
     from viewer.app import ViewerApp, serve_forever
 
     app = ViewerApp.from_path(args.path, compare=args.compare, metrics=args.metrics, checkpoint=args.checkpoint,
-                              camera=args.camera, host=args.host, port=args.port, max_points=args.max_points)
+                              precision=args.precision, camera=args.camera, host=args.host, port=args.port, max_points=args.max_points)
     serve_forever(app)
     return 0

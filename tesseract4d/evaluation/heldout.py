@@ -56,6 +56,7 @@ class HeldoutConfig:
     # Evaluation range of the geometric metrics; None = the checkpoint's depth range (its far
     # plane), so that no method is scored on the distant floor the model does not represent.
     max_depth_m: float | None = None
+    precision: str = "auto"  # auto|fp32|bf16 (tesseract4d/precision.py)
 
 
 def static_world(first: df.Episode, camera: str, num_frames: int) -> df.Episode:
@@ -103,7 +104,7 @@ def evaluate_heldout(cfg: HeldoutConfig, progress: bool = True) -> dict:
     data = Path(cfg.data)
     df.read_info(data)
     files = select_episodes(data, cfg.max_episodes)
-    pipeline = load_pipeline(cfg.checkpoint)
+    pipeline = load_pipeline(cfg.checkpoint, precision=cfg.precision)
     cfg = dataclasses.replace(cfg, num_steps=cfg.num_steps or pipeline.preset.num_steps)  # resolved, for the report
     max_depth_m = cfg.max_depth_m if cfg.max_depth_m is not None else float(pipeline.model_space.far_m)
     rows, scores = [], {m: [] for m in METHODS}

@@ -32,7 +32,8 @@ class RGBDNPipeline:
     """First frame + instruction -> RGB-D-N clip, all in model space (see model_space.py).
 
     Components: ``transformer`` (RGBDNTransformer), ``scheduler`` (a diffusers flow-matching
-    scheduler), ``codec`` (PixelCodec / VaeCodec), ``text_encoder`` (TextEncoder).
+    scheduler), ``codec`` (PixelCodec / VaeCodec), ``text_encoder`` (TextEncoder). ``bf16``: run the transformer under bf16
+    autocast (resolved by tesseract4d.precision from auto|fp32|bf16); fp32 otherwise.
     """
 
     def __init__(self, transformer, scheduler, codec, text_encoder, preset: ModelPreset, model_space,
@@ -84,16 +85,28 @@ class RGBDNPipeline:
         full, img, uncond = preds
         return uncond + image_guidance * (img - uncond) + text_guidance * (full - img)
 
-    def _sample_clip(self, first_frame, text, null_text, num_steps, text_guidance, image_guidance,
-                     generator, progress, step_offset, total_steps):
-        """One clip of the preset's length from a (b, 7, H, W) first frame; returns (b, T, 7, H, W)."""
+    def latent_shape(self, batch: int) -> tuple[int, ...]:
+        """Shape of one clip's initial noise in the network's space: (b, t', c, h, w)."""
+        p = self.preset
+        probe = self.codec.encode(torch.zeros(1, 1, 7, p.height, p.width, device=self.device))  # (1, 1, c, h, w)
+        return (batch, self.codec.num_latent_frames(p.num_frames), *probe.shape[2:])
+
+    def _denoise_clip(self, first_frame, text, null_text, num_steps, text_guidance, image_guidance,
+                      generator, progress, step_offset, total_steps, latents=None):
+        """One clip of the preset's length from a (b, 7, H, W) first frame, in the network's space:
+        (b, t', c, h, w). ``latents``: the initial noise (default: drawn from ``generator``)."""
         b = first_frame.shape[0]
         nt = self.codec.num_latent_frames(self.preset.num_frames)
         first = self.codec.encode(first_frame[:, None].to(self.device), generator=generator)  # (b, 1, c, h, w)
         cond = make_condition(first, nt, self.preset.condition)
         null_cond = torch.zeros_like(cond)
-        # Noise on the CPU generator so a seed gives the same clip on every device.
-        x = torch.randn((b, nt, *first.shape[2:]), generator=generator, dtype=torch.float32).to(self.device)
+        if latents is None:
+            # Noise on the CPU generator so a seed gives the same clip on every device.
+            x = torch.randn((b, nt, *first.shape[2:]), generator=generator, dtype=torch.float32).to(self.device)
+        else:
+            if tuple(latents.shape) != (b, nt, *first.shape[2:]):
+                raise ValueError(f"latents must be {(b, nt, *first.shape[2:])}, got {tuple(latents.shape)}")
+            x = latents.float().to(self.device)
         self.scheduler.set_timesteps(num_steps, device=self.device)
         for i, timestep in enumerate(self.scheduler.timesteps):
             sigma = float(self.scheduler.sigmas[i])
@@ -102,7 +115,11 @@ class RGBDNPipeline:
             x = self.scheduler.step(velocity, timestep, x, return_dict=False)[0]
             if progress is not None:
                 progress(step_offset + i + 1, total_steps)
-        return self.codec.decode(x).clamp(-1.0, 1.0)
+        return x
+
+    def _sample_clip(self, *args, **kwargs):
+        """One decoded clip (b, T, 7, H, W) in model space; arguments as :meth:`_denoise_clip`."""
+        return self.codec.decode(self._denoise_clip(*args, **kwargs)).clamp(-1.0, 1.0)
 
     @torch.no_grad()
     def __call__(
@@ -116,6 +133,8 @@ class RGBDNPipeline:
         image_guidance: float | None = None,
         generator: torch.Generator | None = None,
         progress: Callable[[int, int], None] | None = None,
+        latents: torch.Tensor | None = None,
+        output_type: str = "clip",
     ) -> torch.Tensor:
         """Sample a batch of clips.
 
@@ -123,6 +142,10 @@ class RGBDNPipeline:
         num_frames: frames to return (default: one clip); longer rollouts continue autoregressively.
         generator: a CPU ``torch.Generator``; the same seed gives the same clips.
         progress: optional callable(step, total) called after every denoising step.
+        latents: the first clip's initial noise (b, t', c, h, w) (see :meth:`latent_shape`); default:
+        drawn from ``generator``.
+        output_type: "clip" (decoded frames) or "latent": the first clip's final sample in the
+        network's space, (b, t', c, h, w), before decoding (one clip only).
         Returns (b, num_frames, 7, H, W) model-space clips; frame 0 is the model's reconstruction
         of the first frame.
         """
@@ -139,11 +162,19 @@ class RGBDNPipeline:
             raise ValueError(f"{len(instructions)} instructions for {b} first frames")
         if num_frames < 1 or num_steps < 1:
             raise ValueError("num_frames and num_inference_steps must be >= 1")
+        if output_type not in ("clip", "latent"):
+            raise ValueError(f"output_type must be 'clip' or 'latent', got {output_type!r}")
+        if output_type == "latent" and num_frames != p.num_frames:
+            raise ValueError("output_type='latent' returns exactly one clip; leave num_frames at the preset's")
         generator = generator if generator is not None else torch.Generator().manual_seed(0)
 
         # 2. Encode the instructions (cached per instruction).
         text = self.text_encoder.encode(list(instructions)).to(self.device)
         null_text = torch.zeros_like(text)
+
+        if output_type == "latent":
+            return self._denoise_clip(first_frame.float(), text, null_text, num_steps, text_guidance, image_guidance,
+                                      generator, progress, 0, num_steps, latents=latents).cpu()
 
         # 3. Sample clip after clip, each conditioned on the last frame so far.
         clip_len = p.num_frames
@@ -153,7 +184,8 @@ class RGBDNPipeline:
         current = first_frame.float()
         for k in range(num_clips):
             clip = self._sample_clip(current, text, null_text, num_steps, text_guidance, image_guidance,
-                                     generator, progress, k * num_steps, total).cpu()
+                                     generator, progress, k * num_steps, total,
+                                     latents=latents if k == 0 else None).cpu()
             frames.append(clip if k == 0 else clip[:, 1:])
             current = clip[:, -1]
         # 4. Stitch the clips.

@@ -21,14 +21,18 @@ import torch
 
 from tesseract4d import dataset_format as df
 from tesseract4d.errors import UserError
+from tesseract4d.precision import announce, resolve_precision
 from tesseract4d.model.model_space import ModelSpace
 from tesseract4d.model.checkpoint import INFERENCE_CONFIG_FILE, load_scheduler, load_transformer, read_inference_config
 from tesseract4d.model.pipeline import RGBDNPipeline
 from tesseract4d.model.presets import PRESETS, preset_from_dict
 
 
-def load_pipeline(checkpoint: str | os.PathLike, device: str = "cpu", bf16: bool = False) -> RGBDNPipeline:
+def load_pipeline(checkpoint: str | os.PathLike, device: str = "cpu", precision: str = "auto") -> RGBDNPipeline:
     """Load an inference checkpoint folder (``tesseract4d train --export``, or RUN/final).
+
+    ``precision``: auto|fp32|bf16 (see tesseract4d/precision.py); auto = bf16 only where the
+    hardware has native bf16.
 
     Raises UserError when the folder is missing, is not a tesseract4d checkpoint, names an unknown
     preset, or holds weights that do not match its preset.
@@ -44,6 +48,8 @@ def load_pipeline(checkpoint: str | os.PathLike, device: str = "cpu", bf16: bool
     if cfg["preset"].get("name") not in PRESETS:
         raise UserError(f"{ckpt} uses preset {cfg['preset'].get('name')!r}, unknown to this tesseract4d "
                         f"(known: {', '.join(PRESETS)}); update tesseract4d or use a matching checkpoint")
+    chosen = resolve_precision(precision, device)
+    announce(chosen)
     pretrained = cfg.get("pretrained_dir")
     codec = build_codec(preset, pretrained)
     transformer = load_transformer(ckpt, preset, codec.modality_channels)
@@ -53,7 +59,7 @@ def load_pipeline(checkpoint: str | os.PathLike, device: str = "cpu", bf16: bool
                         f"embeddings but the {preset.text_encoder} encoder gives {text_encoder.dim}")
     space = ModelSpace(**cfg["model_space"])
     pipe = RGBDNPipeline(transformer, load_scheduler(ckpt, cfg), codec, text_encoder, preset, space,
-                         camera_name=cfg.get("camera_name"), bf16=bf16, config=cfg)
+                         camera_name=cfg.get("camera_name"), bf16=chosen.bf16, config=cfg)
     return pipe.to(device)
 
 

@@ -36,6 +36,7 @@ import numpy as np
 import torch
 
 from tesseract4d.errors import UserError
+from tesseract4d.precision import announce, resolve_precision
 from tesseract4d.psnr import rgb_psnr
 from tesseract4d.model.model_space import MODALITIES, ModelSpace
 from tesseract4d.model.checkpoint import INFERENCE_CONFIG_FILE, TRANSFORMER_DIR, WEIGHTS_FILE, format_header, write_inference_files
@@ -68,7 +69,7 @@ class TrainConfig:
     text_dropout: float | None = None
     image_dropout: float | None = None
     loss_weights: dict[str, float] = field(default_factory=lambda: {m: 1.0 for m in MODALITIES})
-    bf16: bool = False
+    precision: str = "auto"  # auto|fp32|bf16, resolved by tesseract4d.precision
     resume: bool = False
     val_every: int = 500
     val_clips: int = 2
@@ -236,7 +237,9 @@ class Trainer:
         if existing and not cfg.resume:
             raise UserError(f"{self.out} already holds checkpoints; pass --resume to continue, or choose a new --out")
         self.out.mkdir(parents=True, exist_ok=True)
-        mixed_precision = "bf16" if cfg.bf16 else "no"
+        self.precision = resolve_precision(cfg.precision, "cuda" if torch.cuda.is_available() else "cpu")
+        announce(self.precision)
+        mixed_precision = self.precision.accelerate_mixed_precision
         _allow_new_accelerator(mixed_precision)
         self.accelerator = Accelerator(
             mixed_precision=mixed_precision,
@@ -324,7 +327,7 @@ class Trainer:
             self.preset, self.model_space, self.text_encoder, camera=self.data.camera, pretrained=self.cfg.pretrained,
             training={"steps": self.step, "minutes": round(self.elapsed_s / 60, 2), "data": str(self.cfg.data),
                       "episodes": len(self.data), "batch_size": self.cfg.batch_size, "lr": self.cfg.lr,
-                      "bf16": self.cfg.bf16, "ema_decay": self.cfg.ema_decay, "last_loss": self.last_loss,
+                      "precision": self.precision.name, "ema_decay": self.cfg.ema_decay, "last_loss": self.last_loss,
                       "loss_weights": self.cfg.loss_weights, "seed": self.cfg.seed})
 
     def save_checkpoint(self) -> Path:
@@ -380,7 +383,7 @@ class Trainer:
         if not idx:
             return {}
         pipe = RGBDNPipeline(self.ema.model, make_scheduler(), self.codec, self.text_encoder, self.preset,
-                             self.model_space, camera_name=self.data.camera, bf16=self.cfg.bf16)
+                             self.model_space, camera_name=self.data.camera, bf16=self.precision.bf16)
         clips = torch.stack([self.data.clip(i)[0] for i in idx])  # (n, T, 7, H, W)
         texts = [self.data.clip(i)[1] for i in idx]
         pred = pipe(clips[:, 0], texts, num_inference_steps=VALIDATION_STEPS,

@@ -1,0 +1,179 @@
+"""Few-step sampling with one network pass per step, by rectified-flow reflow.
+
+Reflow ("Flow straight and fast", Liu et al. 2022) in two stages:
+
+1. **Pairs** (:func:`generate_pairs`): the teacher, a trained checkpoint, samples clips with its full
+   sampler (its preset's steps and classifier-free guidance) from stored noise. Each
+   (noise, first frame, instruction) -> teacher clip is one pair, kept in the network's space.
+2. **Student** (``tesseract4d distill``, the trainer's reflow mode): initialised with the teacher's
+   weights, it learns the straight path between the two ends of each pair,
+   ``x_t = (1 - t) x_teacher + t noise`` with target ``x_teacher``, conditioned on the first frame
+   and the text only. Straight paths are integrated almost exactly by a few Euler steps, and the
+   target is the *guided* teacher's output, so the student samples in 1-4 steps without guidance:
+   one network pass per step instead of two.
+
+A pairs folder holds ``pairs-XXXXX.safetensors`` shards (``first`` (n, 7, H, W) model space,
+``noise`` and ``x0`` (n, t', c, h, w) network space), a JSON sidecar per shard with its
+instructions, and ``reflow_pairs.json`` (the teacher, its sampler settings and the data). Shards are
+written whole (temporary file, then rename), so an interrupted run resumes at the next shard.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+
+from tesseract4d.errors import UserError
+
+MANIFEST = "reflow_pairs.json"
+SHARD_PREFIX = "pairs-"
+
+
+@dataclass
+class PairsConfig:
+    teacher: Path  # inference checkpoint folder
+    data: Path  # dataset folder the first frames and instructions come from
+    out: Path  # pairs folder
+    num_pairs: int = 512
+    shard_size: int = 32
+    batch_size: int = 4
+    teacher_steps: int | None = None  # None = the teacher preset's
+    text_guidance: float | None = None  # None = the teacher preset's
+    image_guidance: float | None = None
+    seed: int = 0
+    camera: str | None = None
+    precision: str = "auto"
+
+    def to_dict(self) -> dict:
+        return {k: str(v) if isinstance(v, Path) else v for k, v in dataclasses.asdict(self).items()}
+
+
+def weights_digest(checkpoint: str | os.PathLike) -> str:
+    """SHA-256 (first 16 hex digits) of a checkpoint's transformer weights: pairs name their teacher."""
+    from tesseract4d.model.pipeline import TRANSFORMER_DIR
+
+    h = hashlib.sha256()
+    with open(Path(checkpoint) / TRANSFORMER_DIR / "diffusion_pytorch_model.safetensors", "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()[:16]
+
+
+def _shard_path(out: Path, index: int) -> Path:
+    return out / f"{SHARD_PREFIX}{index:05d}.safetensors"
+
+
+def _check_manifest(out: Path, manifest: dict) -> None:
+    path = out / MANIFEST
+    if not path.is_file():
+        if out.exists() and any(out.iterdir()):
+            raise UserError(f"{out} exists and is not a reflow pairs folder; choose a new --out")
+        return
+    saved = json.loads(path.read_text())
+    keys = ("teacher_digest", "teacher_steps", "text_guidance", "image_guidance", "data", "seed", "shard_size")
+    differ = [k for k in keys if saved.get(k) != manifest.get(k)]
+    if differ:
+        raise UserError(f"{out} holds pairs made with other settings ({', '.join(differ)} differ); "
+                        f"choose a new --out for these settings")
+
+
+def generate_pairs(cfg: PairsConfig, progress: bool = True) -> Path:
+    """Sample ``cfg.num_pairs`` teacher clips into ``cfg.out`` (resumes at the first missing shard)."""
+    from safetensors.torch import save_file
+    from tqdm import tqdm
+
+    from tesseract4d.model.clips import ClipDataset
+    from tesseract4d.model.predict import load_pipeline
+
+    if cfg.num_pairs < 1 or cfg.shard_size < 1 or cfg.batch_size < 1:
+        raise UserError("--num-pairs, --shard-size and --batch-size must be at least 1")
+    pipe = load_pipeline(cfg.teacher, precision=cfg.precision)
+    p = pipe.preset
+    steps = cfg.teacher_steps or p.num_steps
+    text_g = p.text_guidance if cfg.text_guidance is None else cfg.text_guidance
+    image_g = p.image_guidance if cfg.image_guidance is None else cfg.image_guidance
+    data = ClipDataset(cfg.data, num_frames=p.num_frames, height=p.height, width=p.width,
+                       model_space=pipe.model_space, camera=cfg.camera or pipe.camera_name)
+    out = Path(cfg.out)
+    manifest = {"format": 1, "teacher": str(cfg.teacher), "teacher_digest": weights_digest(cfg.teacher),
+                "teacher_preset": p.to_dict(), "teacher_steps": steps, "text_guidance": text_g,
+                "image_guidance": image_g, "data": str(cfg.data), "camera": data.camera, "seed": cfg.seed,
+                "shard_size": cfg.shard_size, "config": cfg.to_dict()}
+    _check_manifest(out, manifest)
+    out.mkdir(parents=True, exist_ok=True)
+    tmp = out / f".{MANIFEST}.tmp"
+    tmp.write_text(json.dumps(manifest, indent=2))
+    os.replace(tmp, out / MANIFEST)
+
+    num_shards = -(-cfg.num_pairs // cfg.shard_size)
+    bar = tqdm(total=cfg.num_pairs, desc="reflow pairs", unit="clip", disable=not progress)
+    for s in range(num_shards):
+        n = min(cfg.shard_size, cfg.num_pairs - s * cfg.shard_size)
+        path = _shard_path(out, s)
+        if path.is_file() and path.with_suffix(".json").is_file():
+            bar.update(n)
+            continue
+        # Every shard's batch and noise depend only on (seed, shard): a resumed run makes the same pairs.
+        g = torch.Generator().manual_seed(cfg.seed * 1_000_003 + s)
+        clips, texts = data.sample_batch(n, g)  # (n, T, 7, H, W)
+        first = clips[:, 0]
+        noise = torch.randn(pipe.latent_shape(n), generator=g)
+        x0 = []
+        for i in range(0, n, cfg.batch_size):
+            sl = slice(i, i + cfg.batch_size)
+            x0.append(pipe(first[sl], texts[sl], num_inference_steps=steps, text_guidance=text_g,
+                           image_guidance=image_g, latents=noise[sl], output_type="latent", generator=g))
+            bar.update(len(texts[sl]))
+        tensors = {"first": first.half().contiguous(), "noise": noise.contiguous(),
+                   "x0": torch.cat(x0).float().contiguous()}
+        tmp_st = path.with_name(f".{path.name}.tmp")
+        save_file(tensors, str(tmp_st))
+        tmp_js = path.with_name(f".{path.stem}.json.tmp")
+        tmp_js.write_text(json.dumps({"instructions": texts}))
+        os.replace(tmp_st, path)
+        os.replace(tmp_js, path.with_suffix(".json"))
+    bar.close()
+    return out
+
+
+class ReflowPairs:
+    """The pairs of a folder written by :func:`generate_pairs`, in memory.
+
+    ``sample_batch(b, generator)`` returns (first (b, 7, H, W), noise, x0 (b, t', c, h, w), texts).
+    """
+
+    def __init__(self, folder: str | os.PathLike):
+        from safetensors.torch import load_file
+
+        self.folder = Path(folder)
+        path = self.folder / MANIFEST
+        if not path.is_file():
+            raise UserError(f"{self.folder} is not a reflow pairs folder (no {MANIFEST}); make one with "
+                            f"`tesseract4d distill --pairs-only --teacher CKPT --data DIR --pairs {self.folder}`")
+        self.manifest = json.loads(path.read_text())
+        shards = sorted(self.folder.glob(f"{SHARD_PREFIX}*.safetensors"))
+        shards = [s for s in shards if s.with_suffix(".json").is_file()]
+        if not shards:
+            raise UserError(f"{self.folder} holds no complete pair shard yet; run the pair generation first")
+        parts, self.instructions = [], []
+        for s in shards:
+            parts.append(load_file(str(s)))
+            self.instructions += json.loads(s.with_suffix(".json").read_text())["instructions"]
+        self.first = torch.cat([p["first"] for p in parts])
+        self.noise = torch.cat([p["noise"] for p in parts])
+        self.x0 = torch.cat([p["x0"] for p in parts])
+        self.camera = self.manifest.get("camera")
+
+    def __len__(self) -> int:
+        return len(self.instructions)
+
+    def sample_batch(self, batch_size: int, generator: torch.Generator):
+        idx = torch.randint(len(self), (batch_size,), generator=generator)
+        texts = [self.instructions[i] for i in idx.tolist()]
+        return self.first[idx].float(), self.noise[idx], self.x0[idx], texts
