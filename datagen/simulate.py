@@ -33,8 +33,8 @@ VULKAN_FIX = (
 class SimConfig:
     """How episodes are simulated and rendered (the datagen options that shape one episode)."""
 
-    height: int = 64
-    width: int = 64
+    height: int = 128  # training-data default (the model presets crop/resize as they need)
+    width: int = 128
     cameras: list[str] = field(default_factory=lambda: ["close"])
     frames: int = 16  # evenly spaced frames kept per episode; 0 = every step
     camera_jitter_m: float = 0.0
@@ -140,6 +140,9 @@ class EpisodeSimulator:
         import mani_skill.envs  # noqa: F401  (registers the tasks)
 
         from datagen.capture import SceneRenderer
+        from datagen.tabletop import register
+
+        register()  # the project's own scene
 
         try:
             env = gym.make(self.env_id, control_mode=CONTROL_MODE, render_mode=None, **ENV_KWARGS)
@@ -188,7 +191,13 @@ class EpisodeSimulator:
         return self._render(seed, [env.states[0]], np.zeros(1, np.int64), np.zeros((0, action_dim), np.float32),
                             success=None)
 
-    def _render(self, seed: int, states: list[dict], steps: np.ndarray, actions: np.ndarray, success) -> Episode:
+    def _render(self, seed: int, states: list[dict], steps: np.ndarray, actions: np.ndarray, success,
+                language=None, variant: int | None = None, intent: dict | None = None) -> Episode:
+        """Render the kept ``states`` into an Episode.
+
+        language: None = the task's own instruction templates; else a function
+        (colour names of the colourable actors) -> (instruction, attributes), used by skill episodes.
+        """
         from datagen.instructions import make_instruction, scene_attributes
 
         cfg, spec = self.config, self.spec
@@ -226,9 +235,12 @@ class EpisodeSimulator:
         object_poses = {name: np.stack(p).astype(np.float32) for name, p in poses.items()}  # (T, 7)
         colors = {name: appearance["colors"].get(name, default)
                   for name, default in zip(spec.colorable, spec.default_colors)}
-        attributes = scene_attributes(self.env_id, {n: p[0, :3] for n, p in object_poses.items()}, colors)
-        instruction = make_instruction(self.env_id, attributes, np.random.default_rng([seed, 31337]),
-                                       split=cfg.instruction_split)
+        if language is not None:
+            instruction, attributes = language(colors)
+        else:
+            attributes = scene_attributes(self.env_id, {n: p[0, :3] for n, p in object_poses.items()}, colors)
+            instruction = make_instruction(self.env_id, attributes, np.random.default_rng([seed, 31337]),
+                                           split=cfg.instruction_split)
         control_freq = float(base.control_freq)
         span = int(steps[-1] - steps[0]) if len(steps) > 1 else 0
         fps = control_freq * (len(steps) - 1) / span if span else control_freq
@@ -245,6 +257,8 @@ class EpisodeSimulator:
             control_mode=CONTROL_MODE,
             env_kwargs=dict(ENV_KWARGS),
             fps=fps,
+            variant=variant,
+            intent=intent,
             metadata={
                 "package_versions": package_versions(),
                 "control_freq": control_freq,

@@ -35,6 +35,9 @@ CYLINDER_RADIUS_M = 0.02
 MIN_OBJECTS, MAX_OBJECTS = 2, 4
 REGION_XY = ((-0.1, 0.1), (-0.15, 0.15))  # (x range, y range) of object centres
 MIN_SPACING_M = 0.09
+# Colours drawn per episode (names of datagen.instructions.COLORS): only ones that stay easy to
+# tell apart at 64-128 pixels (orange next to yellow or red is not).
+PALETTE = ("red", "green", "blue", "yellow", "purple", "cyan")
 _PARK_Z = -5.0  # unused pool objects wait here, far below the floor and out of every camera
 
 _registered = False
@@ -114,7 +117,7 @@ def register() -> str:
                 count = int(rng.randint(MIN_OBJECTS, MAX_OBJECTS + 1))
                 chosen = [names[i] for i in sorted(rng.choice(len(names), size=count, replace=False))]
                 xy = _sample_positions(rng, count + int(self.goal_marker))
-                colors = rng.choice(sorted(COLORS), size=count, replace=False)
+                colors = rng.choice(list(PALETTE), size=count, replace=False)
                 self.present = chosen
                 self.object_colors = {n: str(c) for n, c in zip(chosen, colors)}
                 upright = _quat_wxyz_about_y(-np.pi / 2)  # cylinder axis x -> z

@@ -10,6 +10,13 @@ DIR/datagen_config.json.
 Example (training data for the tiny model):
   tesseract4d datagen --tasks PickCube-v1,PushCube-v1 --episodes 200 --out data/train \\
       --resolution 64 --frames 16 --cameras close --workers 2
+
+Counterfactual groups (one initial state, K futures chosen by the instruction): in the project's
+multi-object scene Tesseract4dTabletop-v1, or in PickCube/PushCube/PullCube/StackCube with
+--skills or --instructions-per-scene, every seed is rendered under K distinct skills
+(--episodes then counts scenes; each scene gives K episodes seed_<S>_k<k>.h5):
+  tesseract4d datagen --tasks Tesseract4dTabletop-v1 --instructions-per-scene 4 --episodes 100 \\
+      --out data/skills --workers 2
 """
 
 from __future__ import annotations
@@ -54,6 +61,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="move camera eye and target by up to M metres per axis, per episode (default 0)")
     parser.add_argument("--instruction-split", choices=SPLITS, default=d.instruction_split,
                         help="instruction paraphrases to draw from (default %(default)s; 'heldout' is kept for evaluation)")
+    from datagen.skills import VARIANTS
+
+    parser.add_argument("--instructions-per-scene", type=int, default=1, metavar="K",
+                        help="render each initial state under K distinct skills (a counterfactual group; the K first "
+                             "frames are identical). K > 1 needs a scene the skills run in (default %(default)s)")
+    parser.add_argument("--skills", default=None,
+                        help="comma-separated skill variants the groups draw from, each optionally pinned to an object "
+                             f"as VARIANT@OBJECT (default: all that apply): {', '.join(VARIANTS)}")
     parser.add_argument("--no-previews", action="store_true", help="do not write MP4 previews")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
 
@@ -76,7 +91,16 @@ def config_from_args(args: argparse.Namespace) -> DatagenConfig:
         tasks=parse_task_list(args.tasks), episodes=args.episodes, out=args.out, sim=sim,
         seed_start=args.seed_start, max_attempts=args.max_attempts, workers=args.workers,
         ray_address=args.ray_address, previews=not args.no_previews,
+        instructions_per_scene=args.instructions_per_scene, skills=_skills(args.skills, args.tasks),
     )
+
+
+def _skills(text: str | None, tasks: str) -> list[str] | None:
+    from datagen.skills import parse_skill_list
+
+    if text is None:
+        return None
+    return parse_skill_list(text, parse_task_list(tasks))
 
 
 def run(args: argparse.Namespace) -> int:
