@@ -237,6 +237,8 @@ class EpisodeSimulator:
                   for name, default in zip(spec.colorable, spec.default_colors)}
         if language is not None:
             instruction, attributes = language(colors)
+        elif spec.skills_only:  # a scene without a task: the words come from a skill, or the user (predict)
+            instruction, attributes = "", {"object_colors": dict(getattr(base, "object_colors", {}))}
         else:
             attributes = scene_attributes(self.env_id, {n: p[0, :3] for n, p in object_poses.items()}, colors)
             instruction = make_instruction(self.env_id, attributes, np.random.default_rng([seed, 31337]),
