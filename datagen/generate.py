@@ -46,6 +46,11 @@ _DATASET_DEFINING = ("frames", "cameras", "camera_jitter_m", "randomize_colors",
                      "instruction_split")
 
 
+def skill_mode(env_id: str, instructions_per_scene: int, skills: list[str] | None) -> bool:
+    """Whether ``env_id`` is generated as counterfactual groups of skills (see the module docstring)."""
+    return instructions_per_scene > 1 or skills is not None or get_task(env_id).skills_only
+
+
 @dataclass
 class DatagenConfig:
     """Everything `tesseract4d datagen` does; written to DIR/datagen_config.json."""
@@ -63,7 +68,7 @@ class DatagenConfig:
     skills: list[str] | None = None  # skill specs (datagen/skills.py); None = all that apply
 
     def skill_mode(self, env_id: str) -> bool:
-        return self.instructions_per_scene > 1 or self.skills is not None or get_task(env_id).skills_only
+        return skill_mode(env_id, self.instructions_per_scene, self.skills)
 
     def group_size(self, env_id: str) -> int:
         """Episode files per seed: K in skill mode, else 1."""
@@ -139,9 +144,7 @@ class Worker:
             if self._sim is not None:
                 self._sim.close()
             self._sim = EpisodeSimulator(env_id, self.sim_config)
-        from datagen.tasks import get_task
-
-        group = (self.instructions_per_scene > 1 or self.skills is not None or get_task(env_id).skills_only)
+        group = skill_mode(env_id, self.instructions_per_scene, self.skills)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             if group:
