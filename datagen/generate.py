@@ -43,7 +43,7 @@ REPORT_FILE = "datagen_report.json"
 ATTEMPTS_FILE = "datagen_attempts.jsonl"
 # Options that change what an episode file contains: a dataset folder keeps one value of each.
 _DATASET_DEFINING = ("frames", "cameras", "camera_jitter_m", "randomize_colors", "randomize_lighting",
-                     "instruction_split")
+                     "instruction_split", "goal_marker")
 
 
 def skill_mode(env_id: str, instructions_per_scene: int, skills: list[str] | None) -> bool:

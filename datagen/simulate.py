@@ -41,6 +41,12 @@ class SimConfig:
     randomize_colors: bool = False
     randomize_lighting: bool = False
     instruction_split: str = "train"
+    goal_marker: bool = False  # scenes without a task (the tabletop): show a goal marker
+
+    def env_kwargs(self, env_id: str) -> dict:
+        """Keyword arguments of gym.make for ``env_id`` (stored per episode for re-simulation)."""
+        extra = {"goal_marker": True} if self.goal_marker and get_task(env_id).skills_only else {}
+        return dict(ENV_KWARGS, **extra)
 
 
 @dataclass
@@ -145,7 +151,7 @@ class EpisodeSimulator:
         register()  # the project's own scene
 
         try:
-            env = gym.make(self.env_id, control_mode=CONTROL_MODE, render_mode=None, **ENV_KWARGS)
+            env = gym.make(self.env_id, control_mode=CONTROL_MODE, render_mode=None, **self.config.env_kwargs(self.env_id))
         except RuntimeError as e:
             if any(word in str(e).lower() for word in ("vulkan", "vk::", "render", "physical device")):
                 raise UserError(f"{VULKAN_FIX} ({e})") from e
@@ -257,7 +263,7 @@ class EpisodeSimulator:
             object_poses=object_poses,
             success=success,
             control_mode=CONTROL_MODE,
-            env_kwargs=dict(ENV_KWARGS),
+            env_kwargs=self.config.env_kwargs(self.env_id),
             fps=fps,
             variant=variant,
             intent=intent,

@@ -40,7 +40,8 @@ Inside an episode file (all arrays chunked per frame and gzip-compressed)::
     cameras/<cam>/T_world_cam  (T, 4, 4)     float64 camera→world, OpenCV axes
 
 Re-simulation: ``gym.make(env_id, **env_kwargs, control_mode=control_mode)``, ``reset(seed=seed)``,
-then apply ``actions`` in order.
+then apply ``actions`` in order (the project's own scene ``Tesseract4dTabletop-v1`` is registered
+by ``datagen.tabletop.register()``).
 
 Versions: 2 added ``group_id``, ``variant`` and ``intent``. Version-1 files and folders (no
 groups) are still read: their episodes have ``variant=None`` and ``intent=None``. Writers only

@@ -141,17 +141,22 @@ def test_group_fields_round_trip_and_version_1_is_still_read(tmp_path):
 
 
 @pytest.fixture(scope="module")
-def group():
-    """One counterfactual group of the tabletop at 64x64, 4 frames: (GroupResult, simulator)."""
+def sim_and_group():
+    """One counterfactual group of the tabletop at 64x64, 4 frames, and the simulator that made it."""
     from datagen.counterfactual import run_group
     from datagen.simulate import EpisodeSimulator, SimConfig
 
     sim = EpisodeSimulator(TABLETOP, SimConfig(height=64, width=64, frames=4))
     try:
         result = run_group(sim, GROUP_SEED, len(GROUP_SKILLS), GROUP_SKILLS)
-        yield result
+        yield sim, result
     finally:
         sim.close()
+
+
+@pytest.fixture(scope="module")
+def group(sim_and_group):
+    return sim_and_group[1]
 
 
 def _by_skill(result) -> dict[str, Episode]:
@@ -221,16 +226,33 @@ def test_instructions_name_colour_and_direction(group):
 
 
 @pytest.mark.sim
+def test_recorded_actions_re_simulate_every_future(sim_and_group):
+    sim, group = sim_and_group
+    env = sim.env
+    for ep in group.episodes:
+        env.reset(seed=ep.seed)
+        for action in ep.actions:
+            env.step(action)
+        base = env.unwrapped
+        for name in ep.intent["objects_present"]:
+            now = getattr(base, name).pose.raw_pose[0].cpu().numpy()
+            assert np.allclose(now[:3], ep.object_poses[name][-1, :3], atol=1e-4), (ep.episode_id, name)
+
+
+@pytest.mark.sim
 def test_datagen_cli_renders_a_group(tmp_path, capsys):
     out = tmp_path / "ds"
     argv = ["datagen", "--tasks", TABLETOP, "--instructions-per-scene", "2", "--skills", "push_right,keep_still",
-            "--episodes", "1", "--resolution", "32", "--frames", "3", "--out", str(out), "--quiet"]
+            "--episodes", "1", "--resolution", "32", "--frames", "3", "--goal-marker", "--out", str(out), "--quiet"]
     assert main(argv) == 0
     files = list_episode_files(out)
     assert [p.name for p in files] == ["seed_000000_k0.h5", "seed_000000_k1.h5"]
     eps = [read_episode(p) for p in files]
     assert np.array_equal(eps[0].cameras["close"].rgb[0], eps[1].cameras["close"].rgb[0])
     assert {e.intent["variant"] for e in eps} == {"push_right", "keep_still"}
+    assert all(e.env_kwargs["goal_marker"] for e in eps)
+    marker = eps[0].object_poses["goal"][0, :3]
+    assert abs(marker[2]) < 0.01 and np.abs(marker[:2]).max() < 0.2  # lying on the table, among the objects
     assert all((out / "previews" / TABLETOP / f"{p.stem}.mp4").is_file() for p in files)
     report = json.loads((out / "datagen_report.json").read_text())
     assert report["tasks"][TABLETOP]["successes"] == 1 and set(report["skills"]) >= {"push_right", "keep_still"}

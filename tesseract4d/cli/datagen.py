@@ -69,6 +69,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--skills", default=None,
                         help="comma-separated skill variants the groups draw from, each optionally pinned to an object "
                              f"as VARIANT@OBJECT (default: all that apply): {', '.join(VARIANTS)}")
+    parser.add_argument("--goal-marker", action="store_true",
+                        help="put a red and white goal marker on the table of Tesseract4dTabletop-v1 (default: none, so "
+                             "only the instruction says what should happen)")
     parser.add_argument("--no-previews", action="store_true", help="do not write MP4 previews")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
 
@@ -86,6 +89,7 @@ def config_from_args(args: argparse.Namespace) -> DatagenConfig:
         randomize_colors=args.randomize_colors,
         randomize_lighting=args.randomize_lighting,
         instruction_split=args.instruction_split,
+        goal_marker=args.goal_marker,
     )
     return DatagenConfig(
         tasks=parse_task_list(args.tasks), episodes=args.episodes, out=args.out, sim=sim,
