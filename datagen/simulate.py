@@ -33,7 +33,7 @@ VULKAN_FIX = (
 class SimConfig:
     """How episodes are simulated and rendered (the datagen options that shape one episode)."""
 
-    height: int = 128  # training-data default (the model presets crop/resize as they need)
+    height: int = 128  # training-data default; the tiny preset trains at 64 (datagen --resolution 64)
     width: int = 128
     cameras: list[str] = field(default_factory=lambda: ["close"])
     frames: int = 16  # evenly spaced frames kept per episode; 0 = every step
