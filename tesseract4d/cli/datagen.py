@@ -36,7 +36,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     d = SimConfig()
     parser.add_argument("--tasks", required=True,
                         help=f"comma-separated task ids, or 'all' ({', '.join(valid_task_ids())})")
-    parser.add_argument("--episodes", type=int, required=True, help="successful episodes wanted per task")
+    parser.add_argument("--episodes", type=int, required=True, help="successful episodes wanted per task (with skills: scenes, each giving K episodes)")
     parser.add_argument("--out", type=Path, required=True, help="dataset folder (created, or resumed if it exists)")
     parser.add_argument("--resolution", type=int, default=None,
                         help=f"square image size in pixels, e.g. 64 or 128 (default {d.height})")
@@ -56,7 +56,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="address of a running Ray cluster (default: a local Ray instance when --workers > 1)")
     parser.add_argument("--randomize-lighting", action="store_true", help="random ambient/directional light per episode")
     parser.add_argument("--randomize-colors", action="store_true",
-                        help="random named colour of the task's cubes per episode (the instruction says it)")
+                        help="random named colour of the task's cubes per episode (the instruction says it; "
+                             "Tesseract4dTabletop-v1 draws its objects' colours every episode anyway)")
     parser.add_argument("--camera-jitter", type=float, default=0.0, metavar="M",
                         help="move camera eye and target by up to M metres per axis, per episode (default 0)")
     parser.add_argument("--instruction-split", choices=SPLITS, default=d.instruction_split,
