@@ -137,6 +137,18 @@ def test_group_fields_round_trip_and_version_1_is_still_read(tmp_path):
         init_dataset(v1, DatasetInfo(height=8, width=8))
 
 
+def test_heldout_selection_keeps_whole_groups(tmp_path):
+    from tesseract4d.evaluation.heldout import select_episodes
+
+    folder = tmp_path / "episodes" / TABLETOP
+    folder.mkdir(parents=True)
+    for seed in (100000, 100001):
+        for k in range(3):
+            (folder / f"seed_{seed:06d}_k{k}.h5").touch()
+    kept = select_episodes(tmp_path, max_per_task=2)
+    assert [p.name for p in kept] == ["seed_100000_k0.h5", "seed_100000_k1.h5", "seed_100000_k2.h5"]
+
+
 # --------------------------------------------------------------------------- simulator
 
 
