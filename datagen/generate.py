@@ -12,6 +12,11 @@ Semantics
 - ``workers == 1`` without a Ray address runs in this process. Otherwise Ray actors (one CPU
   each) do the work: a local Ray instance by default, or the cluster at ``ray_address``
   (every node then needs this package installed and ``out`` on a shared file system).
+- Skill mode (the project's tabletop scene always; other tasks with ``skills`` or
+  ``instructions_per_scene`` > 1): a job is a counterfactual group, K = ``instructions_per_scene``
+  futures of one seed's initial state (``datagen/counterfactual.py``), written as
+  ``seed_<seed>_k<k>.h5``; ``episodes`` then counts groups (scenes) per task, and a seed counts as
+  done once all K of its files exist. The report adds per-skill planner success rates.
 - Outputs besides episodes: ``datagen_config.json`` (resolved config), ``datagen_report.json``
   (per-task planner success rates and throughput) and MP4 previews.
 """
@@ -38,7 +43,12 @@ REPORT_FILE = "datagen_report.json"
 ATTEMPTS_FILE = "datagen_attempts.jsonl"
 # Options that change what an episode file contains: a dataset folder keeps one value of each.
 _DATASET_DEFINING = ("frames", "cameras", "camera_jitter_m", "randomize_colors", "randomize_lighting",
-                     "instruction_split")
+                     "instruction_split", "goal_marker")
+
+
+def skill_mode(env_id: str, instructions_per_scene: int, skills: list[str] | None) -> bool:
+    """Whether ``env_id`` is generated as counterfactual groups of skills (see the module docstring)."""
+    return instructions_per_scene > 1 or skills is not None or get_task(env_id).skills_only
 
 
 @dataclass
@@ -54,6 +64,15 @@ class DatagenConfig:
     workers: int = 1
     ray_address: str | None = None
     previews: bool = True
+    instructions_per_scene: int = 1  # K futures per initial state (skill mode)
+    skills: list[str] | None = None  # skill specs (datagen/skills.py); None = all that apply
+
+    def skill_mode(self, env_id: str) -> bool:
+        return skill_mode(env_id, self.instructions_per_scene, self.skills)
+
+    def group_size(self, env_id: str) -> int:
+        """Episode files per seed: K in skill mode, else 1."""
+        return self.instructions_per_scene if self.skill_mode(env_id) else 1
 
     def attempts_cap(self) -> int:
         return self.max_attempts if self.max_attempts is not None else 4 * self.episodes + 4
@@ -73,6 +92,12 @@ class DatagenConfig:
             raise UserError(f"--camera-jitter must be >= 0 metres, got {self.sim.camera_jitter_m}")
         if self.attempts_cap() < self.episodes:
             raise UserError(f"--max-attempts ({self.attempts_cap()}) must be at least --episodes ({self.episodes})")
+        skill_tasks = [t for t in self.tasks if self.skill_mode(t)]
+        if skill_tasks:
+            from datagen.skills import check_group_size, parse_skill_list
+
+            parse_skill_list(",".join(self.skills) if self.skills is not None else None, skill_tasks)
+            check_group_size(self.instructions_per_scene, skill_tasks, self.skills)
 
     def to_json(self) -> str:
         d = dataclasses.asdict(self)
@@ -87,7 +112,8 @@ class DatagenConfig:
 class Worker:
     """Runs attempts in one process: keeps one task's env alive, writes episodes and previews."""
 
-    def __init__(self, out: str, sim: dict, previews: bool, render_threads: int | None = None):
+    def __init__(self, out: str, sim: dict, previews: bool, render_threads: int | None = None,
+                 instructions_per_scene: int = 1, skills: list[str] | None = None):
         from tesseract4d import runtime
 
         runtime.configure()
@@ -99,6 +125,8 @@ class Worker:
         self.out = out
         self.sim_config = SimConfig(**sim)
         self.previews = previews
+        self.instructions_per_scene = instructions_per_scene
+        self.skills = skills
         self._sim = None
 
     def attempt(self, env_id: str, seed: int) -> dict:
@@ -116,19 +144,26 @@ class Worker:
             if self._sim is not None:
                 self._sim.close()
             self._sim = EpisodeSimulator(env_id, self.sim_config)
+        group = skill_mode(env_id, self.instructions_per_scene, self.skills)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            result = self._sim.run(seed)
-        write_s = 0.0
-        if result.success:
-            t0 = time.perf_counter()
-            write_episode(self.out, result.episode)
+            if group:
+                from datagen.counterfactual import run_group
+
+                result = run_group(self._sim, seed, self.instructions_per_scene, self.skills)
+                episodes = result.episodes
+            else:
+                result = self._sim.run(seed)
+                episodes = [result.episode] if result.success else []
+        t0 = time.perf_counter()
+        for episode in episodes:
+            write_episode(self.out, episode)
             if self.previews:
-                write_preview(self.out, result.episode)
-            write_s = time.perf_counter() - t0
-        out = {f.name: getattr(result, f.name) for f in dataclasses.fields(result) if f.name != "episode"}
+                write_preview(self.out, episode)
+        write_s = time.perf_counter() - t0 if episodes else 0.0
+        out = {f.name: getattr(result, f.name) for f in dataclasses.fields(result) if f.name not in ("episode", "episodes")}
         out["write_s"] = write_s
-        out["instruction"] = result.episode.instruction if result.episode else ""
+        out["instruction"] = " | ".join(e.instruction for e in episodes)
         return out
 
     def close(self) -> None:
@@ -141,7 +176,8 @@ class _LocalPool:
     """One in-process worker: submit() runs the attempt right away."""
 
     def __init__(self, cfg: DatagenConfig):
-        self.worker = Worker(str(cfg.out), dataclasses.asdict(cfg.sim), cfg.previews)
+        self.worker = Worker(str(cfg.out), dataclasses.asdict(cfg.sim), cfg.previews,
+                             instructions_per_scene=cfg.instructions_per_scene, skills=cfg.skills)
         self.capacity = 1
         self._done: list[tuple[object, dict]] = []
 
@@ -170,7 +206,8 @@ class _RayPool:
                          configure_logging=False)
         threads = max(1, (os.cpu_count() or 1) // cfg.workers)
         actor_cls = ray.remote(num_cpus=1)(Worker)
-        self.actors = [actor_cls.remote(str(cfg.out), dataclasses.asdict(cfg.sim), cfg.previews, threads)
+        self.actors = [actor_cls.remote(str(cfg.out), dataclasses.asdict(cfg.sim), cfg.previews, threads,
+                                        cfg.instructions_per_scene, cfg.skills)
                        for _ in range(cfg.workers)]
         self.free = list(self.actors)
         self.capacity = len(self.actors)
@@ -232,13 +269,16 @@ def _remove_partial_previews(root: Path) -> None:
             p.unlink(missing_ok=True)
 
 
-def _existing_seeds(root: Path, env_id: str) -> set[int]:
-    return {int(p.stem.split("_")[1]) for p in list_episode_files(root) if p.parent.name == env_id}
+def _existing_seeds(root: Path, env_id: str, group_size: int = 1) -> set[int]:
+    """Seeds of ``env_id`` with all ``group_size`` episode files on disk (seed_S.h5 or seed_S_kK.h5)."""
+    counts = Counter(int(p.stem.split("_")[1]) for p in list_episode_files(root) if p.parent.name == env_id)
+    return {seed for seed, n in counts.items() if n >= group_size}
 
 
 def open_dataset(cfg: DatagenConfig) -> DatasetInfo:
     """Create or reopen cfg.out; refuse a folder written with different episode-defining options."""
     defining = {k: getattr(cfg.sim, k) for k in _DATASET_DEFINING}
+    defining.update(instructions_per_scene=cfg.instructions_per_scene, skills=cfg.skills)
     info = DatasetInfo(fps=20.0, height=cfg.sim.height, width=cfg.sim.width, cameras=list(cfg.sim.cameras),
                        extra={"datagen": defining})
     on_disk = init_dataset(cfg.out, info)
@@ -252,8 +292,25 @@ def open_dataset(cfg: DatagenConfig) -> DatasetInfo:
     return on_disk
 
 
-def summarize(root: Path, tasks: list[str]) -> dict:
-    """Per-task planner statistics over every run logged in ``root``."""
+def summarize_skills(root: Path) -> dict:
+    """Per skill variant: tries, successes and planner success rate over every logged group."""
+    latest = {}
+    for r in read_attempts(root):
+        if "tries" in r:
+            latest[(r["env_id"], r["seed"])] = r  # the latest run of a group counts
+    stats: dict[str, dict] = {}
+    for r in latest.values():
+        for t in r["tries"]:
+            s = stats.setdefault(t["variant"], {"tries": 0, "successes": 0})
+            s["tries"] += 1
+            s["successes"] += int(bool(t["success"]))
+    for s in stats.values():
+        s["success_rate"] = round(s["successes"] / s["tries"], 4)
+    return dict(sorted(stats.items()))
+
+
+def summarize(root: Path, tasks: list[str], group_sizes: dict[str, int] | None = None) -> dict:
+    """Per-task planner statistics over every run logged in ``root`` (a group counts as one attempt)."""
     attempts = read_attempts(root)
     report = {}
     for env_id in tasks:
@@ -261,7 +318,7 @@ def summarize(root: Path, tasks: list[str]) -> dict:
         for r in attempts:
             if r["env_id"] == env_id:
                 recs[r["seed"]] = r  # the latest outcome of a seed counts
-        on_disk = _existing_seeds(root, env_id)
+        on_disk = _existing_seeds(root, env_id, (group_sizes or {}).get(env_id, 1))
         n_attempts = len(set(recs) | on_disk)
         n_success = len(on_disk)
         errors = Counter(r.get("error") or "ok" for r in recs.values() if not r["success"])
@@ -294,6 +351,7 @@ def run_datagen(cfg: DatagenConfig, progress: bool = True) -> dict:
     root = _prepare_output(cfg)
     cap = cfg.attempts_cap()
     tried, successes = _seeds_done(cfg, root)
+    sizes = {t: cfg.group_size(t) for t in cfg.tasks}
     next_seed = {t: cfg.seed_start for t in cfg.tasks}
     in_flight = Counter()
 
@@ -311,7 +369,7 @@ def run_datagen(cfg: DatagenConfig, progress: bool = True) -> dict:
     total = cfg.episodes * len(cfg.tasks)
     done_before = sum(min(successes[t], cfg.episodes) for t in cfg.tasks)
     bar = tqdm(total=total, initial=done_before, desc="datagen", unit="ep", disable=not progress, dynamic_ncols=True)
-    run_attempts = run_successes = run_frames = 0
+    run_attempts = run_successes = run_frames = run_episodes = 0
     t_start = time.perf_counter()
     pool = _RayPool(cfg) if (cfg.workers > 1 or cfg.ray_address) else _LocalPool(cfg)
     try:
@@ -327,12 +385,15 @@ def run_datagen(cfg: DatagenConfig, progress: bool = True) -> dict:
             record = {k: res[k] for k in ("env_id", "seed", "success", "num_steps", "num_frames", "error",
                                           "plan_s", "render_s", "write_s")}
             record["time"] = time.time()
+            if "tries" in res:
+                record["tries"] = res["tries"]
             _append_attempt(root, record)
             run_attempts += 1
             if res["success"]:
                 successes[env_id] += 1
                 run_successes += 1
                 run_frames += res["num_frames"]
+                run_episodes += sizes[env_id]
                 bar.update(1)
             elapsed = max(time.perf_counter() - t_start, 1e-9)
             bar.set_postfix_str(
@@ -343,9 +404,9 @@ def run_datagen(cfg: DatagenConfig, progress: bool = True) -> dict:
         bar.close()
         pool.shutdown()
     wall = time.perf_counter() - t_start
-    this_run = {"attempts": run_attempts, "episodes_written": run_successes, "frames_rendered": run_frames,
-                "wall_seconds": round(wall, 2), "frames_per_second": round(run_frames / wall, 2) if wall > 0 else None,
-                "workers": cfg.workers}
+    this_run = {"attempts": run_attempts, "episodes_written": run_episodes, "groups_written": run_successes,
+                "frames_rendered": run_frames, "wall_seconds": round(wall, 2),
+                "frames_per_second": round(run_frames / wall, 2) if wall > 0 else None, "workers": cfg.workers}
     return _write_report(cfg, root, this_run)
 
 
@@ -360,24 +421,27 @@ def _prepare_output(cfg: DatagenConfig) -> Path:
 
 
 def _seeds_done(cfg: DatagenConfig, root: Path) -> tuple[dict[str, set[int]], dict[str, int]]:
-    """Per task, the seeds not to try again (failed before, or written) and the successes on disk."""
+    """Per task, the seeds not to try again (failed before, or written whole) and the successes on
+    disk; in skill mode a seed is written once all of its group's files exist."""
     tried: dict[str, set[int]] = {t: set() for t in cfg.tasks}
     for r in read_attempts(root):  # failed seeds are not retried; a logged success whose file is gone is redone
         if r["env_id"] in tried and not r["success"]:
             tried[r["env_id"]].add(int(r["seed"]))
-    successes = {t: len(_existing_seeds(root, t)) for t in cfg.tasks}
+    written = {t: _existing_seeds(root, t, cfg.group_size(t)) for t in cfg.tasks}
     for t in cfg.tasks:
-        tried[t] |= _existing_seeds(root, t)
-    return tried, successes
+        tried[t] |= written[t]
+    return tried, {t: len(written[t]) for t in cfg.tasks}
 
 
 def _write_report(cfg: DatagenConfig, root: Path, this_run: dict) -> dict:
     """The report of the dataset and of this run, written to ``DIR/datagen_report.json``."""
-    tasks_report = summarize(root, cfg.tasks)
+    tasks_report = summarize(root, cfg.tasks, {t: cfg.group_size(t) for t in cfg.tasks})
     for t in cfg.tasks:
         tasks_report[t]["complete"] = tasks_report[t]["successes"] >= cfg.episodes
     report = {
         "tasks": tasks_report,
+        "skills": summarize_skills(root),
+        "instructions_per_scene": cfg.instructions_per_scene,
         "this_run": this_run,
         "episodes_wanted_per_task": cfg.episodes,
         "max_attempts_per_task": cfg.attempts_cap(),
@@ -394,6 +458,10 @@ def format_report(report: dict) -> str:
         reasons = ", ".join(f"{k}: {v}" for k, v in r["failure_reasons"].items()) or "-"
         flag = "" if r.get("complete", True) else "  (attempt cap reached)"
         lines.append(f"{env_id:<22} {r['successes']:>5} {r['attempts']:>6} {rate:>16}  {reasons}{flag}")
+    if report.get("skills"):
+        lines.append(f"{'skill':<22} {'ok':>5} {'tried':>6} {'planner success':>16}")
+        for name, r in report["skills"].items():
+            lines.append(f"{name:<22} {r['successes']:>5} {r['tries']:>6} {100 * r['success_rate']:>14.0f} %")
     run = report["this_run"]
     lines.append(f"this run: {run['episodes_written']} episodes from {run['attempts']} attempts in "
                  f"{run['wall_seconds']:.1f} s, {run['frames_rendered']} frames ({run['frames_per_second']} frames/s)")

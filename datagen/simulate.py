@@ -36,14 +36,20 @@ VULKAN_FIX = (
 class SimConfig:
     """How episodes are simulated and rendered (the datagen options that shape one episode)."""
 
-    height: int = 64
-    width: int = 64
+    height: int = 128  # training-data default; the tiny preset trains at 64 (datagen --resolution 64)
+    width: int = 128
     cameras: list[str] = field(default_factory=lambda: ["close"])
     frames: int = 16  # evenly spaced frames kept per episode; 0 = every step
     camera_jitter_m: float = 0.0
     randomize_colors: bool = False
     randomize_lighting: bool = False
     instruction_split: str = "train"
+    goal_marker: bool = False  # scenes without a task (the tabletop): show a goal marker
+
+    def env_kwargs(self, env_id: str) -> dict:
+        """Keyword arguments of gym.make for ``env_id`` (stored per episode for re-simulation)."""
+        extra = {"goal_marker": True} if self.goal_marker and get_task(env_id).skills_only else {}
+        return dict(ENV_KWARGS, **extra)
 
 
 @dataclass
@@ -143,9 +149,12 @@ class EpisodeSimulator:
         import mani_skill.envs  # noqa: F401  (registers the tasks)
 
         from datagen.capture import SceneRenderer
+        from datagen.tabletop import register
+
+        register()  # the project's own scene
 
         try:
-            env = gym.make(self.env_id, control_mode=CONTROL_MODE, render_mode=None, **ENV_KWARGS)
+            env = gym.make(self.env_id, control_mode=CONTROL_MODE, render_mode=None, **self.config.env_kwargs(self.env_id))
         except RuntimeError as e:
             if any(word in str(e).lower() for word in ("vulkan", "vk::", "render", "physical device")):
                 raise UserError(f"{VULKAN_FIX} ({e})") from e
@@ -240,9 +249,14 @@ class EpisodeSimulator:
                                        split=self.config.instruction_split)
         return instruction, attributes
 
-    def _render(self, seed: int, states: list[dict], steps: np.ndarray, actions: np.ndarray, success) -> Episode:
+    def _render(self, seed: int, states: list[dict], steps: np.ndarray, actions: np.ndarray, success,
+                language=None, variant: int | None = None, intent: dict | None = None) -> Episode:
         """Replay the recorded states with the episode's cameras and appearance: RGB-D-N frames,
-        robot and object poses, and the instruction for the scene."""
+        robot and object poses, and the instruction for the scene.
+
+        language: None = the task's own instruction templates; else a function
+        (colour names of the colourable actors) -> (instruction, attributes), used by skill episodes.
+        """
         cfg, spec = self.config, self.spec
         base = self.env.unwrapped
         base.set_state_dict(states[0])
@@ -250,7 +264,12 @@ class EpisodeSimulator:
         cameras, qpos, object_poses = self._capture(states, views)
         colors = {name: appearance["colors"].get(name, default)
                   for name, default in zip(spec.colorable, spec.default_colors)}
-        instruction, attributes = self._instruction(seed, object_poses, colors)
+        if language is not None:
+            instruction, attributes = language(colors)
+        elif spec.skills_only:  # a scene without a task: the words come from a skill, or the user (predict)
+            instruction, attributes = "", {"object_colors": dict(getattr(base, "object_colors", {}))}
+        else:
+            instruction, attributes = self._instruction(seed, object_poses, colors)
         control_freq = float(base.control_freq)
         span = int(steps[-1] - steps[0]) if len(steps) > 1 else 0
         fps = control_freq * (len(steps) - 1) / span if span else control_freq
@@ -265,8 +284,10 @@ class EpisodeSimulator:
             object_poses=object_poses,
             success=success,
             control_mode=CONTROL_MODE,
-            env_kwargs=dict(ENV_KWARGS),
+            env_kwargs=self.config.env_kwargs(self.env_id),
             fps=fps,
+            variant=variant,
+            intent=intent,
             metadata={
                 "package_versions": package_versions(),
                 "control_freq": control_freq,

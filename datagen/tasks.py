@@ -2,7 +2,8 @@
 
 A task is supported when ManiSkill ships a motion-planner solution for it
 (``mani_skill.examples.motionplanning.panda.run.MP_SOLUTIONS``) and its assets come inside the
-wheel, so it runs offline. Each entry names the scene actors whose world poses are recorded
+wheel, so it runs offline; the project's own multi-object scene (``datagen/tabletop.py``) is
+supported through the skill library (``datagen/skills.py``). Each entry names the scene actors whose world poses are recorded
 (``object_poses/<name>``), the actors whose colour ``--randomize-colors`` changes, and where the
 ``close`` camera preset looks (see cameras.py).
 
@@ -14,6 +15,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from datagen.tabletop import ENV_ID as TABLETOP_ID
+from datagen.tabletop import OBJECTS as TABLETOP_OBJECTS
 from tesseract4d.errors import UserError
 
 CONTROL_MODE = "pd_joint_pos"
@@ -32,6 +35,9 @@ class TaskSpec:
     close_eye: tuple[float, float, float] = (0.24, -0.30, 0.40)
     close_target: tuple[float, float, float] = (-0.03, 0.0, 0.05)
     close_fov_deg: float = 50.0
+    # True for the project's own scenes, which have no single task: datagen runs skills in them
+    # (datagen/skills.py), never a ManiSkill motion-planning solution.
+    skills_only: bool = False
 
 
 TASKS: dict[str, TaskSpec] = {
@@ -49,6 +55,8 @@ TASKS: dict[str, TaskSpec] = {
         TaskSpec("PlugCharger-v1", objects=(("charger", "charger"), ("receptacle", "receptacle")), close_target=(-0.03, 0.0, 0.07)),
         TaskSpec("PegInsertionSide-v1", objects=(("peg", "peg"), ("box", "box")),
                  close_eye=(0.25, -0.42, 0.40), close_target=(-0.02, 0.05, 0.06), close_fov_deg=60.0),
+        TaskSpec(TABLETOP_ID, objects=tuple((n, n) for n in TABLETOP_OBJECTS) + (("goal", "goal_site"),),
+                 close_eye=(0.30, -0.40, 0.42), close_target=(-0.02, 0.0, 0.04), close_fov_deg=52.0, skills_only=True),
     ]
 }
 

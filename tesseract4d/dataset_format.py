@@ -1,11 +1,17 @@
-"""The tesseract4d dataset format (version 1): one writer, one reader, documented here.
+"""The tesseract4d dataset format (version 2): one writer, one reader, documented here.
 
 Layout of a dataset folder::
 
     DIR/
       info.json                                   DatasetInfo (format version, conventions)
       episodes/<env_id>/seed_<seed:06d>.h5         one HDF5 file per episode (the shard unit)
-      previews/<env_id>/seed_<seed:06d>.mp4        RGB | depth | normal side by side (browser-playable)
+      episodes/<env_id>/seed_<seed:06d>_k<k>.h5    future k of a counterfactual group (skill datagen)
+      previews/<env_id>/seed_<seed:06d>[_k<k>].mp4 RGB | depth | normal side by side (browser-playable)
+
+Counterfactual groups: the K episodes of one (env_id, seed) start from the same initial state
+(their first frames are identical bit for bit) and differ only in the instruction and what the
+robot does. ``group_id`` = ``<env_id>/seed_<seed:06d>``; splits (train / held-out) keep whole
+groups together because they are drawn by seed.
 
 Every episode file is a self-contained shard: parallel workers write different files, so no
 locking is needed, and a file appears under its final name only once it is complete (written
@@ -16,7 +22,12 @@ Inside an episode file (all arrays chunked per frame and gzip-compressed)::
 
     attrs: format_version, episode_id, env_id, seed, instruction, success (-1 unknown / 0 / 1),
            control_mode, env_kwargs (JSON), fps, source ("simulation" | "prediction"),
-           metadata (JSON: package versions, instruction attributes, anything extra)
+           metadata (JSON: package versions, instruction attributes, anything extra),
+           group_id, variant (-1 = not part of a group), intent (JSON or "null"; version 2):
+           the structured intent of a skill episode: skill, variant, target, other, direction,
+           distance_m, commanded_displacement_world_m, gripper_goal_world_m, criterion,
+           objects_present, achieved_displacement_world_m, others_max_displacement_m,
+           gripper_displacement_m, target_grasped_at_end, success (see datagen/skills.py)
     frame_steps              (T,)          int32   simulator step index of each stored frame
     actions                  (S, A)        float32 the action applied at every sim step (S may be 0)
     qpos                     (T, D)        float32 robot joint positions at each frame (D may be 0)
@@ -29,7 +40,12 @@ Inside an episode file (all arrays chunked per frame and gzip-compressed)::
     cameras/<cam>/T_world_cam  (T, 4, 4)     float64 camera→world, OpenCV axes
 
 Re-simulation: ``gym.make(env_id, **env_kwargs, control_mode=control_mode)``, ``reset(seed=seed)``,
-then apply ``actions`` in order.
+then apply ``actions`` in order (the project's own scene ``Tesseract4dTabletop-v1`` is registered
+by ``datagen.tabletop.register()``).
+
+Versions: 2 added ``group_id``, ``variant`` and ``intent``. Version-1 files and folders (no
+groups) are still read: their episodes have ``variant=None`` and ``intent=None``. Writers only
+write version 2 and do not append to a version-1 folder.
 """
 
 from __future__ import annotations
@@ -46,7 +62,8 @@ import numpy as np
 
 from tesseract4d.errors import UserError
 
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
+READABLE_VERSIONS = (1, 2)
 INFO_FILE = "info.json"
 EPISODES_DIR = "episodes"
 PREVIEWS_DIR = "previews"
@@ -146,9 +163,16 @@ class Episode:
     fps: float = 20.0
     source: str = "simulation"
     metadata: dict = field(default_factory=dict)
+    variant: int | None = None  # index k within a counterfactual group; None = no group
+    intent: dict | None = None  # structured intent of a skill episode (see the module docstring)
 
     @property
     def episode_id(self) -> str:
+        return f"{self.env_id}/{episode_stem(self.seed, self.variant)}"
+
+    @property
+    def group_id(self) -> str:
+        """Episodes sharing it start from the same initial state (same env_id and seed)."""
         return f"{self.env_id}/seed_{self.seed:06d}"
 
     @property
@@ -174,15 +198,20 @@ class Episode:
 # --------------------------------------------------------------------------- paths
 
 
-def episode_path(root: str | os.PathLike, env_id: str, seed: int) -> Path:
-    return Path(root) / EPISODE_TEMPLATE.format(env_id=env_id, seed=seed)
+def episode_stem(seed: int, variant: int | None = None) -> str:
+    """File stem of an episode: ``seed_000003`` or, for future k of a group, ``seed_000003_k2``."""
+    return f"seed_{seed:06d}" if variant is None else f"seed_{seed:06d}_k{variant}"
 
 
-def preview_path(root: str | os.PathLike, env_id: str, seed: int) -> Path:
-    return Path(root) / PREVIEW_TEMPLATE.format(env_id=env_id, seed=seed)
+def episode_path(root: str | os.PathLike, env_id: str, seed: int, variant: int | None = None) -> Path:
+    return Path(root) / EPISODES_DIR / env_id / f"{episode_stem(seed, variant)}.h5"
 
 
-_EPISODE_RE = re.compile(r"^seed_(\d{6,})\.h5$")
+def preview_path(root: str | os.PathLike, env_id: str, seed: int, variant: int | None = None) -> Path:
+    return Path(root) / PREVIEWS_DIR / env_id / f"{episode_stem(seed, variant)}.mp4"
+
+
+_EPISODE_RE = re.compile(r"^seed_(\d{6,})(_k\d+)?\.h5$")
 
 
 def list_episode_files(root: str | os.PathLike) -> list[Path]:
@@ -209,10 +238,10 @@ def read_info(root: str | os.PathLike) -> DatasetInfo:
     except (json.JSONDecodeError, UnicodeDecodeError) as e:
         raise DatasetFormatError(f"{path} is corrupt ({e}). Restore it or regenerate the dataset.") from e
     version = d.get("format_version")
-    if version != FORMAT_VERSION:
+    if version not in READABLE_VERSIONS:
         raise DatasetFormatError(
-            f"{root} holds dataset format version {version}, but this tesseract4d reads version "
-            f"{FORMAT_VERSION}. Write to a new folder, or convert/regenerate the dataset with this version."
+            f"{root} holds dataset format version {version}, but this tesseract4d reads versions "
+            f"{', '.join(map(str, READABLE_VERSIONS))}. Write to a new folder, or regenerate the dataset with this version."
         )
     return DatasetInfo.from_dict(d)
 
@@ -226,6 +255,12 @@ def init_dataset(root: str | os.PathLike, info: DatasetInfo) -> DatasetInfo:
     root = Path(root)
     if (root / INFO_FILE).exists():
         existing = read_info(root)
+        if existing.format_version != info.format_version:
+            raise DatasetFormatError(
+                f"{root} holds format version {existing.format_version} episodes; this tesseract4d writes version "
+                f"{info.format_version} and does not mix them in one folder. Write to a new --out folder "
+                f"(version-1 data stays readable as it is)."
+            )
         if (existing.height, existing.width) != (info.height, info.width):
             raise DatasetFormatError(
                 f"{root} already holds {existing.height}x{existing.width} episodes; requested "
@@ -255,7 +290,7 @@ def write_episode(root: str | os.PathLike, episode: Episode, compression_level: 
     import h5py
 
     episode.validate()
-    final = episode_path(root, episode.env_id, episode.seed)
+    final = episode_path(root, episode.env_id, episode.seed, episode.variant)
     final.parent.mkdir(parents=True, exist_ok=True)
     tmp = final.with_name(f".{final.stem}.{uuid.uuid4().hex}{PARTIAL_SUFFIX}")
     gz = dict(compression="gzip", compression_opts=compression_level, shuffle=True)
@@ -278,6 +313,9 @@ def write_episode(root: str | os.PathLike, episode: Episode, compression_level: 
             f.attrs["fps"] = float(episode.fps)
             f.attrs["source"] = episode.source
             f.attrs["metadata"] = json.dumps(episode.metadata, sort_keys=True, default=str)
+            f.attrs["group_id"] = episode.group_id
+            f.attrs["variant"] = -1 if episode.variant is None else int(episode.variant)
+            f.attrs["intent"] = json.dumps(episode.intent, sort_keys=True)
             f.create_dataset("frame_steps", data=np.asarray(episode.frame_steps, np.int32))
             f.create_dataset("actions", data=np.asarray(episode.actions, np.float32))
             f.create_dataset("qpos", data=np.asarray(episode.qpos, np.float32))
@@ -342,9 +380,10 @@ def read_episode(
     try:
         with h5py.File(path, "r") as f:
             version = int(f.attrs.get("format_version", -1))
-            if version != FORMAT_VERSION:
+            if version not in READABLE_VERSIONS:
                 raise DatasetFormatError(
-                    f"{path} is format version {version}; this tesseract4d reads version {FORMAT_VERSION}. Regenerate it."
+                    f"{path} is format version {version}; this tesseract4d reads versions "
+                    f"{', '.join(map(str, READABLE_VERSIONS))}. Regenerate it."
                 )
             cams = {}
             names = list(f["cameras"].keys()) if cameras is None else cameras
@@ -378,6 +417,7 @@ def read_episode(
                 fps=float(f.attrs["fps"]),
                 source=str(f.attrs["source"]),
                 metadata=json.loads(f.attrs["metadata"]),
+                **_group_fields(f.attrs, version),
             )
     except DatasetFormatError:
         raise
@@ -385,6 +425,14 @@ def read_episode(
         raise DatasetFormatError(
             f"{path} is corrupt or truncated ({type(e).__name__}: {e}). Delete it and re-run datagen to regenerate it."
         ) from e
+
+
+def _group_fields(attrs, version: int) -> dict:
+    """variant and intent of an episode file (version 1 files have neither)."""
+    if version < 2:
+        return {"variant": None, "intent": None}
+    variant = int(attrs["variant"])
+    return {"variant": None if variant < 0 else variant, "intent": json.loads(attrs["intent"])}
 
 
 def read_episode_attrs(path: str | os.PathLike) -> dict:
@@ -395,8 +443,13 @@ def read_episode_attrs(path: str | os.PathLike) -> dict:
         with h5py.File(path, "r") as f:
             cams = list(f["cameras"].keys())
             shape = f["cameras"][cams[0]]["rgb"].shape if cams else (0, 0, 0, 3)
+            version = int(f.attrs.get("format_version", -1))
+            group = _group_fields(f.attrs, version)
             return {
-                "format_version": int(f.attrs.get("format_version", -1)),
+                "format_version": version,
+                "group_id": f"{f.attrs['env_id']}/seed_{int(f.attrs['seed']):06d}",
+                "variant": group["variant"],
+                "intent": group["intent"],
                 "env_id": str(f.attrs["env_id"]),
                 "seed": int(f.attrs["seed"]),
                 "instruction": str(f.attrs["instruction"]),
@@ -423,10 +476,12 @@ def resolve_episode(spec: str | os.PathLike) -> Path:
         if not files:
             raise DatasetFormatError(f"{p} holds no episodes (expected {EPISODE_TEMPLATE} inside)")
         raise DatasetFormatError(f"{p} holds {len(files)} episodes; name one as {p}/<env_id>/<seed>")
-    # DIR/ENV_ID/SEED
-    root, env_id, seed = p.parent.parent, p.parent.name, p.name
-    if seed.isdigit():
-        f = episode_path(root, env_id, int(seed))
+    # DIR/ENV_ID/SEED or DIR/ENV_ID/SEED_kK (future k of a group)
+    root, env_id = p.parent.parent, p.parent.name
+    seed, _, variant = p.name.partition("_k")
+    if seed.isdigit() and (variant == "" or variant.isdigit()):
+        f = episode_path(root, env_id, int(seed), int(variant) if variant else None)
         if f.is_file():
             return f
-    raise DatasetFormatError(f"no episode at {spec}: give an episode .h5 file, a dataset folder with one episode, or DIR/ENV_ID/SEED")
+    raise DatasetFormatError(f"no episode at {spec}: give an episode .h5 file, a dataset folder with one episode, "
+                             f"DIR/ENV_ID/SEED or DIR/ENV_ID/SEED_kK")

@@ -42,7 +42,7 @@ def write_preview(root: str | os.PathLike, episode: Episode, camera: str | None 
     """Write ``previews/<env_id>/seed_<seed>.mp4`` atomically; returns its path."""
     import imageio.v2 as imageio
 
-    final = preview_path(root, episode.env_id, episode.seed)
+    final = preview_path(root, episode.env_id, episode.seed, episode.variant)
     final.parent.mkdir(parents=True, exist_ok=True)
     tmp = final.with_name(f".{final.stem}.{uuid.uuid4().hex}.partial.mp4")
     frames = preview_frames(episode, camera)

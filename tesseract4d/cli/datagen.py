@@ -10,6 +10,13 @@ DIR/datagen_config.json.
 Example (training data for the tiny model):
   tesseract4d datagen --tasks PickCube-v1,PushCube-v1 --episodes 200 --out data/train \\
       --resolution 64 --frames 16 --cameras close --workers 2
+
+Counterfactual groups (one initial state, K futures chosen by the instruction): in the project's
+multi-object scene Tesseract4dTabletop-v1, or in PickCube/PushCube/PullCube/StackCube with
+--skills or --instructions-per-scene, every seed is rendered under K distinct skills
+(--episodes then counts scenes; each scene gives K episodes seed_<S>_k<k>.h5):
+  tesseract4d datagen --tasks Tesseract4dTabletop-v1 --instructions-per-scene 4 --episodes 100 \\
+      --out data/skills --workers 2
 """
 
 from __future__ import annotations
@@ -29,7 +36,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     d = SimConfig()
     parser.add_argument("--tasks", required=True,
                         help=f"comma-separated task ids, or 'all' ({', '.join(valid_task_ids())})")
-    parser.add_argument("--episodes", type=int, required=True, help="successful episodes wanted per task")
+    parser.add_argument("--episodes", type=int, required=True, help="successful episodes wanted per task (with skills: scenes, each giving K episodes)")
     parser.add_argument("--out", type=Path, required=True, help="dataset folder (created, or resumed if it exists)")
     parser.add_argument("--resolution", type=int, default=None,
                         help=f"square image size in pixels, e.g. 64 or 128 (default {d.height})")
@@ -49,11 +56,23 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="address of a running Ray cluster (default: a local Ray instance when --workers > 1)")
     parser.add_argument("--randomize-lighting", action="store_true", help="random ambient/directional light per episode")
     parser.add_argument("--randomize-colors", action="store_true",
-                        help="random named colour of the task's cubes per episode (the instruction says it)")
+                        help="random named colour of the task's cubes per episode (the instruction says it; "
+                             "Tesseract4dTabletop-v1 draws its objects' colours every episode anyway)")
     parser.add_argument("--camera-jitter", type=float, default=0.0, metavar="M",
                         help="move camera eye and target by up to M metres per axis, per episode (default 0)")
     parser.add_argument("--instruction-split", choices=SPLITS, default=d.instruction_split,
                         help="instruction paraphrases to draw from (default %(default)s; 'heldout' is kept for evaluation)")
+    from datagen.skills import VARIANTS
+
+    parser.add_argument("--instructions-per-scene", type=int, default=1, metavar="K",
+                        help="render each initial state under K distinct skills (a counterfactual group; the K first "
+                             "frames are identical). K > 1 needs a scene the skills run in (default %(default)s)")
+    parser.add_argument("--skills", default=None,
+                        help="comma-separated skill variants the groups draw from, each optionally pinned to an object "
+                             f"as VARIANT@OBJECT (default: all that apply): {', '.join(VARIANTS)}")
+    parser.add_argument("--goal-marker", action="store_true",
+                        help="put a red and white goal marker on the table of Tesseract4dTabletop-v1 (default: none, so "
+                             "only the instruction says what should happen)")
     parser.add_argument("--no-previews", action="store_true", help="do not write MP4 previews")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
 
@@ -71,12 +90,22 @@ def config_from_args(args: argparse.Namespace) -> DatagenConfig:
         randomize_colors=args.randomize_colors,
         randomize_lighting=args.randomize_lighting,
         instruction_split=args.instruction_split,
+        goal_marker=args.goal_marker,
     )
     return DatagenConfig(
         tasks=parse_task_list(args.tasks), episodes=args.episodes, out=args.out, sim=sim,
         seed_start=args.seed_start, max_attempts=args.max_attempts, workers=args.workers,
         ray_address=args.ray_address, previews=not args.no_previews,
+        instructions_per_scene=args.instructions_per_scene, skills=_skills(args.skills, args.tasks),
     )
+
+
+def _skills(text: str | None, tasks: str) -> list[str] | None:
+    from datagen.skills import parse_skill_list
+
+    if text is None:
+        return None
+    return parse_skill_list(text, parse_task_list(tasks))
 
 
 def run(args: argparse.Namespace) -> int:

@@ -1,6 +1,7 @@
 """Inspect or validate a dataset folder.
 
-  tesseract4d dataset info DIR    episodes, tasks, frames, resolution, size on disk, success
+  tesseract4d dataset info DIR    episodes, tasks, frames, resolution, size on disk, success;
+                                  for skill data also groups and per-skill counts and planner rates
   tesseract4d dataset check DIR   reads every episode shard completely with the reader; lists the
                                   corrupt or truncated ones and exits non-zero if there are any
 """
@@ -42,6 +43,8 @@ def dataset_summary(root: Path) -> dict:
     """Counts per task from episode attributes (cheap: no frames are read)."""
     info = read_info(root)
     tasks: dict[str, dict] = defaultdict(lambda: {"episodes": 0, "frames": 0, "successful": 0})
+    skills: dict[str, dict] = defaultdict(lambda: {"episodes": 0, "frames": 0, "intent_met": 0})
+    groups: set[str] = set()
     unreadable = []
     for path in list_episode_files(root):
         try:
@@ -53,11 +56,20 @@ def dataset_summary(root: Path) -> dict:
         t["episodes"] += 1
         t["frames"] += a["num_frames"]
         t["successful"] += int(a["success"] == 1)
+        if a["intent"]:
+            s = skills[a["intent"]["variant"]]
+            s["episodes"] += 1
+            s["frames"] += a["num_frames"]
+            s["intent_met"] += int(bool(a["intent"].get("success")))
+        if a["variant"] is not None:
+            groups.add(a["group_id"])
     report_path = root / "datagen_report.json"
-    rates = {}
+    rates, skill_rates = {}, {}
     if report_path.is_file():
         try:
-            rates = {k: v.get("success_rate") for k, v in json.loads(report_path.read_text())["tasks"].items()}
+            report = json.loads(report_path.read_text())
+            rates = {k: v.get("success_rate") for k, v in report["tasks"].items()}
+            skill_rates = {k: v.get("success_rate") for k, v in report.get("skills", {}).items()}
         except (json.JSONDecodeError, KeyError):
             rates = {}
     return {
@@ -69,6 +81,8 @@ def dataset_summary(root: Path) -> dict:
         "frames": sum(t["frames"] for t in tasks.values()),
         "size_bytes": _size_bytes(root),
         "tasks": {k: dict(v, planner_success_rate=rates.get(k)) for k, v in sorted(tasks.items())},
+        "groups": len(groups),
+        "skills": {k: dict(v, planner_success_rate=skill_rates.get(k)) for k, v in sorted(skills.items())},
         "unreadable": unreadable,
     }
 
@@ -84,6 +98,12 @@ def _info(root: Path, as_json: bool) -> int:
     for env_id, t in s["tasks"].items():
         rate = "-" if t["planner_success_rate"] is None else f"{100 * t['planner_success_rate']:.0f} %"
         print(f"{env_id:<22} {t['episodes']:>8} {t['frames']:>8} {t['successful']:>8} {rate:>13}")
+    if s["skills"]:
+        print(f"counterfactual groups {s['groups']}")
+        print(f"{'skill':<22} {'episodes':>8} {'frames':>8} {'met':>8} {'planner rate':>13}")
+        for name, t in s["skills"].items():
+            rate = "-" if t["planner_success_rate"] is None else f"{100 * t['planner_success_rate']:.0f} %"
+            print(f"{name:<22} {t['episodes']:>8} {t['frames']:>8} {t['intent_met']:>8} {rate:>13}")
     if s["unreadable"]:
         print(f"{len(s['unreadable'])} unreadable episode file(s); run `tesseract4d dataset check {root}`")
     return 0

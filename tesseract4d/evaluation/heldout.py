@@ -76,10 +76,11 @@ def select_episodes(data: Path, max_per_task: int | None) -> list[Path]:
                         f"--seed-start {df.HELDOUT_SEED_START} --instruction-split heldout --out {data}`")
     if max_per_task is None:
         return files
-    kept, count = [], {}
-    for f in files:
-        task = f.parent.name
-        if count.get(task, 0) < max_per_task:
+    kept, count, started = [], {}, set()
+    for f in files:  # sorted, so a counterfactual group's files (seed_S_k0, seed_S_k1, ...) are adjacent
+        task, group = f.parent.name, (f.parent.name, f.stem.split("_")[1])
+        if group in started or count.get(task, 0) < max_per_task:  # never cut a group
+            started.add(group)
             kept.append(f)
             count[task] = count.get(task, 0) + 1
     return kept

@@ -481,7 +481,8 @@ def _write_validation_video(folder: Path, episode_id: str, gt: torch.Tensor, pre
         rgb=np.concatenate([g_rgb, p_rgb], axis=1), depth_m=np.concatenate([g_depth, p_depth], axis=1),
         normal_cam=np.concatenate([g_normal, p_normal], axis=1),
         K=np.repeat(np.eye(3)[None], t, 0), T_world_cam=np.repeat(np.eye(4)[None], t, 0))
-    env_id, seed = episode_id.split("/seed_")
+    env_id, stem = episode_id.split("/seed_")
+    seed, _, variant = stem.partition("_k")  # seed_000003 or seed_000003_k2 (future k of a group)
     ep = Episode(env_id=env_id, seed=int(seed), instruction="", cameras={"validation": cam},
-                 frame_steps=np.arange(t, dtype=np.int32))
+                 frame_steps=np.arange(t, dtype=np.int32), variant=int(variant) if variant else None)
     return write_preview(folder, ep)

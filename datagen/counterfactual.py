@@ -1,0 +1,148 @@
+"""Counterfactual groups: one initial state, K futures decided by the instruction.
+
+``run_group`` resets the env with the same seed before each future, so every future starts
+from the same simulator state; it runs K *distinct* skill variants (``datagen.skills``), in an
+order drawn from the seed, trying the feasible target objects of a variant until one succeeds
+and moving on to the next variant when none does. Only successful futures are rendered. The
+first frames of the K episodes are compared bit for bit (RGB, depth, normals, segmentation);
+a difference is a determinism bug and raises.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from datagen import skills as sk
+from datagen.simulate import EpisodeSimulator, frame_indices
+from tesseract4d.dataset_format import Episode
+
+PLANNER = "datagen.skills on mani_skill.examples.motionplanning.panda PandaArmMotionPlanningSolver"
+
+
+@dataclass
+class GroupResult:
+    """What one (task, seed) group did; the episodes only when all K futures succeeded."""
+
+    env_id: str
+    seed: int
+    success: bool
+    k: int
+    num_steps: int = 0
+    num_frames: int = 0
+    plan_s: float = 0.0
+    render_s: float = 0.0
+    error: str = ""
+    tries: list[dict] = field(default_factory=list)  # every (variant, target) tried: outcome, error
+    episodes: list[Episode] = field(default_factory=list)
+
+
+def run_group(sim: EpisodeSimulator, seed: int, k: int, specs: list[str] | None = None) -> GroupResult:
+    """Plan and render K futures of the scene of ``seed`` (see the module docstring).
+
+    specs: skill specs from ``skills.parse_skill_list`` (None = every variant that applies).
+    """
+    env_id, env = sim.env_id, sim.env
+    base = env.unwrapped
+    names = sk.available_variants(env_id, specs)
+    pinned = {s.partition("@")[0]: s.partition("@")[2] or None for s in (specs or [])}
+    rng = np.random.default_rng([int(seed), 271828])
+    result = GroupResult(env_id, seed, False, k)
+    first: Episode | None = None
+    for name in rng.permutation(names):
+        if len(result.episodes) == k:
+            break
+        variant = sk.VARIANTS[str(name)]
+        env.reset(seed=seed)
+        cands = sk.candidates(env_id, base, variant, pinned.get(variant.name))
+        if not cands:
+            result.tries.append({"variant": variant.name, "target": None, "success": False,
+                                 "error": "no feasible target in this scene"})
+            continue
+        for i in rng.permutation(len(cands)):
+            target, other = cands[int(i)]
+            episode = _try(sim, seed, variant, target, other, result, variant_index=len(result.episodes), k=k)
+            if episode is None:
+                continue
+            if first is None:
+                first = episode
+            else:
+                _assert_same_first_frame(first, episode)
+            result.episodes.append(episode)
+            break
+    result.success = len(result.episodes) == k
+    if not result.success:
+        result.error = f"only {len(result.episodes)} of {k} skills succeeded"
+        result.episodes = []
+    result.num_frames = sum(e.num_frames for e in result.episodes)
+    return result
+
+
+def _try(sim: EpisodeSimulator, seed: int, variant: sk.SkillVariant, target, other, result: GroupResult,
+         variant_index: int, k: int) -> Episode | None:
+    env_id, env = sim.env_id, sim.env
+    base = env.unwrapped
+    env.reset(seed=seed)
+    intent = sk.commanded_intent(env_id, base, variant, target, other)
+    present = intent["objects_present"]
+    start = {n: sk.object_positions(env_id, base)[n] for n in present}
+    tcp_start = sk.tcp_position(base)
+    t0 = time.perf_counter()
+    record = {"variant": variant.name, "target": target, "other": other}
+    try:
+        sk.execute(env, env_id, variant, target, other)
+    except sk.SkillFailure as e:
+        error = str(e)
+    except Exception as e:  # the planner raises on unreachable poses: a failed try, reported
+        error = f"planner error: {type(e).__name__}: {e}"
+    else:
+        error = ""
+    plan_s = time.perf_counter() - t0
+    result.plan_s += plan_s
+    result.num_steps += len(env.actions)
+    if error:
+        result.tries.append(dict(record, success=False, error=error))
+        return None
+    end = {n: sk.object_positions(env_id, base)[n] for n in present}
+    outcome = sk.check_intent(intent, start, end, tcp_start, sk.tcp_position(base), sk.is_grasping(env_id, base, target))
+    result.tries.append(dict(record, success=outcome["success"], error="" if outcome["success"] else "success check failed"))
+    if not outcome["success"]:
+        return None
+    intent.update(outcome)
+    states, actions = list(env.states), np.stack(env.actions)
+    keep = frame_indices(len(states), sim.config.frames)
+    scene_colors = dict(base.object_colors) if env_id == sk.TABLETOP_ID else None
+
+    def language(appearance_colors: dict) -> tuple[str, dict]:
+        from datagen.skill_language import describe, make_skill_instruction, skill_attributes
+
+        colors = scene_colors if scene_colors is not None else sk.object_colors(env_id, base, appearance_colors)
+        shapes = {o.name: o.shape for o in sk.SCENES[env_id]}
+        descriptions = {n: describe(shapes[n], colors.get(n, "")) for n in present}
+        attrs = skill_attributes(intent, descriptions)
+        idx = list(sk.VARIANTS).index(variant.name)
+        text = make_skill_instruction(variant.skill, attrs, np.random.default_rng([int(seed), 31337, idx]),
+                                      split=sim.config.instruction_split)
+        return text, dict(attrs, object_colors=colors)
+
+    t1 = time.perf_counter()
+    episode = sim._render(seed, [states[i] for i in keep], keep, actions, success=True, language=language,
+                          variant=variant_index, intent=intent)
+    result.render_s += time.perf_counter() - t1
+    episode.metadata.update({"num_sim_steps": len(actions), "plan_seconds": round(plan_s, 3), "planner": PLANNER,
+                             "group_size": k})
+    return episode
+
+
+def _assert_same_first_frame(a: Episode, b: Episode) -> None:
+    for name, cam in a.cameras.items():
+        other = b.cameras[name]
+        for key in ("rgb", "depth_m", "normal_cam", "segmentation"):
+            x, y = getattr(cam, key), getattr(other, key)
+            if x is None and y is None:
+                continue
+            if not np.array_equal(x[0], y[0]):
+                raise RuntimeError(f"{a.group_id}: first frames of futures {a.variant} and {b.variant} differ in "
+                                   f"{name}/{key}; the simulator or renderer is not deterministic across resets")

@@ -1,0 +1,93 @@
+"""Instructions for skill episodes, written from the skill's parameters.
+
+Every paraphrase names what tells one future of a scene from another: the object (colour and
+shape, "the green cylinder"), the direction (the robot-frame words of
+``datagen.instructions.direction_words``) and how far. As for the task templates, there is a
+``train`` set and a ``heldout`` set of paraphrases (``datagen.instructions.SPLITS``).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from datagen.instructions import SPLITS, direction_words
+from tesseract4d.errors import UserError
+
+# Fields: {object}, {other}, {direction}, {distance}, {place}.
+TEMPLATES: dict[str, dict[str, list[str]]] = {
+    "push": {
+        "train": ["push the {object} {direction} by {distance}", "slide the {object} {distance} {direction}",
+                  "nudge the {object} {direction}, about {distance}"],
+        "heldout": ["shove the {object} {distance} {direction}", "move the {object} {direction} by pushing it {distance}"],
+    },
+    "pull": {
+        "train": ["pull the {object} {direction} toward the robot by {distance}",
+                  "drag the {object} {distance} {direction}, closer to you",
+                  "draw the {object} {direction} by {distance}"],
+        "heldout": ["bring the {object} {distance} {direction} toward yourself",
+                    "tug the {object} {direction} about {distance}"],
+    },
+    "pick_place": {
+        "train": ["pick up the {object} and put it down {distance} {direction}",
+                  "move the {object} {distance} {direction} by carrying it",
+                  "grasp the {object}, carry it {direction} by {distance} and place it"],
+        "heldout": ["lift the {object} and set it down {distance} {direction}",
+                    "relocate the {object} {direction}, {distance} away"],
+    },
+    "lift": {
+        "train": ["pick up the {object} and lift it {distance}", "lift the {object} {distance} up and hold it",
+                  "grasp the {object} and raise it by {distance}"],
+        "heldout": ["raise the {object} {distance} off the table", "hold the {object} up in the air, {distance} high"],
+    },
+    "stack": {
+        "train": ["stack the {object} on the {other}", "put the {object} on top of the {other}",
+                  "place the {object} onto the {other}"],
+        "heldout": ["set the {object} on the {other}", "build a tower: the {object} on the {other}"],
+    },
+    "hover": {
+        "train": ["move the gripper above the {object} without touching anything",
+                  "hover over the {object}", "bring the hand just above the {object} and wait"],
+        "heldout": ["position the gripper over the {object}", "go above the {object} but do not touch it"],
+    },
+    "reach": {
+        "train": ["move the gripper to the {place} without touching anything", "reach out to the {place} side",
+                  "move the arm over to the {place}"],
+        "heldout": ["swing the gripper to the {place}", "point the hand to the {place} side of the table"],
+    },
+    "keep_still": {
+        "train": ["do nothing and keep the arm still", "stay still", "keep the robot where it is"],
+        "heldout": ["don't move", "hold your position and leave everything as it is"],
+    },
+}
+
+
+def describe(shape: str, color: str) -> str:
+    """'green' + 'cylinder' -> 'green cylinder' (the words that identify an object)."""
+    return f"{color} {shape}".strip()
+
+
+def distance_words(distance_m: float) -> str:
+    return f"{round(distance_m * 100):d} cm"
+
+
+def skill_attributes(intent: dict, descriptions: dict[str, str]) -> dict:
+    """The words of an intent (see datagen.skills.commanded_intent): object, other, direction,
+    distance, place. descriptions: object name -> 'green cylinder'."""
+    cmd = np.asarray(intent["commanded_displacement_world_m"], np.float64)
+    attrs = {
+        "object": descriptions.get(intent["target"], "") if intent["target"] else "",
+        "other": descriptions.get(intent["other"], "") if intent["other"] else "",
+        "direction": direction_words(cmd[:2]) if intent["skill"] in ("push", "pull", "pick_place") else "",
+        "distance": distance_words(intent["distance_m"]) if intent["distance_m"] else "",
+        "place": intent["direction"] if intent["skill"] == "reach" else "",
+    }
+    return attrs
+
+
+def make_skill_instruction(skill: str, attributes: dict, rng: np.random.Generator, split: str = "train") -> str:
+    """One paraphrase of ``split`` for ``skill`` chosen by ``rng``, filled with ``attributes``."""
+    if split not in SPLITS:
+        raise UserError(f"instruction split must be one of {SPLITS}, got {split!r}")
+    templates = TEMPLATES[skill][split]
+    text = templates[int(rng.integers(len(templates)))].format(**attributes)
+    return " ".join(text.split())
