@@ -46,6 +46,7 @@ from typing import Iterator
 import numpy as np
 
 from tesseract4d.errors import UserError
+from tesseract4d.outputs import safe_name
 
 FORMAT_VERSION = 1
 INFO_FILE = "info.json"
@@ -173,11 +174,11 @@ class Episode:
 
 
 def episode_path(root: str | os.PathLike, env_id: str, seed: int) -> Path:
-    return Path(root) / EPISODE_TEMPLATE.format(env_id=env_id, seed=seed)
+    return Path(root) / EPISODE_TEMPLATE.format(env_id=safe_name(env_id, "env_id"), seed=int(seed))
 
 
 def preview_path(root: str | os.PathLike, env_id: str, seed: int) -> Path:
-    return Path(root) / PREVIEW_TEMPLATE.format(env_id=env_id, seed=seed)
+    return Path(root) / PREVIEW_TEMPLATE.format(env_id=safe_name(env_id, "env_id"), seed=int(seed))
 
 
 _EPISODE_RE = re.compile(r"^seed_(\d{6,})\.h5$")
@@ -347,6 +348,7 @@ def read_episode(
             cams = {}
             names = list(f["cameras"].keys()) if cameras is None else cameras
             for name in names:
+                safe_name(name, f"{path}: camera name")
                 if name not in f["cameras"]:
                     raise DatasetFormatError(f"{path} has no camera {name!r}; it has {sorted(f['cameras'].keys())}")
                 g = f["cameras"][name]
@@ -362,7 +364,7 @@ def read_episode(
             qpos = f["qpos"][()]
             success = int(f.attrs["success"])
             return Episode(
-                env_id=str(f.attrs["env_id"]),
+                env_id=safe_name(str(f.attrs["env_id"]), f"{path}: env_id"),
                 seed=int(f.attrs["seed"]),
                 instruction=str(f.attrs["instruction"]),
                 cameras=cams,
@@ -391,7 +393,8 @@ def read_episode_attrs(path: str | os.PathLike) -> dict:
 
     try:
         with h5py.File(path, "r") as f:
-            cams = list(f["cameras"].keys())
+            cams = [safe_name(c, f"{path}: camera name") for c in f["cameras"].keys()]
+            safe_name(str(f.attrs["env_id"]), f"{path}: env_id")
             shape = f["cameras"][cams[0]]["rgb"].shape if cams else (0, 0, 0, 3)
             return {
                 "format_version": int(f.attrs.get("format_version", -1)),

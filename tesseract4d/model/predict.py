@@ -127,6 +127,15 @@ def predict_episode(
     return episodes[0]
 
 
+def instruction_budget_note(pipeline: RGBDNPipeline, instruction: str) -> str | None:
+    """A warning when ``instruction`` is longer than the text encoder's token budget, else None."""
+    n, budget = pipeline.text_encoder.count_tokens(instruction), pipeline.text_encoder.max_tokens
+    if n <= budget:
+        return None
+    return (f"warning: the instruction has {n} tokens; the text encoder keeps the first {budget} "
+            f"({len(instruction)} characters given); shorten it to say what matters first")
+
+
 def predict_episodes(
     pipeline: RGBDNPipeline,
     first_frame: df.Episode,

@@ -69,6 +69,10 @@ class TextEncoder:
         """(batch, L, d) zeros: the unconditional text input."""
         return torch.zeros(batch, self.max_tokens, self.dim)
 
+    def count_tokens(self, instruction: str) -> int:
+        """Tokens of ``instruction`` before truncation to ``max_tokens`` (special tokens included)."""
+        return len(self.tokenizer(instruction, truncation=False)["input_ids"])
+
     @torch.no_grad()
     def encode(self, instructions: list[str]) -> torch.Tensor:
         """(len(instructions), L, d) float32 on the CPU, padding zeroed; results are cached."""
