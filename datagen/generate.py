@@ -29,13 +29,14 @@ from pathlib import Path
 from datagen.simulate import SimConfig
 from datagen.tasks import get_task
 from tesseract4d.dataset_format import (
-    PREVIEWS_DIR, DatasetInfo, atomic_write_text, init_dataset, list_episode_files, remove_partial_files,
+    INFO_FILE, LOCK_FILE, PREVIEWS_DIR, DatasetInfo, atomic_write_text, init_dataset, list_episode_files, remove_partial_files,
 )
 from tesseract4d.errors import UserError
 
 CONFIG_FILE = "datagen_config.json"
 REPORT_FILE = "datagen_report.json"
 ATTEMPTS_FILE = "datagen_attempts.jsonl"
+MAX_IMAGE_SIDE = 2048  # larger images exhaust memory long before an episode is written
 # Options that change what an episode file contains: a dataset folder keeps one value of each.
 _DATASET_DEFINING = ("frames", "cameras", "camera_jitter_m", "randomize_colors", "randomize_lighting",
                      "instruction_split")
@@ -67,6 +68,8 @@ class DatagenConfig:
             raise UserError(f"--workers must be at least 1, got {self.workers}")
         if self.sim.height < 16 or self.sim.width < 16 or self.sim.height % 2 or self.sim.width % 2:
             raise UserError(f"resolution {self.sim.height}x{self.sim.width}: use even sizes of at least 16 pixels")
+        if max(self.sim.height, self.sim.width) > MAX_IMAGE_SIDE:
+            raise UserError(f"resolution {self.sim.height}x{self.sim.width}: at most {MAX_IMAGE_SIDE} pixels per side")
         if self.sim.frames < 0 or self.sim.frames == 1:
             raise UserError(f"--frames must be 0 (all steps) or at least 2, got {self.sim.frames}")
         if self.sim.camera_jitter_m < 0:
@@ -280,19 +283,76 @@ def summarize(root: Path, tasks: list[str]) -> dict:
 # --------------------------------------------------------------------------- driver
 
 
+class DatasetLock:
+    """``DIR/.datagen.lock`` holding the writer's pid: a second datagen on the same folder refuses;
+    a lock left by a process that no longer runs (killed) is taken over with a message."""
+
+    def __init__(self, root: Path):
+        self.path = Path(root) / LOCK_FILE
+
+    def __enter__(self) -> "DatasetLock":
+        while True:
+            try:
+                fd = os.open(self.path, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
+            except FileExistsError:
+                try:
+                    pid = int(self.path.read_text().split()[0])
+                except (OSError, ValueError, IndexError):
+                    pid = None  # being written right now, or damaged
+                if pid is not None and _pid_alive(pid):
+                    raise UserError(f"{self.path.parent} is being written by another datagen (pid {pid}); wait for it "
+                                    f"to finish or stop it, or write to another --out folder") from None
+                if pid is None and time.time() - self.path.stat().st_mtime < 5:
+                    time.sleep(0.2)
+                    continue
+                print(f"note: {self.path.parent} was locked by datagen pid {pid}, which no longer runs; taking over")
+                self.path.unlink(missing_ok=True)
+                continue
+            with os.fdopen(fd, "w") as f:
+                f.write(f"{os.getpid()}\n")
+            return self
+
+    def __exit__(self, *exc) -> None:
+        self.path.unlink(missing_ok=True)
+
+
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
 def run_datagen(cfg: DatagenConfig, progress: bool = True) -> dict:
     """Generate until every task has ``cfg.episodes`` successes (or hits its attempt cap).
 
-    Returns the report that is also written to ``DIR/datagen_report.json``.
+    Returns the report that is also written to ``DIR/datagen_report.json``. The folder must be
+    new, empty or a dataset (tesseract4d.outputs); one datagen at a time writes it (DatasetLock).
     """
-    from tqdm import tqdm
-
     from datagen.simulate import check_vulkan_env
+    from tesseract4d.outputs import claim_folder, release_new_folder
 
     cfg.validate()
-    check_vulkan_env()
     root = Path(cfg.out)
-    open_dataset(cfg)
+    fresh = claim_folder(root, "datagen", legacy_marker=INFO_FILE)
+    with DatasetLock(root):
+        try:
+            check_vulkan_env()
+            open_dataset(cfg)
+        except BaseException:
+            if fresh is not None:  # a refused start leaves nothing behind
+                release_new_folder(root, [INFO_FILE, LOCK_FILE], remove_folder=fresh)
+            raise
+        return _generate(cfg, progress)
+
+
+def _generate(cfg: DatagenConfig, progress: bool) -> dict:
+    from tqdm import tqdm
+
+    root = Path(cfg.out)
     remove_partial_files(root)
     _remove_partial_previews(root)
     atomic_write_text(root / CONFIG_FILE, cfg.to_json())

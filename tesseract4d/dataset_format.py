@@ -46,7 +46,7 @@ from typing import Iterator
 import numpy as np
 
 from tesseract4d.errors import UserError
-from tesseract4d.outputs import safe_name
+from tesseract4d.outputs import MARKER, safe_name
 
 FORMAT_VERSION = 1
 INFO_FILE = "info.json"
@@ -55,6 +55,7 @@ PREVIEWS_DIR = "previews"
 EPISODE_TEMPLATE = "episodes/{env_id}/seed_{seed:06d}.h5"
 PREVIEW_TEMPLATE = "previews/{env_id}/seed_{seed:06d}.mp4"
 PARTIAL_SUFFIX = ".partial.h5"
+LOCK_FILE = ".datagen.lock"  # the pid of the datagen writing the folder
 
 DEPTH_ENCODING = "float32 metres along the OpenCV camera +z axis; 0 = no measurement"
 NORMAL_CONVENTION = "float16 unit vectors in the OpenCV camera frame (x right, y down, z forward); 0 = no measurement"
@@ -231,7 +232,7 @@ def init_dataset(root: str | os.PathLike, info: DatasetInfo) -> DatasetInfo:
                 f"{info.height}x{info.width}. Use another --out folder or the same resolution."
             )
         return existing
-    if root.exists() and any(root.iterdir()):
+    if root.exists() and any(p.name not in (MARKER, LOCK_FILE) for p in root.iterdir()):
         raise DatasetFormatError(f"{root} exists, is not empty and is not a tesseract4d dataset; choose an empty or new folder.")
     root.mkdir(parents=True, exist_ok=True)
     atomic_write_text(root / INFO_FILE, info.to_json())
@@ -326,6 +327,14 @@ def remove_partial_files(root: str | os.PathLike) -> list[Path]:
 # --------------------------------------------------------------------------- reader
 
 
+def _data_name(value: str, field: str) -> str:
+    """A name read from a file, checked before it can become a path component."""
+    try:
+        return safe_name(value, field)
+    except UserError as e:
+        raise DatasetFormatError(str(e)) from None
+
+
 def read_episode(
     path: str | os.PathLike,
     cameras: list[str] | None = None,
@@ -348,7 +357,7 @@ def read_episode(
             cams = {}
             names = list(f["cameras"].keys()) if cameras is None else cameras
             for name in names:
-                safe_name(name, f"{path}: camera name")
+                _data_name(name, f"{path}: camera name")
                 if name not in f["cameras"]:
                     raise DatasetFormatError(f"{path} has no camera {name!r}; it has {sorted(f['cameras'].keys())}")
                 g = f["cameras"][name]
@@ -364,7 +373,7 @@ def read_episode(
             qpos = f["qpos"][()]
             success = int(f.attrs["success"])
             return Episode(
-                env_id=safe_name(str(f.attrs["env_id"]), f"{path}: env_id"),
+                env_id=_data_name(str(f.attrs["env_id"]), f"{path}: env_id"),
                 seed=int(f.attrs["seed"]),
                 instruction=str(f.attrs["instruction"]),
                 cameras=cams,
@@ -393,8 +402,8 @@ def read_episode_attrs(path: str | os.PathLike) -> dict:
 
     try:
         with h5py.File(path, "r") as f:
-            cams = [safe_name(c, f"{path}: camera name") for c in f["cameras"].keys()]
-            safe_name(str(f.attrs["env_id"]), f"{path}: env_id")
+            cams = [_data_name(c, f"{path}: camera name") for c in f["cameras"].keys()]
+            _data_name(str(f.attrs["env_id"]), f"{path}: env_id")
             shape = f["cameras"][cams[0]]["rgb"].shape if cams else (0, 0, 0, 3)
             return {
                 "format_version": int(f.attrs.get("format_version", -1)),

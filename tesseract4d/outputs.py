@@ -202,16 +202,16 @@ class OutputFile:
 
 
 def claim_folder(path: str | os.PathLike, command: str, *, inputs: Iterable = (), legacy_marker: str | None = None,
-                 flag: str = "--out") -> bool:
+                 flag: str = "--out") -> bool | None:
     """For commands that write in place and resume (datagen, a training run): refuse ``path`` if
-    it is a file, overlaps an input, or is a non-empty folder that is neither this command's
-    (its marker, or ``legacy_marker`` from before markers existed) nor empty. Creates the folder
-    with the marker. Returns True when the folder was created now (see ``release_new_folder``)."""
+    it is a file, overlaps an input, or is a non-empty folder that is neither this command's (its
+    marker, or ``legacy_marker``, a file such a folder always holds) nor empty. A new or empty
+    folder gets the marker. Returns True when the folder was created now, False when it existed
+    empty, None when it already held this command's output (see ``release_new_folder``)."""
     p = Path(path)
     check_not_input(p, inputs, flag)
     if p.exists() and not p.is_dir():
         raise UserError(f"{flag} {p} is a file, not a folder; pass a folder path")
-    created = not p.exists()
     if p.exists() and any(p.iterdir()):
         marker = read_marker(p)
         ours = (marker is not None and marker.get("command") == command) or (
@@ -219,16 +219,17 @@ def claim_folder(path: str | os.PathLike, command: str, *, inputs: Iterable = ()
         if not ours:
             whose = f"the output of `tesseract4d {marker['command']}`" if marker else "files this command did not write"
             raise UserError(f"{flag} {p} already holds {whose}; choose a new or empty folder")
+        return None
+    created = not p.exists()
     p.mkdir(parents=True, exist_ok=True)
-    if read_marker(p) is None:
-        _write_marker(p, command, [])
+    _write_marker(p, command, [])
     return created
 
 
-def release_new_folder(path: str | os.PathLike, own_files: Iterable[str] = ()) -> None:
-    """After a failed start of a command that created ``path``: remove the marker, the named
-    files it wrote and every empty folder left, so a mistake leaves nothing behind. Files the
-    command did not name are kept (and so is the folder holding them)."""
+def release_new_folder(path: str | os.PathLike, own_files: Iterable[str] = (), remove_folder: bool = True) -> None:
+    """After a failed start of a command that claimed a new or empty ``path``: remove the marker,
+    the named files it wrote and every empty folder left (``path`` itself too if
+    ``remove_folder``), so a mistake leaves nothing behind. Files not named are kept."""
     p = Path(path)
     for name in [MARKER, *own_files]:
         (p / name).unlink(missing_ok=True)
@@ -239,7 +240,8 @@ def release_new_folder(path: str | os.PathLike, own_files: Iterable[str] = ()) -
             d.rmdir()
         except OSError:
             pass
-    try:
-        p.rmdir()
-    except OSError:
-        pass
+    if remove_folder:
+        try:
+            p.rmdir()
+        except OSError:
+            pass

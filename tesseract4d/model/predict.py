@@ -49,6 +49,7 @@ def load_pipeline(checkpoint: str | os.PathLike, device: str = "cpu", bf16: bool
     try:
         cfg = json.loads(cfg_path.read_text())
         preset = preset_from_dict(cfg["preset"])
+        space = ModelSpace(**cfg["model_space"])
     except (json.JSONDecodeError, KeyError, TypeError) as e:
         raise UserError(f"{cfg_path} is corrupt ({type(e).__name__}: {e}); re-export the checkpoint") from e
     if cfg["preset"].get("name") not in PRESETS:
@@ -61,7 +62,6 @@ def load_pipeline(checkpoint: str | os.PathLike, device: str = "cpu", bf16: bool
     if transformer.backbone.config.text_embed_dim != text_encoder.dim:
         raise UserError(f"{ckpt}: the transformer expects {transformer.backbone.config.text_embed_dim}-d text "
                         f"embeddings but the {preset.text_encoder} encoder gives {text_encoder.dim}")
-    space = ModelSpace(**cfg["model_space"])
     pipe = RGBDNPipeline(transformer, make_scheduler(), codec, text_encoder, preset, space,
                          camera_name=cfg.get("camera_name"), bf16=bf16, config=cfg)
     return pipe.to(device)
@@ -73,7 +73,14 @@ def _load_transformer(folder: Path, preset, codec):
 
     from tesseract4d.model.rgbdn_transformer import RGBDNTransformer
 
-    saved = json.loads((folder / "config.json").read_text())
+    try:
+        saved = json.loads((folder / "config.json").read_text())
+    except (OSError, ValueError) as e:
+        raise UserError(f"{folder / 'config.json'} is unreadable ({type(e).__name__}: {e}); re-export the checkpoint") from e
+    missing = [k for k in ("backbone_config", "modality_channels") if not isinstance(saved.get(k), dict)]
+    if missing:
+        raise UserError(f"{folder / 'config.json'} lacks {', '.join(missing)}; it is not a tesseract4d transformer "
+                        f"config: re-export the checkpoint")
     expected_channels = dict(codec.modality_channels)
     if saved.get("modality_channels") != expected_channels:
         raise UserError(f"{folder} has modality channels {saved.get('modality_channels')} but preset "
@@ -84,8 +91,17 @@ def _load_transformer(folder: Path, preset, codec):
         if mismatch:
             raise UserError(f"{folder} does not match preset {preset.name!r}: "
                             + ", ".join(f"{k} is {a}, preset has {b}" for k, (a, b) in mismatch.items()))
-    model = RGBDNTransformer(saved["backbone_config"], saved["modality_channels"])
-    state = load_file(str(folder / "diffusion_pytorch_model.safetensors"))
+    from safetensors import SafetensorError
+
+    try:
+        model = RGBDNTransformer(saved["backbone_config"], saved["modality_channels"])
+    except (TypeError, ValueError) as e:
+        raise UserError(f"{folder / 'config.json'} cannot build the transformer ({e}); re-export the checkpoint") from e
+    try:
+        state = load_file(str(folder / "diffusion_pytorch_model.safetensors"))
+    except (SafetensorError, OSError) as e:
+        raise UserError(f"{folder / 'diffusion_pytorch_model.safetensors'} is corrupt or truncated ({e}); "
+                        f"re-export the checkpoint") from e
     try:
         model.load_state_dict(state)
     except RuntimeError as e:

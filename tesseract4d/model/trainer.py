@@ -263,12 +263,12 @@ class Trainer:
                             f"drop --resume to start a new run")
         from tesseract4d.outputs import claim_folder, release_new_folder
 
-        created = claim_folder(self.out, "train", inputs=[cfg.data, cfg.pretrained], legacy_marker="train_config.json")
+        fresh = claim_folder(self.out, "train", inputs=[cfg.data, cfg.pretrained], legacy_marker="train_config.json")
         try:
             self._setup(cfg, existing)
         except BaseException:
-            if created:  # a mistake found while setting up leaves nothing behind
-                release_new_folder(self.out, ["train_config.json"])
+            if fresh is not None:  # a mistake found while setting up leaves nothing behind
+                release_new_folder(self.out, ["train_config.json"], remove_folder=fresh)
             raise
 
     def _setup(self, cfg: "TrainConfig", existing: list[Path]) -> None:
