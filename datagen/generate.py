@@ -169,7 +169,9 @@ class _RayPool:
             if cfg.ray_address:
                 ray.init(address=cfg.ray_address, log_to_driver=False)
             else:
-                ray.init(num_cpus=cfg.workers, include_dashboard=False, log_to_driver=False,
+                # "local": always a fresh instance of our own, whatever cluster file an earlier
+                # `ray start --head` left behind (ray.init() would try to join it).
+                ray.init(address="local", num_cpus=cfg.workers, include_dashboard=False, log_to_driver=False,
                          configure_logging=False)
         threads = max(1, (os.cpu_count() or 1) // cfg.workers)
         actor_cls = ray.remote(num_cpus=1)(Worker)
@@ -202,6 +204,40 @@ class _RayPool:
             except Exception:  # a dead actor has nothing left to close
                 pass
         self.ray.shutdown()
+
+
+def check_ray_cluster(address: str, timeout_s: float = 5.0) -> None:
+    """One-line UserErrors, before ray.init() retries for 20 s, when the cluster at ``address``
+    (HOST:PORT of the head's GCS) does not answer or wants an authentication token we lack."""
+    import socket
+
+    host, _, port = address.removeprefix("ray://").rpartition(":")
+    if not host or not port.isdigit():
+        raise UserError(f"--ray-address {address!r}: give the head's HOST:PORT as printed by `ray start --head` "
+                        f"(e.g. 10.0.0.5:6379)")
+    try:
+        socket.create_connection((host, int(port)), timeout=timeout_s).close()
+    except OSError as e:
+        raise UserError(f"no Ray cluster answers at {address} ({e.strerror or e}); start one on the head machine with "
+                        f"`ray start --head --port {port}` (see README, 'Generating on several machines') or fix "
+                        f"--ray-address") from None
+    try:
+        from ray._raylet import GcsClient  # the first call ray.init() makes; fails fast on a bad token
+        from ray.exceptions import AuthenticationError
+    except ImportError:
+        return  # another Ray version: ray.init() reports on its own
+    saved_stderr, devnull = os.dup(2), os.open(os.devnull, os.O_WRONLY)
+    os.dup2(devnull, 2)  # Ray's C++ client logs the refusal itself; our error below says it with the fix
+    try:
+        GcsClient(address=f"{host}:{port}")
+    except AuthenticationError:
+        raise UserError(f"the Ray cluster at {address} requires an authentication token: export RAY_AUTH_MODE=token "
+                        f"and RAY_AUTH_TOKEN=<the token> (print it on the head with `ray get-auth-token`), then rerun"
+                        ) from None
+    finally:
+        os.dup2(saved_stderr, 2)
+        os.close(saved_stderr)
+        os.close(devnull)
 
 
 # --------------------------------------------------------------------------- bookkeeping
@@ -336,6 +372,8 @@ def run_datagen(cfg: DatagenConfig, progress: bool = True) -> dict:
     from tesseract4d.outputs import claim_folder, release_new_folder
 
     cfg.validate()
+    if cfg.ray_address:
+        check_ray_cluster(cfg.ray_address)
     root = Path(cfg.out)
     fresh = claim_folder(root, "datagen", legacy_marker=INFO_FILE)
     with DatasetLock(root):

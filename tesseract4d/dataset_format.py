@@ -258,12 +258,18 @@ def write_episode(root: str | os.PathLike, episode: Episode, compression_level: 
     final = episode_path(root, episode.env_id, episode.seed)
     final.parent.mkdir(parents=True, exist_ok=True)
     tmp = final.with_name(f".{final.stem}.{uuid.uuid4().hex}{PARTIAL_SUFFIX}")
-    gz = dict(compression="gzip", compression_opts=compression_level, shuffle=True)
+    # Fletcher-32 checksums on every non-empty array: a flipped byte fails the read (naming the file)
+    # instead of becoming a wrong pixel or camera pose.
+    gz = dict(compression="gzip", compression_opts=compression_level, shuffle=True, fletcher32=True)
 
     def frames(group, name, data):
         data = np.ascontiguousarray(data)
         chunks = (1,) + data.shape[1:] if data.ndim >= 3 and data.shape[0] > 0 else None
-        group.create_dataset(name, data=data, chunks=chunks, **(gz if chunks else {}))
+        group.create_dataset(name, data=data, chunks=chunks, **(gz if chunks else {"fletcher32": data.size > 0}))
+
+    def small(group, name, data):
+        data = np.ascontiguousarray(data)
+        group.create_dataset(name, data=data, fletcher32=data.size > 0)
 
     try:
         with h5py.File(tmp, "w") as f:
@@ -278,12 +284,12 @@ def write_episode(root: str | os.PathLike, episode: Episode, compression_level: 
             f.attrs["fps"] = float(episode.fps)
             f.attrs["source"] = episode.source
             f.attrs["metadata"] = json.dumps(episode.metadata, sort_keys=True, default=str)
-            f.create_dataset("frame_steps", data=np.asarray(episode.frame_steps, np.int32))
-            f.create_dataset("actions", data=np.asarray(episode.actions, np.float32))
-            f.create_dataset("qpos", data=np.asarray(episode.qpos, np.float32))
+            small(f, "frame_steps", np.asarray(episode.frame_steps, np.int32))
+            small(f, "actions", np.asarray(episode.actions, np.float32))
+            small(f, "qpos", np.asarray(episode.qpos, np.float32))
             og = f.create_group("object_poses")
             for name, pose in episode.object_poses.items():
-                og.create_dataset(name, data=np.asarray(pose, np.float32))
+                small(og, name, np.asarray(pose, np.float32))
             cg = f.create_group("cameras")
             for cam_name, cam in episode.cameras.items():
                 g = cg.create_group(cam_name)
@@ -293,8 +299,8 @@ def write_episode(root: str | os.PathLike, episode: Episode, compression_level: 
                 if cam.segmentation is not None:
                     frames(g, "segmentation", cam.segmentation.astype(np.int32))
                 g.attrs["seg_id_to_name"] = json.dumps({str(k): v for k, v in cam.seg_id_to_name.items()})
-                g.create_dataset("K", data=np.asarray(cam.K, np.float64))
-                g.create_dataset("T_world_cam", data=np.asarray(cam.T_world_cam, np.float64))
+                small(g, "K", np.asarray(cam.K, np.float64))
+                small(g, "T_world_cam", np.asarray(cam.T_world_cam, np.float64))
             f.flush()
         os.replace(tmp, final)
     except BaseException:

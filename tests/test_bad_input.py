@@ -283,6 +283,26 @@ def test_second_datagen_on_a_locked_folder_refuses(sandbox, capsys):
         holder.wait()
 
 
+@pytest.mark.sim
+def test_two_datagen_processes_on_one_folder(tmp_path, capsys):
+    out = tmp_path / "ds"
+    first = subprocess.Popen([sys.executable, "-m", "tesseract4d.cli", "datagen", "--tasks", "PushCube-v1", "--episodes",
+                              "20", "--out", str(out), "--resolution", "32", "--frames", "4", "--no-previews", "--quiet"],
+                             cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        deadline = time.time() + 60
+        while not (out / df.INFO_FILE).is_file() and time.time() < deadline:
+            time.sleep(0.05)
+        assert first.poll() is None and (out / df.LOCK_FILE).read_text().strip() == str(first.pid)
+        rc, _, err = run_cli(capsys, "datagen", "--tasks", "PushCube-v1", "--episodes", "20", "--out", out,
+                             "--resolution", "32", "--frames", "4", "--no-previews", "--quiet")
+        assert_one_line_error(rc, err, "another datagen", f"pid {first.pid}")
+        assert first.poll() is None  # the first run goes on
+    finally:
+        first.kill()
+        first.wait()
+
+
 # --------------------------------------------------------------------------- training
 
 
@@ -413,12 +433,16 @@ def _damage(path: Path, how: str) -> None:
     if how == "truncated":
         data = path.read_bytes()
         path.write_bytes(data[: len(data) // 2])
-    elif how == "byte-flipped":
+    elif how in ("byte-flipped", "pose-bit-flipped"):
         data = bytearray(path.read_bytes())
         with h5py.File(path, "r") as f:
-            offset = f["cameras/close/depth_m"].id.get_chunk_info(0).byte_offset
-        for k in range(16):  # inside the first depth chunk
-            data[offset + 8 + k] ^= 0xFF
+            name = "cameras/close/depth_m" if how == "byte-flipped" else "cameras/close/T_world_cam"
+            offset = f[name].id.get_chunk_info(0).byte_offset
+        if how == "byte-flipped":
+            for k in range(16):  # inside the first (compressed) depth chunk
+                data[offset + 8 + k] ^= 0xFF
+        else:
+            data[offset + 3] ^= 0x10  # one bit of a stored (uncompressed) camera pose
         path.write_bytes(bytes(data))
     else:
         with h5py.File(path, "r+") as f:
@@ -435,7 +459,7 @@ COMMANDS = {
 }
 
 
-@pytest.mark.parametrize("how", ["truncated", "byte-flipped", "array-deleted"])
+@pytest.mark.parametrize("how", ["truncated", "byte-flipped", "pose-bit-flipped", "array-deleted"])
 @pytest.mark.parametrize("command", list(COMMANDS))
 def test_damaged_shard_is_named(sandbox, capsys, how, command):
     path = episode_file(sandbox)

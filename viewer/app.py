@@ -426,13 +426,14 @@ def point_budgets(max_points: int) -> list[int]:
 
 
 class _HandshakeErrorFilter:
-    """A malformed HTTP/WebSocket request is the client's problem: one line, no traceback."""
+    """A malformed HTTP/WebSocket request is the client's problem: one line, no traceback (the
+    server drops that connection and goes on serving)."""
 
     def filter(self, record) -> bool:
-        if record.exc_info and "handshake" in record.getMessage():
+        if record.exc_info:
             cause = record.exc_info[1]
-            detail = f"{cause}: {cause.__cause__}" if cause is not None and cause.__cause__ else str(cause)
-            record.msg, record.args = f"viewer: rejected a malformed request ({detail})", ()
+            detail = f"{cause}: {cause.__cause__}" if cause is not None and cause.__cause__ else repr(cause)
+            record.msg, record.args = f"viewer: dropped a malformed request ({record.getMessage()}: {detail})", ()
             record.exc_info = record.exc_text = None
         return True
 
