@@ -83,7 +83,7 @@ def main() -> None:
 
     cpus = os.cpu_count() or 1
     for k in [int(x) for x in args.workers.split(",")]:
-        ray.init(num_cpus=k, include_dashboard=False, log_to_driver=False, configure_logging=False)
+        ray.init(address="local", num_cpus=k, include_dashboard=False, log_to_driver=False, configure_logging=False)
         try:
             actor = ray.remote(num_cpus=1)(BenchWorker)
             workers = [actor.remote(args.task, args.resolution, args.camera, max(1, cpus // k)) for _ in range(k)]

@@ -34,13 +34,14 @@ from pathlib import Path
 from datagen.simulate import SimConfig
 from datagen.tasks import get_task
 from tesseract4d.dataset_format import (
-    PREVIEWS_DIR, DatasetInfo, atomic_write_text, init_dataset, list_episode_files, remove_partial_files,
+    INFO_FILE, LOCK_FILE, PREVIEWS_DIR, DatasetInfo, atomic_write_text, init_dataset, list_episode_files, remove_partial_files,
 )
 from tesseract4d.errors import UserError
 
 CONFIG_FILE = "datagen_config.json"
 REPORT_FILE = "datagen_report.json"
 ATTEMPTS_FILE = "datagen_attempts.jsonl"
+MAX_IMAGE_SIDE = 2048  # larger images exhaust memory long before an episode is written
 # Options that change what an episode file contains: a dataset folder keeps one value of each.
 _DATASET_DEFINING = ("frames", "cameras", "camera_jitter_m", "randomize_colors", "randomize_lighting",
                      "instruction_split", "goal_marker")
@@ -86,6 +87,8 @@ class DatagenConfig:
             raise UserError(f"--workers must be at least 1, got {self.workers}")
         if self.sim.height < 16 or self.sim.width < 16 or self.sim.height % 2 or self.sim.width % 2:
             raise UserError(f"resolution {self.sim.height}x{self.sim.width}: use even sizes of at least 16 pixels")
+        if max(self.sim.height, self.sim.width) > MAX_IMAGE_SIDE:
+            raise UserError(f"resolution {self.sim.height}x{self.sim.width}: at most {MAX_IMAGE_SIDE} pixels per side")
         if self.sim.frames < 0 or self.sim.frames == 1:
             raise UserError(f"--frames must be 0 (all steps) or at least 2, got {self.sim.frames}")
         if self.sim.camera_jitter_m < 0:
@@ -202,7 +205,9 @@ class _RayPool:
             if cfg.ray_address:
                 ray.init(address=cfg.ray_address, log_to_driver=False)
             else:
-                ray.init(num_cpus=cfg.workers, include_dashboard=False, log_to_driver=False,
+                # "local": always a fresh instance of our own, whatever cluster file an earlier
+                # `ray start --head` left behind (ray.init() would try to join it).
+                ray.init(address="local", num_cpus=cfg.workers, include_dashboard=False, log_to_driver=False,
                          configure_logging=False)
         threads = max(1, (os.cpu_count() or 1) // cfg.workers)
         actor_cls = ray.remote(num_cpus=1)(Worker)
@@ -236,6 +241,40 @@ class _RayPool:
             except Exception:  # a dead actor has nothing left to close
                 pass
         self.ray.shutdown()
+
+
+def check_ray_cluster(address: str, timeout_s: float = 5.0) -> None:
+    """One-line UserErrors, before ray.init() retries for 20 s, when the cluster at ``address``
+    (HOST:PORT of the head's GCS) does not answer or wants an authentication token we lack."""
+    import socket
+
+    host, _, port = address.removeprefix("ray://").rpartition(":")
+    if not host or not port.isdigit():
+        raise UserError(f"--ray-address {address!r}: give the head's HOST:PORT as printed by `ray start --head` "
+                        f"(e.g. 10.0.0.5:6379)")
+    try:
+        socket.create_connection((host, int(port)), timeout=timeout_s).close()
+    except OSError as e:
+        raise UserError(f"no Ray cluster answers at {address} ({e.strerror or e}); start one on the head machine with "
+                        f"`ray start --head --port {port}` (see README, 'Generating on several machines') or fix "
+                        f"--ray-address") from None
+    try:
+        from ray._raylet import GcsClient  # the first call ray.init() makes; fails fast on a bad token
+        from ray.exceptions import AuthenticationError
+    except ImportError:
+        return  # another Ray version: ray.init() reports on its own
+    saved_stderr, devnull = os.dup(2), os.open(os.devnull, os.O_WRONLY)
+    os.dup2(devnull, 2)  # Ray's C++ client logs the refusal itself; our error below says it with the fix
+    try:
+        GcsClient(address=f"{host}:{port}")
+    except AuthenticationError:
+        raise UserError(f"the Ray cluster at {address} requires an authentication token: export RAY_AUTH_MODE=token "
+                        f"and RAY_AUTH_TOKEN=<the token> (print it on the head with `ray get-auth-token`), then rerun"
+                        ) from None
+    finally:
+        os.dup2(saved_stderr, 2)
+        os.close(saved_stderr)
+        os.close(devnull)
 
 
 # --------------------------------------------------------------------------- bookkeeping
@@ -337,17 +376,78 @@ def summarize(root: Path, tasks: list[str], group_sizes: dict[str, int] | None =
 # --------------------------------------------------------------------------- driver
 
 
+class DatasetLock:
+    """``DIR/.datagen.lock`` holding the writer's pid: a second datagen on the same folder refuses;
+    a lock left by a process that no longer runs (killed) is taken over with a message."""
+
+    def __init__(self, root: Path):
+        self.path = Path(root) / LOCK_FILE
+
+    def __enter__(self) -> "DatasetLock":
+        while True:
+            try:
+                fd = os.open(self.path, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
+            except FileExistsError:
+                try:
+                    pid = int(self.path.read_text().split()[0])
+                except (OSError, ValueError, IndexError):
+                    pid = None  # being written right now, or damaged
+                if pid is not None and _pid_alive(pid):
+                    raise UserError(f"{self.path.parent} is being written by another datagen (pid {pid}); wait for it "
+                                    f"to finish or stop it, or write to another --out folder") from None
+                if pid is None and time.time() - self.path.stat().st_mtime < 5:
+                    time.sleep(0.2)
+                    continue
+                print(f"note: {self.path.parent} was locked by datagen pid {pid}, which no longer runs; taking over")
+                self.path.unlink(missing_ok=True)
+                continue
+            with os.fdopen(fd, "w") as f:
+                f.write(f"{os.getpid()}\n")
+            return self
+
+    def __exit__(self, *exc) -> None:
+        self.path.unlink(missing_ok=True)
+
+
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
 def run_datagen(cfg: DatagenConfig, progress: bool = True) -> dict:
     """Generate until every task has ``cfg.episodes`` successes (or hits its attempt cap).
 
-    Returns the report that is also written to ``DIR/datagen_report.json``.
+    Returns the report that is also written to ``DIR/datagen_report.json``. The folder must be
+    new, empty or a dataset (tesseract4d.outputs); one datagen at a time writes it (DatasetLock).
     """
-    from tqdm import tqdm
-
     from datagen.simulate import check_vulkan_env
+    from tesseract4d.outputs import claim_folder, release_new_folder
 
     cfg.validate()
-    check_vulkan_env()
+    if cfg.ray_address:
+        check_ray_cluster(cfg.ray_address)
+    root = Path(cfg.out)
+    fresh = claim_folder(root, "datagen", legacy_marker=INFO_FILE)
+    with DatasetLock(root):
+        try:
+            check_vulkan_env()
+            open_dataset(cfg)
+        except BaseException:
+            if fresh is not None:  # a refused start leaves nothing behind
+                release_new_folder(root, [INFO_FILE, LOCK_FILE], remove_folder=fresh)
+            raise
+        return _generate(cfg, progress)
+
+
+def _generate(cfg: DatagenConfig, progress: bool) -> dict:
+    """The generation loop of :func:`run_datagen`, in the claimed, locked and opened folder."""
+    from tqdm import tqdm
+
     root = _prepare_output(cfg)
     cap = cfg.attempts_cap()
     tried, successes = _seeds_done(cfg, root)
@@ -411,9 +511,8 @@ def run_datagen(cfg: DatagenConfig, progress: bool = True) -> dict:
 
 
 def _prepare_output(cfg: DatagenConfig) -> Path:
-    """Open (or create) the dataset folder, clear what a killed run left half-written, save the config."""
+    """Clear what a killed run left half-written in the (opened) dataset folder; save the config."""
     root = Path(cfg.out)
-    open_dataset(cfg)
     remove_partial_files(root)
     _remove_partial_previews(root)
     atomic_write_text(root / CONFIG_FILE, cfg.to_json())

@@ -82,6 +82,9 @@ class Recon4D:
         """Write the folder atomically (to a temporary sibling, then rename); returns it."""
         self.validate()
         out = Path(out_dir)
+        if out.exists() and (not out.is_dir() or any(out.iterdir())):
+            raise ReconFormatError(f"{out} exists and is not empty; a reconstruction is written only to a new or empty "
+                                   f"folder (the command line's --overwrite replaces its own earlier output)")
         tmp = out.with_name(f".{out.name}.{uuid.uuid4().hex}.partial")
         tmp.mkdir(parents=True)
         try:
@@ -136,9 +139,7 @@ class Recon4D:
                 "metadata": self.metadata,
             }
             (tmp / MANIFEST).write_text(json.dumps(manifest, indent=2, default=str))
-            if out.exists():
-                shutil.rmtree(out)
-            os.replace(tmp, out)
+            os.replace(tmp, out)  # onto nothing or an empty folder
         except BaseException:
             shutil.rmtree(tmp, ignore_errors=True)
             raise

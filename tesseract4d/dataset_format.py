@@ -61,18 +61,20 @@ from pathlib import Path
 import numpy as np
 
 from tesseract4d.errors import UserError
+from tesseract4d.outputs import MARKER, safe_name
 
 FORMAT_VERSION = 2
 READABLE_VERSIONS = (1, 2)
 INFO_FILE = "info.json"
 EPISODES_DIR = "episodes"
 PREVIEWS_DIR = "previews"
-EPISODE_TEMPLATE = "episodes/{env_id}/seed_{seed:06d}.h5"
-PREVIEW_TEMPLATE = "previews/{env_id}/seed_{seed:06d}.mp4"
+EPISODE_TEMPLATE = "episodes/{env_id}/seed_{seed:06d}[_k{variant}].h5"  # see episode_path
+PREVIEW_TEMPLATE = "previews/{env_id}/seed_{seed:06d}[_k{variant}].mp4"  # see preview_path
 PARTIAL_SUFFIX = ".partial.h5"
 # Scene seeds: training data uses seeds below this; the demo and held-out evaluation use seeds
 # from here on (`datagen --seed-start HELDOUT_SEED_START --instruction-split heldout`).
 HELDOUT_SEED_START = 100_000
+LOCK_FILE = ".datagen.lock"  # the pid of the datagen writing the folder
 
 DEPTH_ENCODING = "float32 metres along the OpenCV camera +z axis; 0 = no measurement"
 NORMAL_CONVENTION = "float16 unit vectors in the OpenCV camera frame (x right, y down, z forward); 0 = no measurement"
@@ -200,15 +202,15 @@ class Episode:
 
 def episode_stem(seed: int, variant: int | None = None) -> str:
     """File stem of an episode: ``seed_000003`` or, for future k of a group, ``seed_000003_k2``."""
-    return f"seed_{seed:06d}" if variant is None else f"seed_{seed:06d}_k{variant}"
+    return f"seed_{int(seed):06d}" if variant is None else f"seed_{int(seed):06d}_k{int(variant)}"
 
 
 def episode_path(root: str | os.PathLike, env_id: str, seed: int, variant: int | None = None) -> Path:
-    return Path(root) / EPISODES_DIR / env_id / f"{episode_stem(seed, variant)}.h5"
+    return Path(root) / EPISODES_DIR / safe_name(env_id, "env_id") / f"{episode_stem(seed, variant)}.h5"
 
 
 def preview_path(root: str | os.PathLike, env_id: str, seed: int, variant: int | None = None) -> Path:
-    return Path(root) / PREVIEWS_DIR / env_id / f"{episode_stem(seed, variant)}.mp4"
+    return Path(root) / PREVIEWS_DIR / safe_name(env_id, "env_id") / f"{episode_stem(seed, variant)}.mp4"
 
 
 _EPISODE_RE = re.compile(r"^seed_(\d{6,})(_k\d+)?\.h5$")
@@ -267,7 +269,7 @@ def init_dataset(root: str | os.PathLike, info: DatasetInfo) -> DatasetInfo:
                 f"{info.height}x{info.width}. Use another --out folder or the same resolution."
             )
         return existing
-    if root.exists() and any(root.iterdir()):
+    if root.exists() and any(p.name not in (MARKER, LOCK_FILE) for p in root.iterdir()):
         raise DatasetFormatError(f"{root} exists, is not empty and is not a tesseract4d dataset; choose an empty or new folder.")
     root.mkdir(parents=True, exist_ok=True)
     atomic_write_text(root / INFO_FILE, info.to_json())
@@ -293,12 +295,18 @@ def write_episode(root: str | os.PathLike, episode: Episode, compression_level: 
     final = episode_path(root, episode.env_id, episode.seed, episode.variant)
     final.parent.mkdir(parents=True, exist_ok=True)
     tmp = final.with_name(f".{final.stem}.{uuid.uuid4().hex}{PARTIAL_SUFFIX}")
-    gz = dict(compression="gzip", compression_opts=compression_level, shuffle=True)
+    # Fletcher-32 checksums on every non-empty array: a flipped byte fails the read (naming the file)
+    # instead of becoming a wrong pixel or camera pose.
+    gz = dict(compression="gzip", compression_opts=compression_level, shuffle=True, fletcher32=True)
 
     def frames(group, name, data):
         data = np.ascontiguousarray(data)
         chunks = (1,) + data.shape[1:] if data.ndim >= 3 and data.shape[0] > 0 else None
-        group.create_dataset(name, data=data, chunks=chunks, **(gz if chunks else {}))
+        group.create_dataset(name, data=data, chunks=chunks, **(gz if chunks else {"fletcher32": data.size > 0}))
+
+    def small(group, name, data):
+        data = np.ascontiguousarray(data)
+        group.create_dataset(name, data=data, fletcher32=data.size > 0)
 
     try:
         with h5py.File(tmp, "w") as f:
@@ -316,12 +324,12 @@ def write_episode(root: str | os.PathLike, episode: Episode, compression_level: 
             f.attrs["group_id"] = episode.group_id
             f.attrs["variant"] = -1 if episode.variant is None else int(episode.variant)
             f.attrs["intent"] = json.dumps(episode.intent, sort_keys=True)
-            f.create_dataset("frame_steps", data=np.asarray(episode.frame_steps, np.int32))
-            f.create_dataset("actions", data=np.asarray(episode.actions, np.float32))
-            f.create_dataset("qpos", data=np.asarray(episode.qpos, np.float32))
+            small(f, "frame_steps", np.asarray(episode.frame_steps, np.int32))
+            small(f, "actions", np.asarray(episode.actions, np.float32))
+            small(f, "qpos", np.asarray(episode.qpos, np.float32))
             og = f.create_group("object_poses")
             for name, pose in episode.object_poses.items():
-                og.create_dataset(name, data=np.asarray(pose, np.float32))
+                small(og, name, np.asarray(pose, np.float32))
             cg = f.create_group("cameras")
             for cam_name, cam in episode.cameras.items():
                 g = cg.create_group(cam_name)
@@ -331,8 +339,8 @@ def write_episode(root: str | os.PathLike, episode: Episode, compression_level: 
                 if cam.segmentation is not None:
                     frames(g, "segmentation", cam.segmentation.astype(np.int32))
                 g.attrs["seg_id_to_name"] = json.dumps({str(k): v for k, v in cam.seg_id_to_name.items()})
-                g.create_dataset("K", data=np.asarray(cam.K, np.float64))
-                g.create_dataset("T_world_cam", data=np.asarray(cam.T_world_cam, np.float64))
+                small(g, "K", np.asarray(cam.K, np.float64))
+                small(g, "T_world_cam", np.asarray(cam.T_world_cam, np.float64))
             f.flush()
         os.replace(tmp, final)
     except BaseException:
@@ -365,6 +373,14 @@ def remove_partial_files(root: str | os.PathLike) -> list[Path]:
 # --------------------------------------------------------------------------- reader
 
 
+def _data_name(value: str, field: str) -> str:
+    """A name read from a file, checked before it can become a path component."""
+    try:
+        return safe_name(value, field)
+    except UserError as e:
+        raise DatasetFormatError(str(e)) from None
+
+
 def read_episode(
     path: str | os.PathLike,
     cameras: list[str] | None = None,
@@ -388,6 +404,7 @@ def read_episode(
             cams = {}
             names = list(f["cameras"].keys()) if cameras is None else cameras
             for name in names:
+                _data_name(name, f"{path}: camera name")
                 if name not in f["cameras"]:
                     raise DatasetFormatError(f"{path} has no camera {name!r}; it has {sorted(f['cameras'].keys())}")
                 g = f["cameras"][name]
@@ -403,7 +420,7 @@ def read_episode(
             qpos = f["qpos"][()]
             success = int(f.attrs["success"])
             return Episode(
-                env_id=str(f.attrs["env_id"]),
+                env_id=_data_name(str(f.attrs["env_id"]), f"{path}: env_id"),
                 seed=int(f.attrs["seed"]),
                 instruction=str(f.attrs["instruction"]),
                 cameras=cams,
@@ -441,7 +458,8 @@ def read_episode_attrs(path: str | os.PathLike) -> dict:
 
     try:
         with h5py.File(path, "r") as f:
-            cams = list(f["cameras"].keys())
+            cams = [_data_name(c, f"{path}: camera name") for c in f["cameras"].keys()]
+            _data_name(str(f.attrs["env_id"]), f"{path}: env_id")
             shape = f["cameras"][cams[0]]["rgb"].shape if cams else (0, 0, 0, 3)
             version = int(f.attrs.get("format_version", -1))
             group = _group_fields(f.attrs, version)

@@ -34,8 +34,11 @@ def cli(*args: str, timeout: float = 600) -> subprocess.CompletedProcess:
 @pytest.fixture(scope="module")
 def heldout(tmp_path_factory) -> Path:
     out = tmp_path_factory.mktemp("heldout") / "data"
+    from tesseract4d.model.checkpoint import read_inference_config
+
+    size = read_inference_config(SHIPPED_CHECKPOINT)["preset"]["height"]  # the shipped model's resolution
     cli("datagen", "--tasks", HELDOUT_TASKS, "--episodes", HELDOUT_EPISODES, "--seed-start", HELDOUT_SEED_START,
-        "--instruction-split", "heldout", "--out", out, "--no-previews", "--quiet")
+        "--instruction-split", "heldout", "--resolution", size, "--out", out, "--no-previews", "--quiet")
     return out
 
 

@@ -67,7 +67,7 @@ def test_time_limit_stops_with_checkpoint_and_export(dataset, tmp_path):
     assert not [p for p in run.rglob("*") if p.suffix in (".bin", ".pt", ".pth", ".pkl", ".ckpt")]
     assert final == run / "final"
     assert sorted(p.relative_to(final).as_posix() for p in final.rglob("*") if p.is_file()) == [
-        "scheduler/scheduler_config.json", "tesseract4d_config.json", "transformer/config.json",
+        ".tesseract4d-output.json", "scheduler/scheduler_config.json", "tesseract4d_config.json", "transformer/config.json",
         "transformer/diffusion_pytorch_model.safetensors"]
     info = json.loads((final / "tesseract4d_config.json").read_text())
     assert info["preset"]["name"] == MICRO.name and info["resolution"] == [32, 32] and info["num_frames"] == 8

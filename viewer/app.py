@@ -125,6 +125,7 @@ class ViewerApp:
 
     def start(self) -> str:
         """Start serving in background threads; returns the URL."""
+        _one_line_handshake_errors()
         check_port_free(self.host, self.port)
         self.server = make_server(self.host, self.port)
         if self.port and self.server.get_port() != self.port:  # lost a race for the port
@@ -447,13 +448,61 @@ def point_budgets(max_points: int) -> list[int]:
     return sorted({int(max_points), *(b for b in (max_points // 2, max_points // 5, max_points // 10) if b >= 1000)}, reverse=True)
 
 
+class _HandshakeErrorFilter:
+    """A malformed HTTP/WebSocket request is the client's problem: one line, no traceback (the
+    server drops that connection and goes on serving)."""
+
+    def filter(self, record) -> bool:
+        if record.exc_info:
+            cause = record.exc_info[1]
+            detail = f"{cause}: {cause.__cause__}" if cause is not None and cause.__cause__ else repr(cause)
+            record.msg, record.args = f"viewer: dropped a malformed request ({record.getMessage()}: {detail})", ()
+            record.exc_info = record.exc_text = None
+        return True
+
+
+def _one_line_handshake_errors() -> None:
+    import logging
+
+    log = logging.getLogger("websockets.server")
+    if not any(isinstance(f, _HandshakeErrorFilter) for f in log.filters):
+        log.addFilter(_HandshakeErrorFilter())
+
+
+def network_warning(host: str) -> str | None:
+    """A warning when ``host`` exposes the viewer beyond this machine (no authentication)."""
+    import ipaddress
+
+    try:
+        loopback = ipaddress.ip_address(host.strip("[]")).is_loopback
+    except ValueError:
+        loopback = host == "localhost"
+    if loopback:
+        return None
+    return (f"warning: --host {host} makes the viewer reachable from the network, without a password: anyone who "
+            f"can reach this machine can watch and, with --checkpoint, run the model; use --host 127.0.0.1 "
+            f"(and an SSH tunnel) unless that is intended")
+
+
 def serve_forever(app: ViewerApp) -> None:
-    """Start, print the URL, block until Ctrl-C, stop."""
+    """Start, print the URL, block until Ctrl-C or SIGTERM, stop."""
+    import signal
+    import sys
+
+    if note := network_warning(app.host):
+        print(note, file=sys.stderr, flush=True)
     url = app.start()
     print(f"viewer: {url}  (Ctrl-C to stop)", flush=True)
+
+    def _terminate(signum, frame):
+        raise KeyboardInterrupt  # the same clean stop as Ctrl-C
+
+    previous = signal.signal(signal.SIGTERM, _terminate) if threading.current_thread() is threading.main_thread() else None
     try:
         while True:
             threading.Event().wait(3600)
     finally:
         app.stop()
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
 

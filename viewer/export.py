@@ -10,21 +10,34 @@ import os
 from pathlib import Path
 
 from reconstruction.recon4d import Recon4D
-from tesseract4d.errors import UserError
 from viewer.scene import DEFAULT_MAX_POINTS, SceneLayer, configure_rendering, initial_view, make_server, stop_server
 
 
+HTML_MARK = "<!-- tesseract4d view --export -->"
+
+
+def is_export(path: Path) -> bool:
+    """An earlier export (safe to replace)."""
+    try:
+        with open(path, "rb") as f:
+            return f.read(len(HTML_MARK)) == HTML_MARK.encode()
+    except OSError:
+        return False
+
+
 def export_html(source: Recon4D | str | os.PathLike, out_path: str | os.PathLike,
-                max_points: int = DEFAULT_MAX_POINTS, color_mode: str = "rgb", fps: float | None = None) -> Path:
-    """Write the recording to ``out_path`` (atomically) and return it."""
+                max_points: int = DEFAULT_MAX_POINTS, color_mode: str = "rgb", fps: float | None = None,
+                inputs: tuple = (), overwrite: bool = False) -> Path:
+    """Write the recording to ``out_path`` (atomically) and return it. An existing file is replaced
+    only if it is an earlier export (or with ``overwrite``); ``inputs`` are never written."""
+    from tesseract4d.outputs import OutputFile
+
+    out = Path(out_path)
+    output = OutputFile(out, inputs=inputs, overwrite=overwrite, flag="--export", is_ours=is_export)
     if not isinstance(source, Recon4D):
         from viewer.sources import load_source
 
         source = load_source(source)
-    out = Path(out_path)
-    if out.is_dir():
-        raise UserError(f"{out} is a folder; pass a file name such as {out / 'scene.html'}")
-    out.parent.mkdir(parents=True, exist_ok=True)
     layer = SceneLayer(source, "scene", max_points)
     server = make_server("127.0.0.1", 0)
     try:
@@ -44,7 +57,6 @@ def export_html(source: Recon4D | str | os.PathLike, out_path: str | os.PathLike
         html = serializer.as_html()
     finally:
         stop_server(server)
-    tmp = out.with_name(f".{out.name}.partial")
-    tmp.write_text(html)
-    os.replace(tmp, out)
+    with output as tmp:
+        tmp.write_text(HTML_MARK + "\n" + html)
     return out

@@ -110,12 +110,17 @@ def _info(root: Path, as_json: bool) -> int:
 
 
 def _check(root: Path) -> int:
-    read_info(root)
+    info = read_info(root)
     files = list_episode_files(root)
     bad = []
     for path in files:
         try:
-            read_episode(path).validate()
+            episode = read_episode(path)
+            episode.validate()
+            if path.relative_to(root).as_posix() != f"episodes/{episode.episode_id}.h5":
+                raise DatasetFormatError(f"holds episode {episode.episode_id}, which belongs elsewhere")
+            if episode.source != info.source:
+                raise DatasetFormatError(f"holds a {episode.source} episode in a {info.source} dataset")
         except DatasetFormatError as e:
             bad.append((path, str(e)))
     for path, msg in bad:

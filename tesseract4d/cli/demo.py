@@ -35,6 +35,7 @@ class DemoConfig:
     port: int = 8080
     headless: bool = False
     precision: str = "auto"
+    overwrite: bool = False
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -56,13 +57,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--port", type=int, default=d.port, help="viewer port (default %(default)s)")
     parser.add_argument("--headless", action="store_true", help="write the outputs and exit without serving the viewer")
     add_precision_argument(parser)
+    parser.add_argument("--overwrite", action="store_true",
+                        help="write into a folder holding other files (only the demo's own files are replaced)")
 
 
 def run(args: argparse.Namespace) -> int:
     cfg = DemoConfig(
         task=args.task, seed=args.seed, instruction=args.instruction, checkpoint=args.checkpoint, out=args.out,
         num_frames=args.num_frames, steps=args.steps, sample_seed=args.sample_seed, camera=args.camera,
-        host=args.host, port=args.port, headless=args.headless, precision=args.precision,
+        host=args.host, port=args.port, headless=args.headless, precision=args.precision, overwrite=args.overwrite,
     )
     outputs = run_demo(cfg)
     print(f"instruction: {outputs['instruction'].read_text().strip()}")
@@ -77,19 +80,27 @@ def run(args: argparse.Namespace) -> int:
 
 
 def run_demo(cfg: DemoConfig) -> dict[str, Path]:
-    """Render → predict → reconstruct → export. Returns the paths written."""
+    """Render → predict → reconstruct → export into a staging folder moved to cfg.out at the end.
+    Returns the paths written."""
+    from tesseract4d.outputs import OutputDir
+
+    if not Path(cfg.checkpoint).is_dir():
+        raise UserError(f"checkpoint {cfg.checkpoint} not found; pass --checkpoint DIR (a folder written by `tesseract4d train --export`).")
+    final = Path(cfg.out)
+    with OutputDir(final, "demo", inputs=[cfg.checkpoint], overwrite=cfg.overwrite) as stage:
+        written = _run_demo_stages(cfg, stage)
+    return {name: final / path.relative_to(stage) for name, path in written.items()}
+
+
+def _run_demo_stages(cfg: DemoConfig, out: Path) -> dict[str, Path]:
     from tqdm import tqdm
 
     from datagen.simulate import render_first_frame
     from reconstruction.reconstruct import ReconConfig, reconstruct_episode
     from tesseract4d import dataset_format as df
-    from tesseract4d.model.predict import load_pipeline, predict_episode, write_prediction
+    from tesseract4d.model.predict import instruction_budget_note, load_pipeline, predict_episode, write_prediction
     from viewer.export import export_html
 
-    if not Path(cfg.checkpoint).is_dir():
-        raise UserError(f"checkpoint {cfg.checkpoint} not found; pass --checkpoint DIR (a folder written by `tesseract4d train --export`).")
-    out = Path(cfg.out)
-    out.mkdir(parents=True, exist_ok=True)
     stages = tqdm(total=4, desc="demo", unit="stage")
 
     stages.set_postfix_str(f"render {cfg.task} seed {cfg.seed}")
@@ -100,6 +111,8 @@ def run_demo(cfg: DemoConfig) -> dict[str, Path]:
     height, width = pipeline.resolution
     first = render_first_frame(cfg.task, cfg.seed, height=height, width=width, camera=cfg.camera)
     instruction = cfg.instruction if cfg.instruction is not None else first.instruction
+    if note := instruction_budget_note(pipeline, instruction.strip()):
+        stages.write(note)
     first_path = df.write_episode_dataset(out / "first_frame", first)
     stages.update()
 

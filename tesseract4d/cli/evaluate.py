@@ -50,6 +50,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     held.add_argument("--sample-seed", type=int, default=0, help="diffusion noise seed (default %(default)s)")
     held.add_argument("--max-per-task", type=int, help="episodes per task at most (default: all)")
     add_precision_argument(held)
+    parser.add_argument("--overwrite", action="store_true",
+                        help="replace a --json file / write into an --out folder that this command did not write")
 
 
 def load_prediction(spec: str):
@@ -62,13 +64,29 @@ def load_prediction(spec: str):
     return read_episode(resolve_episode(spec))
 
 
-def run_heldout(args: argparse.Namespace) -> int:
-    from tesseract4d.evaluation.heldout import HeldoutConfig, evaluate_heldout, format_markdown
+def _is_episode_report(path: Path) -> bool:
+    """An earlier `evaluate --json` report (safe to replace)."""
+    try:
+        d = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return False
+    return isinstance(d, dict) and {"pred", "gt", "num_frames"} <= set(d)
 
-    cfg = HeldoutConfig(checkpoint=args.checkpoint, data=args.heldout, out=args.out, camera=args.camera,
+
+def run_heldout(args: argparse.Namespace) -> int:
+    from tesseract4d.evaluation.heldout import HeldoutConfig, evaluate_heldout, format_markdown, write_heldout_report
+
+    from tesseract4d.outputs import OutputDir
+
+    output = None if args.out is None else OutputDir(args.out, "evaluate", inputs=[args.checkpoint, args.heldout],
+                                                     overwrite=args.overwrite)
+    cfg = HeldoutConfig(checkpoint=args.checkpoint, data=args.heldout, out=None, camera=args.camera,
                         num_steps=args.steps, sample_seed=args.sample_seed, max_episodes=args.max_per_task,
                         max_depth_m=args.max_depth, precision=args.precision)
     report = evaluate_heldout(cfg)
+    if output is not None:
+        with output as stage:
+            write_heldout_report(report, stage)
     print(format_markdown(report))
     if args.out:
         print(f"wrote {args.out / 'report.json'} and {args.out / 'report.md'}")
@@ -77,7 +95,7 @@ def run_heldout(args: argparse.Namespace) -> int:
 
 def run(args: argparse.Namespace) -> int:
     from tesseract4d.evaluation.episode import evaluate_episode, format_report, json_safe
-    from tesseract4d.dataset_format import atomic_write_text, read_episode, resolve_episode
+    from tesseract4d.dataset_format import read_episode, resolve_episode
     from tesseract4d.errors import UserError
 
     if args.heldout is not None:
@@ -87,6 +105,12 @@ def run(args: argparse.Namespace) -> int:
     if args.pred is None or args.gt is None:
         raise UserError("give PRED --gt EPISODE, or --checkpoint CKPT --heldout DIR; see `tesseract4d evaluate --help`")
 
+    from tesseract4d.outputs import OutputFile
+
+    output = None
+    if args.json:
+        output = OutputFile(args.json, inputs=[args.pred, args.gt], overwrite=args.overwrite, flag="--json",
+                            is_ours=_is_episode_report)
     pred = load_prediction(args.pred)
     gt_path = resolve_episode(args.gt)
     report = evaluate_episode(pred, read_episode(gt_path), camera=args.camera, max_depth_m=args.max_depth)
@@ -95,8 +119,8 @@ def run(args: argparse.Namespace) -> int:
         print(f"note: prediction has {report['pred_frames']} frames, ground truth {report['gt_frames']}; "
               f"evaluated the first {report['num_frames']}")
     print(format_report(report, per_frame=not args.no_per_frame))
-    if args.json:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        atomic_write_text(args.json, json.dumps(json_safe(report), indent=2))
+    if output is not None:
+        with output as tmp:
+            tmp.write_text(json.dumps(json_safe(report), indent=2))
         print(f"wrote {args.json}")
     return 0

@@ -19,6 +19,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import sys
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -76,6 +77,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--image-guidance", type=float, help="first-frame guidance scale (default: the checkpoint preset's)")
     parser.add_argument("--device", default=d.device, help="torch device (default %(default)s)")
     add_precision_argument(parser)
+    parser.add_argument("--overwrite", action="store_true",
+                        help="write into a folder holding other files (only this command's files are replaced)")
 
 
 def _read_K(path: Path) -> np.ndarray:
@@ -144,17 +147,47 @@ def load_first_frame(cfg: PredictConfig, resolution: tuple[int, int], camera: st
     return first_frame_from_files(cfg.rgb, cfg.depth, cfg.K, cfg.normal)
 
 
+def check_device(device: str) -> None:
+    """One-line errors for a device torch does not know or this machine does not have."""
+    import torch
+
+    try:
+        kind = torch.device(device).type
+    except (RuntimeError, ValueError):
+        raise UserError(f"--device {device!r} is not a torch device; use cpu, cuda or cuda:N") from None
+    if kind == "cuda" and not torch.cuda.is_available():
+        raise UserError(f"--device {device}: CUDA is not available on this machine; use --device cpu")
+    if kind == "cuda" and torch.device(device).index is not None and torch.device(device).index >= torch.cuda.device_count():
+        raise UserError(f"--device {device}: this machine has {torch.cuda.device_count()} CUDA device(s)")
+    if kind == "mps" and not torch.backends.mps.is_available():
+        raise UserError(f"--device {device}: MPS is not available on this machine; use --device cpu")
+
+
+def _input_paths(cfg: PredictConfig) -> list:
+    from tesseract4d import dataset_format as df
+
+    paths = [cfg.checkpoint, cfg.rgb, cfg.depth, cfg.K, cfg.normal]
+    if cfg.episode is not None:
+        paths += [cfg.episode, df.resolve_episode(cfg.episode)]
+    return paths
+
+
 def run(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
-    from tesseract4d.model.predict import load_pipeline, predict_episodes, write_prediction
+    from tesseract4d.model.predict import instruction_budget_note, load_pipeline, predict_episodes, write_prediction
+    from tesseract4d.outputs import OutputDir
 
     cfg = PredictConfig(**{f.name: getattr(args, f.name) for f in dataclasses.fields(PredictConfig)})
+    check_device(cfg.device)
+    output = OutputDir(cfg.out, "predict", inputs=_input_paths(cfg), overwrite=args.overwrite)
     pipe = load_pipeline(cfg.checkpoint, device=cfg.device, precision=cfg.precision)
     # The resolved config: frames and steps the checkpoint's preset gives when not set.
     cfg = dataclasses.replace(cfg, num_frames=cfg.num_frames or pipe.num_frames, steps=cfg.steps or pipe.preset.num_steps)
     first = load_first_frame(cfg, pipe.resolution, pipe.camera_name)
     instruction = cfg.instruction if cfg.instruction is not None else first.instruction
+    if isinstance(instruction, str) and (note := instruction_budget_note(pipe, instruction.strip())):
+        print(note, file=sys.stderr)
     bar = tqdm(desc="predict", unit="step")
 
     def progress(step: int, total: int) -> None:
@@ -166,9 +199,11 @@ def run(args: argparse.Namespace) -> int:
                                 image_guidance=cfg.image_guidance, progress=progress)
     bar.close()
     out = Path(cfg.out)
-    for k, ep in enumerate(episodes):
-        folder = out if len(episodes) == 1 else out / f"sample_{k:02d}"
-        print(f"wrote {write_prediction(ep, folder)}")
     resolved = {k: (str(v) if isinstance(v, Path) else v) for k, v in dataclasses.asdict(cfg).items()}
-    (out / "predict_config.json").write_text(json.dumps({**resolved, "instruction": instruction}, indent=2))
+    with output as stage:
+        for k, ep in enumerate(episodes):
+            sub = Path() if len(episodes) == 1 else Path(f"sample_{k:02d}")
+            path = write_prediction(ep, stage / sub)
+            print(f"wrote {out / sub / path.relative_to(stage / sub)}")
+        (stage / "predict_config.json").write_text(json.dumps({**resolved, "instruction": instruction}, indent=2))
     return 0

@@ -22,7 +22,10 @@ from reconstruction.reconstruct import ReconConfig
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     d = ReconConfig()
     parser.add_argument("input", help="episode .h5, dataset/prediction folder with one episode, or DIR/ENV_ID/SEED")
-    parser.add_argument("--out", type=Path, required=True, help="output folder (replaced if it exists)")
+    parser.add_argument("--out", type=Path, required=True,
+                        help="output folder: new, empty, or an earlier reconstruction (whose files are replaced)")
+    parser.add_argument("--overwrite", action="store_true",
+                        help="write into a folder holding other files (only this command's files are replaced)")
     parser.add_argument("--camera", help="camera of the episode to reconstruct (default: the first)")
     parser.add_argument("--voxel-size", type=float, default=None, metavar="M",
                         help="TSDF voxel edge in metres (default: 1.5 pixel footprints at the median depth)")
@@ -55,14 +58,18 @@ def config_from_args(args: argparse.Namespace) -> ReconConfig:
 def run(args: argparse.Namespace) -> int:
     from reconstruction.reconstruct import reconstruct_episode
     from tesseract4d.dataset_format import read_episode, resolve_episode
+    from tesseract4d.outputs import OutputDir
 
     config = config_from_args(args)
     config.validate()
     path = resolve_episode(args.input)
+    output = OutputDir(args.out, "reconstruct", inputs=[path, args.input], overwrite=args.overwrite)
     episode = read_episode(path, cameras=[args.camera] if args.camera else None)
     recon = reconstruct_episode(episode, camera=args.camera, config=config)
     recon.metadata["episode_path"] = str(path)
-    out = recon.save(args.out, write_ply=not args.no_ply)
+    with output as stage:
+        recon.save(stage, write_ply=not args.no_ply)
+    out = args.out
     if not args.quiet:
         m = recon.metadata
         timings = ", ".join(f"{k} {v:.2f}" for k, v in m["timings_s"].items())

@@ -42,6 +42,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     parser.add_argument("--export", type=Path, metavar="RUN", help="export RUN's latest EMA weights instead of training")
     parser.add_argument("--to", type=Path, help="with --export: the inference folder to write (default RUN/final)")
+    parser.add_argument("--overwrite", action="store_true",
+                        help="with --export: write into a folder holding other files (only the export's files are replaced)")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -49,9 +51,11 @@ def run(args: argparse.Namespace) -> int:
     from tesseract4d.model.trainer import TrainConfig, Trainer, export_checkpoint
 
     if args.export is not None:
-        folder = export_checkpoint(args.export, args.to)
+        folder = export_checkpoint(args.export, args.to, overwrite=args.overwrite)
         print(f"exported {folder}")
         return 0
+    if args.to is not None or args.overwrite:
+        raise UserError("--to and --overwrite go with --export RUN")
     if args.out is None:
         raise UserError("pass --out RUN (the run folder)")
     try:

@@ -27,6 +27,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--checkpoint", type=Path, default=SHIPPED_CHECKPOINT,
                         help="model checkpoint of the Generate panel (default: the shipped tiny model)")
     parser.add_argument("--camera", help="which camera of an episode to show (default: the first)")
+    parser.add_argument("--overwrite", action="store_true", help="with --export: replace a file that is not an earlier export")
     parser.add_argument("--max-points", type=int, default=DEFAULT_MAX_POINTS,
                         help="point budget per frame sent to the browser (default %(default)s)")
     add_precision_argument(parser)
@@ -43,7 +44,19 @@ def run(args: argparse.Namespace) -> int:
         from viewer.export import export_html
         from viewer.sources import load_source
 
-        out = export_html(load_source(args.path, camera=args.camera), args.export, max_points=args.max_points)
+        from tesseract4d.outputs import OutputFile
+        from viewer.export import is_export
+
+        inputs = [args.path]
+        try:
+            from tesseract4d.dataset_format import resolve_episode
+
+            inputs.append(resolve_episode(args.path))  # DIR/ENV_ID/SEED names a file
+        except UserError:
+            pass  # a reconstruction folder or a path load_source reports on
+        OutputFile(args.export, inputs=inputs, overwrite=args.overwrite, flag="--export", is_ours=is_export)
+        out = export_html(load_source(args.path, camera=args.camera), args.export, max_points=args.max_points,
+                          inputs=tuple(inputs), overwrite=args.overwrite)
         print(f"wrote {out} (open it in a browser; no server needed)")
         return 0
     from viewer.app import ViewerApp, serve_forever

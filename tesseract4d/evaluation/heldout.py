@@ -21,6 +21,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import os
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -154,10 +155,7 @@ def evaluate_heldout(cfg: HeldoutConfig, progress: bool = True) -> dict:
     }
     report = json_safe(report)
     if cfg.out is not None:
-        out = Path(cfg.out)
-        out.mkdir(parents=True, exist_ok=True)
-        df.atomic_write_text(out / "report.json", json.dumps(report, indent=2))
-        df.atomic_write_text(out / "report.md", format_markdown(report) + "\n")
+        write_heldout_report(report, cfg.out)
     return report
 
 
@@ -167,6 +165,14 @@ def _fmt(value, key: str) -> str:
     if key.startswith("chamfer"):
         return f"{1000 * value:.1f}"
     return f"{value:.3f}" if abs(value) < 10 else f"{value:.2f}"
+
+
+def write_heldout_report(report: dict, out: str | os.PathLike) -> None:
+    """``out/report.json`` and ``out/report.md``."""
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    df.atomic_write_text(out / "report.json", json.dumps(report, indent=2))
+    df.atomic_write_text(out / "report.md", format_markdown(report) + "\n")
 
 
 def format_markdown(report: dict) -> str:

@@ -93,7 +93,14 @@ def load_transformer(checkpoint: str | os.PathLike, preset, modality_channels: d
     from tesseract4d.model.rgbdn_transformer import RGBDNTransformer
 
     folder = Path(checkpoint) / TRANSFORMER_DIR
-    saved = json.loads((folder / MODEL_CONFIG_FILE).read_text())
+    try:
+        saved = json.loads((folder / MODEL_CONFIG_FILE).read_text())
+    except (OSError, ValueError) as e:
+        raise UserError(f"{folder / MODEL_CONFIG_FILE} is unreadable ({type(e).__name__}: {e}); re-export the checkpoint") from e
+    missing = [k for k in ("backbone_config", "modality_channels") if not isinstance(saved.get(k), dict)]
+    if missing:
+        raise UserError(f"{folder / MODEL_CONFIG_FILE} lacks {', '.join(missing)}; it is not a tesseract4d transformer "
+                        f"config: re-export the checkpoint")
     expected_channels = dict(modality_channels)
     if saved.get("modality_channels") != expected_channels:
         raise UserError(f"{folder} has modality channels {saved.get('modality_channels')} but preset "
@@ -104,9 +111,16 @@ def load_transformer(checkpoint: str | os.PathLike, preset, modality_channels: d
         if mismatch:
             raise UserError(f"{folder} does not match preset {preset.name!r}: "
                             + ", ".join(f"{k} is {a}, preset has {b}" for k, (a, b) in mismatch.items()))
+    from safetensors import SafetensorError, safe_open
+
+    try:  # the header lists every tensor's byte range: a truncated or garbled file fails here
+        with safe_open(str(folder / WEIGHTS_FILE), "pt") as weights:
+            weights.keys()
+    except (SafetensorError, OSError) as e:
+        raise UserError(f"{folder / WEIGHTS_FILE} is corrupt or truncated ({e}); re-export the checkpoint") from e
     try:
         model = RGBDNTransformer.from_pretrained(folder)
-    except (RuntimeError, ValueError, OSError) as e:
+    except (RuntimeError, ValueError, OSError, TypeError) as e:
         raise UserError(f"{folder}: weights do not match the config of preset {preset.name!r} "
                         f"({str(e).splitlines()[0]} ...); re-export the checkpoint") from e
     return model.eval()

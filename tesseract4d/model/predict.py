@@ -43,6 +43,7 @@ def load_pipeline(checkpoint: str | os.PathLike, device: str = "cpu", precision:
     cfg = read_inference_config(ckpt)
     try:
         preset = preset_from_dict(cfg["preset"])
+        space = ModelSpace(**cfg["model_space"])
     except (KeyError, TypeError) as e:
         raise UserError(f"{ckpt / INFERENCE_CONFIG_FILE} is corrupt ({type(e).__name__}: {e}); re-export the checkpoint") from e
     if cfg["preset"].get("name") not in PRESETS:
@@ -57,7 +58,6 @@ def load_pipeline(checkpoint: str | os.PathLike, device: str = "cpu", precision:
     if transformer.backbone.config.text_embed_dim != text_encoder.dim:
         raise UserError(f"{ckpt}: the transformer expects {transformer.backbone.config.text_embed_dim}-d text "
                         f"embeddings but the {preset.text_encoder} encoder gives {text_encoder.dim}")
-    space = ModelSpace(**cfg["model_space"])
     pipe = RGBDNPipeline(transformer, load_scheduler(ckpt, cfg), codec, text_encoder, preset, space,
                          camera_name=cfg.get("camera_name"), bf16=chosen.bf16, config=cfg)
     return pipe.to(device)
@@ -95,6 +95,15 @@ def predict_episode(
                                 num_steps=num_steps, text_guidance=text_guidance, image_guidance=image_guidance,
                                 camera=camera, progress=progress)
     return episodes[0]
+
+
+def instruction_budget_note(pipeline: RGBDNPipeline, instruction: str) -> str | None:
+    """A warning when ``instruction`` is longer than the text encoder's token budget, else None."""
+    n, budget = pipeline.text_encoder.count_tokens(instruction), pipeline.text_encoder.max_tokens
+    if n <= budget:
+        return None
+    return (f"warning: the instruction has {n} tokens; the text encoder keeps the first {budget} "
+            f"({len(instruction)} characters given); shorten it to say what matters first")
 
 
 def predict_episodes(

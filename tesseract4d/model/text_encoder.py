@@ -65,6 +65,10 @@ class TextEncoder:
         self.dim = int(self.model.config.hidden_size if hasattr(self.model.config, "hidden_size") else self.model.config.d_model)
         self._cache: dict[str, torch.Tensor] = {}
 
+    def count_tokens(self, instruction: str) -> int:
+        """Tokens of ``instruction`` before truncation to ``max_tokens`` (special tokens included)."""
+        return len(self.tokenizer(instruction, truncation=False)["input_ids"])
+
     @torch.no_grad()
     def encode(self, instructions: list[str]) -> torch.Tensor:
         """(len(instructions), L, d) float32 on the CPU, padding zeroed; results are cached."""

@@ -39,7 +39,10 @@ from tesseract4d.errors import UserError
 from tesseract4d.precision import announce, resolve_precision
 from tesseract4d.psnr import rgb_psnr
 from tesseract4d.model.model_space import MODALITIES, ModelSpace
-from tesseract4d.model.checkpoint import INFERENCE_CONFIG_FILE, TRANSFORMER_DIR, WEIGHTS_FILE, format_header, write_inference_files
+from tesseract4d.model.checkpoint import (
+    INFERENCE_CONFIG_FILE, MODEL_CONFIG_FILE, SCHEDULER_CONFIG_FILE, SCHEDULER_DIR, TRANSFORMER_DIR, WEIGHTS_FILE,
+    format_header, write_inference_files,
+)
 from tesseract4d.model.presets import ModelPreset, get_preset, preset_from_dict
 
 CHECKPOINT_PREFIX = "checkpoint-"
@@ -88,6 +91,35 @@ class TrainConfig:
 
     def to_dict(self) -> dict:
         return {k: (str(v) if isinstance(v, Path) else v) for k, v in dataclasses.asdict(self).items()}
+
+    def validate(self) -> None:
+        """One-line UserErrors for numeric options that would train into NaN or not train at all
+        (call on the resolved config, before anything is written)."""
+        def finite(name, value, low, low_ok=False):
+            ok = value is not None and math.isfinite(value) and (value >= low if low_ok else value > low)
+            if not ok:
+                raise UserError(f"--{name.replace('_', '-')} must be a finite number {'>=' if low_ok else '>'} {low}, got {value}")
+
+        if self.max_steps < 1:
+            raise UserError(f"--max-steps must be at least 1, got {self.max_steps}")
+        if self.batch_size < 1:
+            raise UserError(f"--batch-size must be at least 1, got {self.batch_size}")
+        finite("lr", self.lr, 0)
+        if self.warmup_steps < 0:
+            raise UserError(f"--warmup-steps must be >= 0, got {self.warmup_steps}")
+        if self.max_minutes is not None:
+            finite("max_minutes", self.max_minutes, 0, low_ok=True)
+        for name in ("val_every", "ckpt_every"):
+            if getattr(self, name) < 0:
+                raise UserError(f"--{name.replace('_', '-')} must be >= 0 (0 = never), got {getattr(self, name)}")
+        unknown = set(self.loss_weights) - set(MODALITIES)
+        if unknown:
+            raise UserError(f"unknown loss weight(s) {sorted(unknown)}; modalities are {', '.join(MODALITIES)}")
+        for m, w in self.loss_weights.items():
+            if not (math.isfinite(w) and w >= 0):
+                raise UserError(f"--loss-weights {m}={w}: each weight must be a finite number >= 0")
+        if sum(self.loss_weights.get(m, 0.0) for m in MODALITIES) <= 0:
+            raise UserError("--loss-weights must not all be zero")
 
 
 def lr_at(step: int, cfg: TrainConfig) -> float:
@@ -193,25 +225,24 @@ def inference_config(preset: ModelPreset, model_space: ModelSpace, text_encoder,
     }
 
 
-def export_checkpoint(run: str | os.PathLike, to: str | os.PathLike | None = None) -> Path:
+def export_checkpoint(run: str | os.PathLike, to: str | os.PathLike | None = None, overwrite: bool = False) -> Path:
     """Write the latest checkpoint's EMA weights of RUN as a self-contained inference folder
-    (``TO/transformer/`` + ``TO/tesseract4d_config.json``); default ``RUN/final``."""
+    (``TO/transformer/`` + ``TO/tesseract4d_config.json``); default ``RUN/final``. Only the
+    export's own files in TO are ever replaced (tesseract4d.outputs)."""
+    from tesseract4d.outputs import OutputDir
+
     run = Path(run)
     ckpts = list_checkpoints(run)
     if not ckpts:
         raise UserError(f"{run} holds no checkpoint ({CHECKPOINT_PREFIX}XXXXXX/); train first with `tesseract4d train --out {run}`")
     ckpt = ckpts[-1]
     to = Path(to) if to is not None else run / FINAL_DIR
-    if to.exists() and not (to / INFERENCE_CONFIG_FILE).is_file() and any(to.iterdir()):
-        raise UserError(f"{to} exists and is not a tesseract4d checkpoint; choose a new folder")
-    tmp = to.with_name(f".{to.name}.tmp")
-    shutil.rmtree(tmp, ignore_errors=True)
-    tmp.mkdir(parents=True)
-    shutil.copytree(ckpt / EMA_DIR, tmp / TRANSFORMER_DIR)
-    state = json.loads((ckpt / STATE_FILE).read_text())
-    write_inference_files(tmp, {**state["inference_config"], **format_header()})
-    shutil.rmtree(to, ignore_errors=True)
-    os.replace(tmp, to)
+    legacy = {INFERENCE_CONFIG_FILE, f"{TRANSFORMER_DIR}/{MODEL_CONFIG_FILE}", f"{TRANSFORMER_DIR}/{WEIGHTS_FILE}",
+              f"{SCHEDULER_DIR}/{SCHEDULER_CONFIG_FILE}"}
+    with OutputDir(to, "export", inputs=[ckpt], overwrite=overwrite, flag="--to", legacy_files=legacy) as tmp:
+        shutil.copytree(ckpt / EMA_DIR, tmp / TRANSFORMER_DIR)
+        state = json.loads((ckpt / STATE_FILE).read_text())
+        write_inference_files(tmp, {**state["inference_config"], **format_header()})
     return to
 
 
@@ -222,21 +253,36 @@ class Trainer:
     """Owns model, EMA, optimiser, data and the loss; ``train()`` runs until max_steps/max_minutes."""
 
     def __init__(self, config: TrainConfig):
+        self.preset = get_preset(config.preset)
+        self.cfg = config.resolved(self.preset)
+        cfg = self.cfg
+        if cfg.data is None:
+            raise UserError("pass --data DIR (a dataset folder written by `tesseract4d datagen`)")
+        cfg.validate()
+        self.out = Path(cfg.out)
+        existing = list_checkpoints(self.out)
+        if existing and not cfg.resume:
+            raise UserError(f"{self.out} already holds checkpoints; pass --resume to continue, or choose a new --out")
+        if cfg.resume and not existing:
+            raise UserError(f"--resume: {self.out} holds no checkpoint ({CHECKPOINT_PREFIX}XXXXXX/) to resume from; "
+                            f"drop --resume to start a new run")
+        from tesseract4d.outputs import claim_folder, release_new_folder
+
+        fresh = claim_folder(self.out, "train", inputs=[cfg.data, cfg.pretrained], legacy_marker="train_config.json")
+        try:
+            self._setup(cfg, existing)
+        except BaseException:
+            if fresh is not None:  # a mistake found while setting up leaves nothing behind
+                release_new_folder(self.out, ["train_config.json"], remove_folder=fresh)
+            raise
+
+    def _setup(self, cfg: "TrainConfig", existing: list[Path]) -> None:
         from accelerate import Accelerator
         from accelerate.utils import ProjectConfiguration
 
         from tesseract4d.model.clips import ClipDataset
         from tesseract4d.model.build import build_codec, build_text_encoder, build_transformer
 
-        self.preset = get_preset(config.preset)
-        self.cfg = config.resolved(self.preset)
-        cfg = self.cfg
-        _check_config(cfg)
-        self.out = Path(cfg.out)
-        existing = list_checkpoints(self.out)
-        if existing and not cfg.resume:
-            raise UserError(f"{self.out} already holds checkpoints; pass --resume to continue, or choose a new --out")
-        self.out.mkdir(parents=True, exist_ok=True)
         self.precision = resolve_precision(cfg.precision, "cuda" if torch.cuda.is_available() else "cpu")
         announce(self.precision)
         mixed_precision = self.precision.accelerate_mixed_precision
@@ -267,7 +313,7 @@ class Trainer:
         self.last_loss: float | None = None
         self._stop_requested = False
         if cfg.resume and existing:
-            self._load_checkpoint(existing[-1])
+            self._resume(existing)
         if self.accelerator.is_main_process:
             (self.out / "train_config.json").write_text(json.dumps(self.cfg.to_dict(), indent=2))
 
@@ -313,6 +359,12 @@ class Trainer:
         loss, logs = self.compute_loss(self.step)
         self.accelerator.backward(loss)
         grad_norm = self.accelerator.clip_grad_norm_(self.model.parameters(), self.cfg.grad_clip)
+        if not (math.isfinite(float(loss.detach())) and math.isfinite(float(grad_norm))):
+            # Stop before the optimiser step, so the weights and the checkpoints on disk stay good.
+            last = list_checkpoints(self.out)
+            raise UserError(f"training diverged at step {self.step + 1}: loss {float(loss.detach())}, gradient norm "
+                            f"{float(grad_norm)}; nothing was saved from this step (last good checkpoint: "
+                            f"{last[-1] if last else 'none'}); lower --lr or check the data and --loss-weights")
         self.optimizer.step()
         self.optimizer.zero_grad(set_to_none=True)
         self.ema.update(self.accelerator.unwrap_model(self.model), self.step)
@@ -351,6 +403,22 @@ class Trainer:
         for old in list_checkpoints(self.out)[:-max(1, self.cfg.keep_checkpoints)]:
             shutil.rmtree(old, ignore_errors=True)
         return final
+
+    def _resume(self, checkpoints: list[Path]) -> None:
+        """Load the newest intact checkpoint, saying which ones were skipped as damaged."""
+        from safetensors import SafetensorError
+
+        for ckpt in reversed(checkpoints):
+            try:
+                self._load_checkpoint(ckpt)
+            except (SafetensorError, OSError, ValueError, KeyError) as e:
+                print(f"warning: checkpoint {ckpt} is damaged ({type(e).__name__}: {str(e).splitlines()[0][:120]}); "
+                      f"trying an older one", flush=True)
+                continue
+            if ckpt != checkpoints[-1]:
+                print(f"resuming from {ckpt.name} (step {self.step}), the newest intact checkpoint", flush=True)
+            return
+        raise UserError(f"every checkpoint in {self.out} is damaged; start a new run with another --out")
 
     def _load_checkpoint(self, ckpt: Path) -> None:
         from safetensors.torch import load_file
@@ -447,17 +515,6 @@ class Trainer:
 
     def _request_stop(self, signum, frame) -> None:
         self._stop_requested = True
-
-
-def _check_config(cfg: TrainConfig) -> None:
-    """UserError, with the fix, for a config that cannot train."""
-    if cfg.data is None:
-        raise UserError("pass --data DIR (a dataset folder written by `tesseract4d datagen`)")
-    unknown = set(cfg.loss_weights) - set(MODALITIES)
-    if unknown:
-        raise UserError(f"unknown loss weight(s) {sorted(unknown)}; modalities are {', '.join(MODALITIES)}")
-    if sum(cfg.loss_weights.get(m, 0.0) for m in MODALITIES) <= 0:
-        raise UserError("the loss weights must not all be zero")
 
 
 def _allow_new_accelerator(mixed_precision: str) -> None:

@@ -1,0 +1,247 @@
+"""The output-folder policy shared by every command that writes (datagen, train, export, predict,
+reconstruct, evaluate, view --export, demo).
+
+Rules:
+- A command never deletes or overwrites a file it did not write. What it wrote is listed in a
+  marker file (``MARKER``) inside its output folder: the command's name and its files.
+- An existing, non-empty output folder is reused only when it carries the same command's
+  marker; otherwise the command refuses, naming the folder and ``--overwrite``. Even with
+  ``--overwrite`` only the files listed in the old marker are replaced; foreign files stay, and
+  a new file that would land on a foreign one is refused.
+- Results are written into a temporary sibling (``.NAME.tmp-XXXX``) and renamed into place, so
+  a crash leaves the old result or the new one, never half of each; on failure only the
+  staging folder is removed.
+- An output that is, contains or lies inside one of the command's inputs is refused.
+- Names taken from data (task ids, episode ids, camera names) pass ``safe_name`` before they
+  become path components.
+
+Usage::
+
+    with OutputDir(args.out, "reconstruct", inputs=[episode_path], overwrite=args.overwrite) as stage:
+        write files under stage            # a Path; moved to args.out when the block succeeds
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import shutil
+import tempfile
+import time
+from pathlib import Path
+from typing import Iterable
+
+from tesseract4d.errors import UserError
+
+MARKER = ".tesseract4d-output.json"
+MARKER_VERSION = 1
+
+# Gymnasium/ManiSkill ids ("PickCube-v1") and our own names ("base_camera", "sample_00"): letters,
+# digits, "_", "-", "."; no path separators, no leading dot, so no "..".
+_SAFE_NAME = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_.\-]{0,127}$")
+
+
+def safe_name(value: object, field: str) -> str:
+    """``value`` if it can be used as one path component, else a UserError naming ``field``."""
+    if not isinstance(value, str) or not _SAFE_NAME.match(value):
+        raise UserError(f"{field} {value!r} is not a valid name (letters, digits, '_', '-', '.'; no path "
+                        f"separators, not starting with '.'); the file is damaged or was crafted: regenerate it")
+    return value
+
+
+def _resolve(path: str | os.PathLike) -> Path:
+    return Path(os.path.abspath(os.path.expanduser(os.fspath(path)))).resolve()
+
+
+def check_not_input(out: str | os.PathLike, inputs: Iterable[str | os.PathLike | None], flag: str = "--out") -> None:
+    """Refuse an output that is, contains or lies inside one of the inputs."""
+    o = _resolve(out)
+    for inp in inputs:
+        if inp is None:
+            continue
+        i = _resolve(inp)
+        if o == i or o.is_relative_to(i) or i.is_relative_to(o):
+            how = "is" if o == i else ("lies inside" if o.is_relative_to(i) else "contains")
+            raise UserError(f"{flag} {out} {how} the input {inp}; write the output to a separate folder")
+
+
+def read_marker(folder: Path) -> dict | None:
+    try:
+        d = json.loads((folder / MARKER).read_text())
+    except (OSError, ValueError):
+        return None
+    return d if isinstance(d, dict) and isinstance(d.get("files"), list) else None
+
+
+def _write_marker(folder: Path, command: str, files: list[str]) -> None:
+    tmp = folder / f".{MARKER}.{os.getpid()}.tmp"
+    tmp.write_text(json.dumps({"command": command, "version": MARKER_VERSION, "written": time.time(),
+                               "files": sorted(files)}, indent=2))
+    os.replace(tmp, folder / MARKER)
+
+
+def _files_under(folder: Path) -> list[str]:
+    return sorted(str(p.relative_to(folder)) for p in folder.rglob("*") if p.is_file() or p.is_symlink())
+
+
+class OutputDir:
+    """Stage a command's output folder and move it into place on success (see the module doc).
+
+    ``inputs``: paths the command reads (refused as outputs). ``overwrite``: allow writing into a
+    folder that is not this command's (only this command's files are replaced).
+    """
+
+    def __init__(self, path: str | os.PathLike, command: str, *, inputs: Iterable = (), overwrite: bool = False,
+                 flag: str = "--out", legacy_files: Iterable[str] = ()):
+        self.path = Path(path)
+        self.command = command
+        self.flag = flag
+        self.overwrite = overwrite
+        self.stage: Path | None = None
+        self.legacy_files = set(legacy_files)  # the layout written before markers existed
+        check_not_input(self.path, inputs, flag)
+        self.previous = self._check_target()
+
+    def _check_target(self) -> set[str]:
+        """Files of an earlier run of this command that the new result replaces."""
+        p = self.path
+        if p.exists() and not p.is_dir():
+            raise UserError(f"{self.flag} {p} is a file, not a folder; pass a folder path")
+        if not p.exists() or not any(p.iterdir()):
+            return set()
+        marker = read_marker(p)
+        if marker is not None and marker.get("command") == self.command:
+            return set(marker["files"])
+        if marker is None and self.legacy_files:
+            present = set(_files_under(p))
+            if present and present <= self.legacy_files:
+                return present
+        if not self.overwrite:
+            whose = f"the output of `tesseract4d {marker['command']}`" if marker else "files this command did not write"
+            raise UserError(f"{self.flag} {p} already holds {whose}; choose a new or empty folder, or pass --overwrite "
+                            f"to write beside them (files this command did not write are never touched)")
+        return set()
+
+    def __enter__(self) -> Path:
+        parent = _resolve(self.path).parent
+        parent.mkdir(parents=True, exist_ok=True)
+        self.stage = Path(tempfile.mkdtemp(prefix=f".{self.path.name}.tmp-", dir=parent))
+        return self.stage
+
+    def __exit__(self, exc_type, exc, tb) -> bool:
+        try:
+            if exc_type is None:
+                self._commit()
+        finally:
+            if self.stage is not None and self.stage.exists():
+                shutil.rmtree(self.stage, ignore_errors=True)  # only our own staging folder
+        return False
+
+    def _commit(self) -> None:
+        stage, target = self.stage, _resolve(self.path)
+        new_files = _files_under(stage)
+        if not target.exists() or not any(target.iterdir()):
+            _write_marker(stage, self.command, new_files)
+            if target.exists():
+                target.rmdir()  # empty: nothing of anyone's is lost
+            os.replace(stage, target)
+            return
+        existing = set(_files_under(target)) - {MARKER}
+        foreign = existing - self.previous
+        clash = sorted(f for f in new_files if f in foreign)
+        if clash:
+            raise UserError(f"{self.flag} {self.path} holds {clash[0]}, which this command did not write and would "
+                            f"replace; move it away or choose another folder")
+        if not foreign:
+            # Everything there is ours: swap whole folders (old result or new one, never a mix).
+            _write_marker(stage, self.command, new_files)
+            old = Path(tempfile.mkdtemp(prefix=f".{target.name}.old-", dir=target.parent))
+            os.replace(target, old / "x")
+            os.replace(stage, target)
+            shutil.rmtree(old, ignore_errors=True)
+            return
+        # Foreign files beside ours: replace our files one by one, the marker last.
+        for f in sorted(self.previous - set(new_files)):
+            (target / f).unlink(missing_ok=True)
+        for f in new_files:
+            (target / f).parent.mkdir(parents=True, exist_ok=True)
+            os.replace(stage / f, target / f)
+        _write_marker(target, self.command, new_files)
+
+
+class OutputFile:
+    """A single-file output (``--json``, ``--export HTML``): refuse to replace a file this command
+    did not write (``is_ours(path)`` recognises its own format) unless ``overwrite``; write to a
+    temporary sibling and rename."""
+
+    def __init__(self, path: str | os.PathLike, *, inputs: Iterable = (), overwrite: bool = False,
+                 flag: str = "--out", is_ours=None):
+        self.path = Path(path)
+        check_not_input(self.path, inputs, flag)
+        if self.path.is_dir():
+            raise UserError(f"{flag} {path} is a folder; pass a file name such as {self.path / 'out'}")
+        if self.path.exists() and not overwrite and not (is_ours and is_ours(self.path)):
+            raise UserError(f"{flag} {path} exists and was not written by this command; choose another name or "
+                            f"pass --overwrite to replace it")
+        self.tmp: Path | None = None
+
+    def __enter__(self) -> Path:
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        fd, name = tempfile.mkstemp(prefix=f".{self.path.name}.tmp-", dir=self.path.parent)
+        os.close(fd)
+        self.tmp = Path(name)
+        return self.tmp
+
+    def __exit__(self, exc_type, exc, tb) -> bool:
+        if exc_type is None:
+            os.replace(self.tmp, self.path)
+        else:
+            self.tmp.unlink(missing_ok=True)
+        return False
+
+
+def claim_folder(path: str | os.PathLike, command: str, *, inputs: Iterable = (), legacy_marker: str | None = None,
+                 flag: str = "--out") -> bool | None:
+    """For commands that write in place and resume (datagen, a training run): refuse ``path`` if
+    it is a file, overlaps an input, or is a non-empty folder that is neither this command's (its
+    marker, or ``legacy_marker``, a file such a folder always holds) nor empty. A new or empty
+    folder gets the marker. Returns True when the folder was created now, False when it existed
+    empty, None when it already held this command's output (see ``release_new_folder``)."""
+    p = Path(path)
+    check_not_input(p, inputs, flag)
+    if p.exists() and not p.is_dir():
+        raise UserError(f"{flag} {p} is a file, not a folder; pass a folder path")
+    if p.exists() and any(p.iterdir()):
+        marker = read_marker(p)
+        ours = (marker is not None and marker.get("command") == command) or (
+            marker is None and legacy_marker is not None and (p / legacy_marker).exists())
+        if not ours:
+            whose = f"the output of `tesseract4d {marker['command']}`" if marker else "files this command did not write"
+            raise UserError(f"{flag} {p} already holds {whose}; choose a new or empty folder")
+        return None
+    created = not p.exists()
+    p.mkdir(parents=True, exist_ok=True)
+    _write_marker(p, command, [])
+    return created
+
+
+def release_new_folder(path: str | os.PathLike, own_files: Iterable[str] = (), remove_folder: bool = True) -> None:
+    """After a failed start of a command that claimed a new or empty ``path``: remove the marker,
+    the named files it wrote and every empty folder left (``path`` itself too if
+    ``remove_folder``), so a mistake leaves nothing behind. Files not named are kept."""
+    p = Path(path)
+    for name in [MARKER, *own_files]:
+        (p / name).unlink(missing_ok=True)
+    if not p.is_dir():
+        return
+    for d in sorted((q for q in p.rglob("*") if q.is_dir()), key=lambda q: len(q.parts), reverse=True):
+        try:
+            d.rmdir()
+        except OSError:
+            pass
+    if remove_folder:
+        try:
+            p.rmdir()
+        except OSError:
+            pass
