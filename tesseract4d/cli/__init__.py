@@ -14,6 +14,8 @@ import sys
 SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "datagen": ("tesseract4d.cli.datagen", "generate RGB-D-N episodes from ManiSkill motion planners"),
     "dataset": ("tesseract4d.cli.dataset", "inspect (info) or validate (check) a dataset folder"),
+    "train-autoencoder": ("tesseract4d.cli.train_autoencoder", "train the RGB-D-N autoencoder of the latent model"),
+    "encode-latents": ("tesseract4d.cli.encode_latents", "encode a dataset once into a latent cache for the latent model"),
     "train": ("tesseract4d.cli.train", "train the RGB-D-N video diffusion model"),
     "predict": ("tesseract4d.cli.predict", "predict the RGB-D-N future from a first frame and an instruction"),
     "reconstruct": ("tesseract4d.cli.reconstruct", "fuse an RGB-D-N video into a consistent 4D point cloud"),
