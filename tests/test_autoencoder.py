@@ -16,22 +16,7 @@ from tesseract4d.model.autoencoder import (
 )
 from tesseract4d.model.model_space import ModelSpace, channel_slices
 
-from model_fixtures import synthetic_episode
-
-SEGMENTS = {0: "background", 17: "ground", 18: "cube"}
-
-
-def write_segmented_dataset(root: Path, episodes: int = 3, frames: int = 8, size: int = 32) -> Path:
-    """The synthetic moving-square dataset with a segmentation: square = 'cube', plane = 'ground'."""
-    df.init_dataset(root, df.DatasetInfo(height=size, width=size, cameras=["close"]))
-    for seed in range(episodes):
-        ep = synthetic_episode(seed, frames, size, direction=1 if seed % 2 == 0 else -1)
-        cam = ep.cameras["close"]
-        cam.segmentation = np.where(np.isclose(cam.depth_m, 0.5), 18, 17).astype(np.int32)
-        cam.seg_id_to_name = dict(SEGMENTS)
-        df.write_episode(root, ep)
-    return root
-
+from model_fixtures import synthetic_episode, write_segmented_dataset
 
 def test_round_trip_shapes_metric_depth_and_unit_normals():
     torch.manual_seed(0)
@@ -116,7 +101,7 @@ def test_trainer_resume_is_exact_and_gate_is_stored(tmp_path):
 def test_wrong_resolution_is_a_user_error(tmp_path):
     from tesseract4d.model.autoencoder_trainer import AutoencoderTrainer
 
-    data = write_segmented_dataset(tmp_path / "data", episodes=1, size=16)
+    data = write_segmented_dataset(tmp_path / "data", episodes=1, size=64)
     with pytest.raises(UserError, match="--resolution 32"):
         AutoencoderTrainer(_train_cfg(data, tmp_path / "run"))
 
@@ -174,7 +159,7 @@ def test_latent_cache_reused_when_valid_rebuilt_when_autoencoder_changes(tmp_pat
 def test_latent_cache_rejects_other_resolution(tmp_path):
     from tesseract4d.model.latent_cache import ensure_latent_cache
 
-    data = write_segmented_dataset(tmp_path / "data", episodes=1, size=16)
+    data = write_segmented_dataset(tmp_path / "data", episodes=1, size=64)
     save_autoencoder(RGBDNAutoencoder(get_autoencoder_preset("ae-test")), tmp_path / "ae")
     with pytest.raises(UserError, match="--resolution 32"):
         ensure_latent_cache(data, tmp_path / "ae")

@@ -56,6 +56,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     import functools
 
+    import numpy as np
+
     from tesseract4d.evaluation.autoencoder_fidelity import fidelity_metrics, format_fidelity
     from tesseract4d.model.autoencoder_trainer import AutoencoderTrainer, load_heldout_frames
 
@@ -72,5 +74,14 @@ def run(args: argparse.Namespace) -> int:
         trainer.fidelity_fn = functools.partial(lambda model, frames: fidelity_metrics(model, frames), frames=heldout)
     fidelity = trainer.train()
     print(format_fidelity(fidelity))
+    if cfg.heldout is not None:
+        import imageio.v3 as iio
+
+        from tesseract4d.evaluation.autoencoder_fidelity import reconstruction_sheet
+
+        picks = [int(i) for i in np.linspace(0, len(heldout) - 1, 4).round()]
+        sheet = reconstruction_sheet(trainer.ema.model, heldout, picks)
+        iio.imwrite(cfg.out / "reconstructions.png", sheet)
+        print(f"held-out frames (truth above, reconstruction below; RGB | depth | normals): {cfg.out / 'reconstructions.png'}")
     print(f"autoencoder: {cfg.out / 'autoencoder'}  (resume with the same command plus --resume)")
     return 0

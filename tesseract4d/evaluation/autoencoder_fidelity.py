@@ -69,3 +69,21 @@ def format_fidelity(d: dict) -> str:
         lines.append(f"  {label:<20} {d[key]:>11.4g} {d['object_' + key]:>13.4g}   {aim}")
     lines.append(f"  meets the aims: {'yes' if d['meets_aims'] else 'no'}")
     return "\n".join(lines)
+
+
+def reconstruction_sheet(model: RGBDNAutoencoder, frames: FrameSet, indices: list[int]) -> np.ndarray:
+    """An image (uint8 (rows * 2 * H, 3 * W, 3)): per frame, the truth (upper row) and its reconstruction
+    (lower row) as RGB | depth | normals, coloured like every preview."""
+    from tesseract4d.previews import depth_to_color, normal_to_color
+
+    ms = model.model_space
+    x = frames.frames[indices].float()  # (n, 7, H, W)
+    gt, pr = ms.decode(x), ms.decode(reconstruct_frames(model, x))
+    valid = gt[1][gt[1] > 0]
+    near, far = np.percentile(valid, [2, 90]) if valid.size else (ms.near_m, ms.far_m)  # the truth's range, for both
+    rows = []
+    for i in range(len(indices)):
+        for rgb, depth, normal in (gt, pr):
+            rows.append(np.concatenate([rgb[i], depth_to_color(depth[i:i + 1], near, far)[0], normal_to_color(normal[i])],
+                                       axis=1))
+    return np.concatenate(rows, axis=0)

@@ -360,7 +360,7 @@ class AutoencoderTrainer:
         self.optimizer.step()
         self.ema.update(self.model, self.step)
         self.step += 1
-        return {"loss": float(loss), "lr": lr, "grad_norm": float(grad_norm), **parts}
+        return {"loss": float(loss.detach()), "lr": lr, "grad_norm": float(grad_norm), **parts}
 
     def train(self) -> dict:
         from torch.utils.tensorboard import SummaryWriter
@@ -395,7 +395,7 @@ class AutoencoderTrainer:
                 for k, v in logs.items():
                     writer.add_scalar(f"train/{k}", v, self.step)
                 bar.update(1)
-                bar.set_postfix(loss=f"{logs['loss']:.4f}", depth=f"{logs['depth']:.4f}")
+                bar.set_postfix(loss=f"{logs['loss']:.4f}", depth=f"{logs['depth']:.4f}", refresh=False)
                 out_of_time = cfg.max_minutes is not None and time.time() - start > cfg.max_minutes * 60
                 if time.time() - last_ckpt > cfg.ckpt_minutes * 60 or out_of_time:
                     fidelity = self._checkpoint(writer, bar)

@@ -55,7 +55,12 @@ def load_pipeline(checkpoint: str | os.PathLike, device: str = "cpu", bf16: bool
         raise UserError(f"{ckpt} uses preset {cfg['preset'].get('name')!r}, unknown to this tesseract4d "
                         f"(known: {', '.join(PRESETS)}); update tesseract4d or use a matching checkpoint")
     pretrained = cfg.get("pretrained_dir")
-    codec = build_codec(preset, pretrained)
+    autoencoder = None
+    if "autoencoder" in cfg:
+        from tesseract4d.model.latent_checkpoint import checkpoint_autoencoder
+
+        autoencoder = checkpoint_autoencoder(ckpt, cfg["autoencoder"])
+    codec = build_codec(preset, pretrained, autoencoder=autoencoder)
     transformer = _load_transformer(ckpt / TRANSFORMER_DIR, preset, codec)
     text_encoder = build_text_encoder(preset, pretrained, device=device)
     if transformer.backbone.config.text_embed_dim != text_encoder.dim:
