@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 import torch
 
+from tesseract4d import dataset_format as df
 from tesseract4d.errors import UserError
 from tesseract4d.model.autoencoder import AutoencoderConfig, RGBDNAutoencoder, get_autoencoder_preset, save_autoencoder
 from tesseract4d.model.presets import AUTOENCODER, CONDITION_REPEAT, PRESETS, ModelPreset, get_preset
@@ -95,15 +96,18 @@ def test_micro_latent_model_overfits_one_clip(tmp_path):
     trainer = Trainer(_config(data, tmp_path / "run", ae, max_steps=300, batch_size=4))
     losses = [trainer.train_step()["loss"] for _ in range(300)]
     assert sum(losses[-10:]) / 10 < 0.2 * losses[0]
-    latents, text = trainer.data.clip(0)  # (T, C, h, w)
+    latents, text = trainer.data.clip(0)  # (T, C, h, w), encoded from the dataset's pixels
     target = trainer.codec.decode(latents[None])  # (1, T, 7, H, W): what the autoencoder can show
+    ep = df.read_episode(df.list_episode_files(data)[0])
+    cam = ep.cameras["close"]
+    first = trainer.model_space.encode(cam.rgb[:1], cam.depth_m[:1], cam.normal_cam[:1])  # (1, 7, H, W) pixels
     pipe = RGBDNPipeline(trainer.ema.model, make_scheduler(), trainer.codec, trainer.text_encoder, trainer.preset,
                          trainer.model_space)
-    pred = pipe(target[:, 0], [text], num_inference_steps=4, generator=torch.Generator().manual_seed(0))
+    pred = pipe(first, [text], num_inference_steps=4, generator=torch.Generator().manual_seed(0))
     static = target[:, :1].expand_as(target)
     psnr, psnr_static = _psnr(pred[:, 1:], target[:, 1:]), _psnr(static[:, 1:], target[:, 1:])
     print(f"micro latent model: PSNR {psnr:.1f} dB, static world {psnr_static:.1f} dB")
-    assert psnr > 25.0 and psnr > psnr_static + 3.0, (psnr, psnr_static)
+    assert psnr > 20.0 and psnr > psnr_static + 4.0, (psnr, psnr_static)  # measured: 22.0 vs 16.6
 
 
 def test_checkpoint_save_load_identical_samples_and_autoencoder_checks(tmp_path):
