@@ -26,7 +26,8 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
 
 
 def _top_parser() -> argparse.ArgumentParser:
-    lines = "\n".join(f"  {name:<12} {help_}" for name, (_, help_) in SUBCOMMANDS.items())
+    width = max(len(name) for name in SUBCOMMANDS)
+    lines = "\n".join(f"  {name:<{width}}  {help_}" for name, (_, help_) in SUBCOMMANDS.items())
     return argparse.ArgumentParser(
         prog="tesseract4d",
         description="tesseract4d: a 4D embodied world model (ManiSkill data -> RGB-D-N diffusion -> 4D point clouds -> browser).",

@@ -260,6 +260,9 @@ class Trainer:
             raise UserError(f"unknown loss weight(s) {sorted(unknown)}; modalities are {', '.join(MODALITIES)}")
         if sum(cfg.loss_weights.get(m, 0.0) for m in MODALITIES) <= 0:
             raise UserError("the loss weights must not all be zero")
+        from tesseract4d.model.recipe import check_recipe
+
+        check_recipe(cfg, self.preset)
         self.out = Path(cfg.out)
         existing = list_checkpoints(self.out)
         if existing and not cfg.resume:
@@ -274,9 +277,8 @@ class Trainer:
         )
         self.device = self.accelerator.device
         self.model_space = ModelSpace(self.preset.near_m, self.preset.far_m)
-        from tesseract4d.model.recipe import check_recipe, load_training_data
+        from tesseract4d.model.recipe import load_training_data
 
-        check_recipe(cfg, self.preset)
         self.codec = build_codec(self.preset, cfg.pretrained, autoencoder=cfg.autoencoder).to(self.device)
         self.data = load_training_data(cfg, self.preset, self.model_space, self.codec,
                                        progress=cfg.progress and self.accelerator.is_main_process)
