@@ -148,3 +148,18 @@ def write_synthetic_dataset(root: Path, episodes: int = 4, frames: int = 8, size
     for seed in range(episodes):
         df.write_episode(root, synthetic_episode(seed, frames, size, direction=1 if seed % 2 == 0 else -1))
     return root
+
+
+SEGMENTS = {0: "background", 17: "ground", 18: "cube"}
+
+
+def write_segmented_dataset(root: Path, episodes: int = 3, frames: int = 8, size: int = 32) -> Path:
+    """The synthetic moving-square dataset with a segmentation: square = 'cube', plane = 'ground'."""
+    df.init_dataset(root, df.DatasetInfo(height=size, width=size, cameras=["close"]))
+    for seed in range(episodes):
+        ep = synthetic_episode(seed, frames, size, direction=1 if seed % 2 == 0 else -1)
+        cam = ep.cameras["close"]
+        cam.segmentation = np.where(np.isclose(cam.depth_m, 0.5), 18, 17).astype(np.int32)
+        cam.seg_id_to_name = dict(SEGMENTS)
+        df.write_episode(root, ep)
+    return root

@@ -14,6 +14,8 @@ import sys
 SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "datagen": ("tesseract4d.cli.datagen", "generate RGB-D-N episodes from ManiSkill motion planners"),
     "dataset": ("tesseract4d.cli.dataset", "inspect (info) or validate (check) a dataset folder"),
+    "train-autoencoder": ("tesseract4d.cli.train_autoencoder", "train the RGB-D-N autoencoder of the latent model"),
+    "encode-latents": ("tesseract4d.cli.encode_latents", "encode a dataset once into a latent cache for the latent model"),
     "train": ("tesseract4d.cli.train", "train the RGB-D-N video diffusion model"),
     "predict": ("tesseract4d.cli.predict", "predict the RGB-D-N future from a first frame and an instruction"),
     "reconstruct": ("tesseract4d.cli.reconstruct", "fuse an RGB-D-N video into a consistent 4D point cloud"),
@@ -24,7 +26,8 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
 
 
 def _top_parser() -> argparse.ArgumentParser:
-    lines = "\n".join(f"  {name:<12} {help_}" for name, (_, help_) in SUBCOMMANDS.items())
+    width = max(len(name) for name in SUBCOMMANDS)
+    lines = "\n".join(f"  {name:<{width}}  {help_}" for name, (_, help_) in SUBCOMMANDS.items())
     return argparse.ArgumentParser(
         prog="tesseract4d",
         description="tesseract4d: a 4D embodied world model (ManiSkill data -> RGB-D-N diffusion -> 4D point clouds -> browser).",

@@ -1,5 +1,6 @@
 """Train the RGB-D-N video diffusion model on a dataset folder, or export a run's EMA weights.
 
+  tesseract4d train --data data/ae128 --autoencoder runs/ae/autoencoder --out runs/latent   # latent-128 (default)
   tesseract4d train --preset tiny --data data/train --out runs/tiny --max-minutes 60
   tesseract4d train --out runs/tiny --resume --data data/train      # continue exactly where it stopped
   tesseract4d train --export runs/tiny --to checkpoints/tiny        # inference folder (EMA weights)
@@ -25,6 +26,18 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--data", type=Path, help="dataset folder written by `tesseract4d datagen`")
     parser.add_argument("--out", type=Path, help="run folder (checkpoints, logs, validation videos, final/)")
     parser.add_argument("--pretrained", type=Path, help="local CogVideoX-5B-I2V folder (cogvideox-5b preset)")
+    parser.add_argument("--autoencoder", type=Path,
+                        help="RGB-D-N autoencoder folder for latent presets (RUN/autoencoder of `tesseract4d train-autoencoder`); "
+                             "the dataset is encoded once into DATA/latent_cache/")
+    parser.add_argument("--condition-noise", type=float, default=d.condition_noise,
+                        help="max std of noise on the conditioning first frame in training (default %(default)s)")
+    parser.add_argument("--moving-weight", type=float, default=d.moving_weight,
+                        help="loss weight of moving cells (default %(default)s)")
+    parser.add_argument("--object-weight", type=float, default=d.object_weight,
+                        help="loss weight of robot/object cells, latent presets (default %(default)s)")
+    parser.add_argument("--prediction", choices=("x0", "velocity"), default=d.prediction,
+                        help="network target: clean clip (x0) or velocity (default %(default)s)")
+    parser.add_argument("--text-dropout", type=float, help="share of steps without text, for guidance (default: the preset's)")
     parser.add_argument("--max-steps", type=int, default=d.max_steps,
                         help="training steps; the cosine learning-rate decay ends here (default %(default)s)")
     parser.add_argument("--max-minutes", type=float, help="stop with a checkpoint after this many minutes of this invocation")
@@ -66,7 +79,9 @@ def run(args: argparse.Namespace) -> int:
         data=args.data, out=args.out, preset=args.preset, pretrained=args.pretrained, max_steps=args.max_steps,
         max_minutes=args.max_minutes, batch_size=args.batch_size, lr=args.lr, warmup_steps=args.warmup_steps,
         precision=args.precision, resume=args.resume, val_every=args.val_every, ckpt_every=args.ckpt_every, seed=args.seed,
-        camera=args.camera, progress=not args.no_progress, loss_weights=weights,
+        camera=args.camera, progress=not args.no_progress, loss_weights=weights, autoencoder=args.autoencoder,
+        condition_noise=args.condition_noise, moving_weight=args.moving_weight, object_weight=args.object_weight,
+        prediction=args.prediction, text_dropout=args.text_dropout,
     )
     final = Trainer(cfg).train()
     print(f"inference checkpoint: {final}")

@@ -11,7 +11,7 @@ import os
 from pathlib import Path
 
 from tesseract4d.errors import UserError
-from tesseract4d.model.presets import LATENT, PIXEL, ModelPreset
+from tesseract4d.model.presets import AUTOENCODER, LATENT, PIXEL, ModelPreset
 
 # Keys of a plain CogVideoX transformer -> keys inside RGBDNTransformer.
 _KEY_MAP = (("patch_embed.proj.", "backbone.patch_embed.proj.projs.rgb."), ("proj_out.", "backbone.proj_out.heads.rgb."))
@@ -42,11 +42,19 @@ def build_text_encoder(preset: ModelPreset, pretrained_dir=None, device="cpu"):
     return _TEXT_ENCODERS[key]
 
 
-def build_codec(preset: ModelPreset, pretrained_dir=None):
-    from tesseract4d.model.codec import PixelCodec, VaeCodec
+def build_codec(preset: ModelPreset, pretrained_dir=None, autoencoder=None):
+    """The preset's codec; latent presets of the project's autoencoder need its folder (``autoencoder``)."""
+    from tesseract4d.model.codec import AutoencoderCodec, PixelCodec, VaeCodec
 
     if preset.space == PIXEL:
         return PixelCodec()
+    if preset.space == AUTOENCODER:
+        from tesseract4d.model.autoencoder import autoencoder_hash, load_autoencoder
+
+        if autoencoder is None:
+            raise UserError(f"preset {preset.name!r} needs its RGB-D-N autoencoder: pass --autoencoder DIR "
+                            f"(RUN/autoencoder of `tesseract4d train-autoencoder`)")
+        return AutoencoderCodec(load_autoencoder(autoencoder), autoencoder_hash(autoencoder))
     from diffusers import AutoencoderKLCogVideoX
 
     return VaeCodec(AutoencoderKLCogVideoX.from_pretrained(_require_pretrained(preset, pretrained_dir, "vae")))
@@ -57,7 +65,7 @@ def build_transformer(preset: ModelPreset, codec, pretrained_dir=None):
     backbone with new zero-initialised depth/normal projections and heads copied from RGB (latent)."""
     from tesseract4d.model.rgbdn_transformer import RGBDNTransformer
 
-    if preset.space == PIXEL:
+    if preset.space in (PIXEL, AUTOENCODER):
         model = RGBDNTransformer(dict(preset.backbone), dict(codec.modality_channels))
         model.zero_output_heads()  # start as "copy the first frame", the static-world baseline
         return model

@@ -88,3 +88,36 @@ def make_condition(first: torch.Tensor, num_latent_frames: int, mode: str) -> to
         return first.expand(-1, num_latent_frames, -1, -1, -1).contiguous()
     pad = first.new_zeros(first.shape[0], num_latent_frames - 1, *first.shape[2:])
     return torch.cat([first, pad], dim=1)
+
+
+class AutoencoderCodec:
+    """The project's RGB-D-N autoencoder (``autoencoder.py``, frozen): per-frame latents.
+
+    Its latent mixes the modalities, so the network sees one joint channel group ``"latent"``:
+    ``(b, t, 7, H, W)`` model-space pixels <-> ``(b, t, C, H/f, W/f)`` normalised latents.
+    """
+
+    temporal_compression = 1
+
+    def __init__(self, autoencoder, autoencoder_hash: str = "") -> None:
+        self.autoencoder = autoencoder.eval().requires_grad_(False)
+        self.autoencoder_hash = autoencoder_hash
+        self.spatial_compression = autoencoder.config.spatial_compression
+        self.modality_channels = {"latent": autoencoder.config.latent_channels}
+
+    def to(self, device: torch.device | str) -> "AutoencoderCodec":
+        self.autoencoder.to(device)
+        return self
+
+    def num_latent_frames(self, num_frames: int) -> int:
+        return num_frames
+
+    @torch.no_grad()
+    def encode(self, x: torch.Tensor, generator: torch.Generator | None = None) -> torch.Tensor:
+        """(b, t, 7, H, W) -> (b, t, C, h, w) (posterior means: deterministic)."""
+        return self.autoencoder.encode_clips(x.float())
+
+    @torch.no_grad()
+    def decode(self, z: torch.Tensor) -> torch.Tensor:
+        """(b, t, C, h, w) -> (b, t, 7, H, W), normals renormalised."""
+        return self.autoencoder.decode_clips(z.float())

@@ -81,3 +81,13 @@ class ModelSpace:
         normal = torch.where(length >= MIN_NORMAL_LENGTH, n / length.clamp_min(1e-6), torch.zeros_like(n))
         return rgb, depth_m, normal.numpy().astype(np.float32)
 
+
+
+def renormalize_normals(x: torch.Tensor) -> torch.Tensor:
+    """Model-space frames (..., 7, H, W) with the normal channels scaled to unit length; vectors
+    shorter than ``MIN_NORMAL_LENGTH`` become 0 (no hit). Differentiable where the length is kept."""
+    s = channel_slices()["normal"]
+    n = x[..., s, :, :]  # (..., 3, h, w)
+    length = n.norm(dim=-3, keepdim=True)
+    unit = torch.where(length >= MIN_NORMAL_LENGTH, n / length.clamp_min(1e-6), torch.zeros_like(n))
+    return torch.cat([x[..., :s.start, :, :], unit, x[..., s.stop:, :, :]], dim=-3)

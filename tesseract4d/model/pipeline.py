@@ -37,7 +37,8 @@ class RGBDNPipeline:
     """
 
     def __init__(self, transformer, scheduler, codec, text_encoder, preset: ModelPreset, model_space,
-                 camera_name: str | None = None, bf16: bool = False, config: dict | None = None):
+                 camera_name: str | None = None, bf16: bool = False, config: dict | None = None,
+                 prediction: str | None = None):
         self.transformer = transformer.eval()
         self.scheduler = scheduler
         self.codec = codec
@@ -47,6 +48,8 @@ class RGBDNPipeline:
         self.camera_name = camera_name
         self.bf16 = bf16
         self.config = config or {}  # the checkpoint's tesseract4d_config.json, when loaded from one
+        # What the network predicts (recipe.py): "x0" (first frame + correction) or "velocity".
+        self.prediction = prediction or self.config.get("recipe", {}).get("prediction", "x0")
         self.device = next(transformer.parameters()).device
 
     @property
@@ -77,6 +80,8 @@ class RGBDNPipeline:
                 x_t.repeat(n, 1, 1, 1, 1), torch.cat([p[0] for p in passes]), torch.cat([p[1] for p in passes]),
                 torch.full((n * b,), float(sigma), device=self.device),
             ).float()
+        if self.prediction == "velocity":  # each pass's output minus its own first frame is a velocity
+            out = out - torch.cat([p[0] for p in passes])[:, :1]
         preds = out.split(b)
         if n == 1:
             return preds[0]
@@ -110,8 +115,8 @@ class RGBDNPipeline:
         self.scheduler.set_timesteps(num_steps, device=self.device)
         for i, timestep in enumerate(self.scheduler.timesteps):
             sigma = float(self.scheduler.sigmas[i])
-            x0_hat = self._predict_x0(x, sigma, cond, null_cond, text, null_text, text_guidance, image_guidance)
-            velocity = (x - x0_hat) / sigma
+            pred = self._predict_x0(x, sigma, cond, null_cond, text, null_text, text_guidance, image_guidance)
+            velocity = pred if self.prediction == "velocity" else (x - pred) / sigma
             x = self.scheduler.step(velocity, timestep, x, return_dict=False)[0]
             if progress is not None:
                 progress(step_offset + i + 1, total_steps)

@@ -52,7 +52,12 @@ def load_pipeline(checkpoint: str | os.PathLike, device: str = "cpu", precision:
     chosen = resolve_precision(precision, device)
     announce(chosen)
     pretrained = cfg.get("pretrained_dir")
-    codec = build_codec(preset, pretrained)
+    autoencoder = None
+    if "autoencoder" in cfg:
+        from tesseract4d.model.latent_checkpoint import checkpoint_autoencoder
+
+        autoencoder = checkpoint_autoencoder(ckpt, cfg["autoencoder"])
+    codec = build_codec(preset, pretrained, autoencoder=autoencoder)
     transformer = load_transformer(ckpt, preset, codec.modality_channels)
     text_encoder = build_text_encoder(preset, pretrained, device=device)
     if transformer.backbone.config.text_embed_dim != text_encoder.dim:

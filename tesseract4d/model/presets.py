@@ -4,6 +4,10 @@
   patches of 4x4 pixels x 4 frames (1,024 tokens: as fast as 8x8x1 patches, with twice the spatial
   resolution; 4x4x2 was 2.5x slower), MiniLM text; trains on a 2-core CPU in about an hour.
   ``tiny-128`` is the same at 128x128 with 8x8x4 patches (again 1,024 tokens).
+- ``latent-128`` (the default): 16 frames of 128x128 in the latent space of the project's RGB-D-N
+  autoencoder (``--autoencoder DIR``; 8x spatial compression, e.g. 32 channels): 2x2 latent patches,
+  temporal patch 1, 1,024 tokens, tiny's width and depth, so a step costs about what tiny's does.
+  The latent mixes the modalities, so it is one channel group with one projection and one head.
 - ``cogvideox-5b``: latent space through ``AutoencoderKLCogVideoX``, backbone, VAE and T5 loaded from a
   local diffusers-format copy of CogVideoX-5B-I2V (``--pretrained DIR``); depth and normal get their
   own (zero-initialised) input projections and output heads copied from the RGB head.
@@ -22,6 +26,8 @@ from tesseract4d.model.model_space import DEFAULT_FAR_M, DEFAULT_NEAR_M
 
 PIXEL = "pixel"
 LATENT = "latent"
+# The latent space of the project's own RGB-D-N autoencoder (model/autoencoder.py, --autoencoder DIR).
+AUTOENCODER = "autoencoder"
 # How the first frame is given to the network: repeated over all frames (pixel space: every token
 # sees the first frame at its own position) or at frame 0 with zeros after it (CogVideoX-I2V's
 # convention, which the pretrained weights expect).
@@ -32,7 +38,7 @@ CONDITION_FIRST = "first"
 @dataclass(frozen=True)
 class ModelPreset:
     name: str
-    space: str  # PIXEL | LATENT
+    space: str  # PIXEL | LATENT | AUTOENCODER
     height: int  # pixels
     width: int
     num_frames: int  # frames per clip
@@ -61,9 +67,9 @@ class ModelPreset:
         return dataclasses.asdict(self)
 
 
-def _tiny_backbone(size: int, patch_size: int, patch_size_t: int | None) -> dict:
+def _tiny_backbone(size: int, patch_size: int, patch_size_t: int | None, heads: int = 4, layers: int = 4) -> dict:
     return dict(
-        num_attention_heads=4, attention_head_dim=64, num_layers=4, time_embed_dim=256,
+        num_attention_heads=heads, attention_head_dim=64, num_layers=layers, time_embed_dim=256,
         text_embed_dim=384, max_text_seq_length=32,
         sample_width=size, sample_height=size, sample_frames=16,
         patch_size=patch_size, patch_size_t=patch_size_t, temporal_compression_ratio=1,
@@ -76,6 +82,15 @@ PRESETS: dict[str, ModelPreset] = {
     for p in [
         ModelPreset("tiny", PIXEL, 64, 64, 16, CONDITION_REPEAT, "minilm", 32, backbone=_tiny_backbone(64, 4, 4)),
         ModelPreset("tiny-128", PIXEL, 128, 128, 16, CONDITION_REPEAT, "minilm", 32, backbone=_tiny_backbone(128, 8, 4)),
+        # 128x128 x 16 frames through an 8x RGB-D-N autoencoder: 16x16 latents, 2x2 patches, temporal
+        # patch 1 (a token never spans frames): 16 * 8 * 8 = 1,024 tokens, tiny's width and depth.
+        ModelPreset("latent-128", AUTOENCODER, 128, 128, 16, CONDITION_REPEAT, "minilm", 32,
+                    backbone=_tiny_backbone(16, 2, 1)),
+        # Depth variants for the equal-wall-time comparison (benchmarks/ablate_latent.py).
+        ModelPreset("latent-128-small", AUTOENCODER, 128, 128, 16, CONDITION_REPEAT, "minilm", 32,
+                    backbone=_tiny_backbone(16, 2, 1, layers=2)),
+        ModelPreset("latent-128-large", AUTOENCODER, 128, 128, 16, CONDITION_REPEAT, "minilm", 32,
+                    backbone=_tiny_backbone(16, 2, 1, layers=8)),
         ModelPreset("cogvideox-5b", LATENT, 480, 720, 49, CONDITION_FIRST, "t5", 226,
                     lr=1e-4, warmup_steps=1000, batch_size=1, ema_decay=0.99, num_steps=50, text_guidance=7.5),
     ]

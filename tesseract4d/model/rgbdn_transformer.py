@@ -93,17 +93,20 @@ class RGBDNTransformer(ModelMixin, ConfigMixin):
     def __init__(self, backbone_config: dict, modality_channels: dict[str, int]):
         super().__init__()
         names = _ordered(modality_channels)
-        if not names or names[0] != "rgb":
-            raise ValueError(f"modality_channels must start with 'rgb' (the backbone's own input), got {names}")
-        c_rgb = modality_channels["rgb"]
+        # The first group uses the backbone's own projection and head: "rgb", or the single joint group
+        # of an RGB-D-N autoencoder's latent (its channels mix the modalities).
+        if not names or (names[0] != "rgb" and len(names) > 1):
+            raise ValueError(f"modality_channels must start with 'rgb' (the backbone's own input) or be one joint "
+                             f"group, got {names}")
+        c_rgb = modality_channels[names[0]]
         cfg = dict(backbone_config)
         cfg.update(in_channels=2 * c_rgb, out_channels=c_rgb)
         self.backbone = CogVideoXTransformer3DModel(**cfg)
         bb = self.backbone
         linear = bb.config.patch_size_t is not None
         rgb_proj = bb.patch_embed.proj
-        projs: dict[str, nn.Module] = {"rgb": rgb_proj}
-        heads: dict[str, nn.Module] = {"rgb": bb.proj_out}
+        projs: dict[str, nn.Module] = {names[0]: rgb_proj}
+        heads: dict[str, nn.Module] = {names[0]: bb.proj_out}
         patch_area = bb.config.patch_size**2 * (bb.config.patch_size_t or 1)
         inner = bb.proj_out.in_features
         for name in names[1:]:

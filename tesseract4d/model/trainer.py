@@ -58,7 +58,7 @@ class TrainConfig:
 
     data: Path | None = None
     out: Path = Path("runs/tiny")
-    preset: str = "tiny"
+    preset: str = "latent-128"
     pretrained: Path | None = None
     max_steps: int = 5000  # also the length of the cosine decay
     max_minutes: float | None = None  # stop (with a checkpoint) after this much time in this invocation
@@ -81,6 +81,13 @@ class TrainConfig:
     seed: int = 0
     camera: str | None = None
     progress: bool = True
+    # Latent presets: the RGB-D-N autoencoder folder (RUN/autoencoder of `tesseract4d train-autoencoder`).
+    autoencoder: Path | None = None
+    # Recipe levers (model/recipe.py): each a switch whose effect benchmarks/ablate_latent.py measures.
+    condition_noise: float = 0.0  # max std of Gaussian noise on the conditioning first frame (per sample U(0, max))
+    moving_weight: float = 1.0  # loss weight of moving cells (differ from the first frame) relative to static ones
+    object_weight: float = 1.0  # loss weight of robot/object cells (latent presets: from the cached segmentation)
+    prediction: str = "x0"  # network target: "x0" (clean clip, first frame + correction) or "velocity"
 
     def resolved(self, preset: ModelPreset) -> "TrainConfig":
         out = dataclasses.replace(self)
@@ -120,6 +127,11 @@ class TrainConfig:
                 raise UserError(f"--loss-weights {m}={w}: each weight must be a finite number >= 0")
         if sum(self.loss_weights.get(m, 0.0) for m in MODALITIES) <= 0:
             raise UserError("--loss-weights must not all be zero")
+
+    def recipe(self) -> dict:
+        """The recipe levers, saved in the inference config (sampling needs ``prediction``)."""
+        return {k: getattr(self, k) for k in ("condition_noise", "moving_weight", "object_weight", "prediction",
+                                              "text_dropout")}
 
 
 def lr_at(step: int, cfg: TrainConfig) -> float:
@@ -209,9 +221,16 @@ def list_checkpoints(run: Path) -> list[Path]:
 
 
 def inference_config(preset: ModelPreset, model_space: ModelSpace, text_encoder, *, camera: str | None,
-                     pretrained: Path | None, training: dict) -> dict:
+                     pretrained: Path | None, training: dict, codec=None, recipe: dict | None = None) -> dict:
+    extra = {}
+    if getattr(codec, "autoencoder_hash", None):  # latent presets: the autoencoder travels with the checkpoint
+        from tesseract4d.model.latent_checkpoint import autoencoder_entry
+
+        extra["autoencoder"] = autoencoder_entry(codec, training.get("autoencoder"))
     return {
         **format_header(),
+        **extra,
+        "recipe": recipe or {},
         "preset": preset.to_dict(),
         "resolution": [preset.height, preset.width],
         "num_frames": preset.num_frames,
@@ -242,6 +261,10 @@ def export_checkpoint(run: str | os.PathLike, to: str | os.PathLike | None = Non
     with OutputDir(to, "export", inputs=[ckpt], overwrite=overwrite, flag="--to", legacy_files=legacy) as tmp:
         shutil.copytree(ckpt / EMA_DIR, tmp / TRANSFORMER_DIR)
         state = json.loads((ckpt / STATE_FILE).read_text())
+        if "autoencoder" in state["inference_config"]:
+            from tesseract4d.model.latent_checkpoint import copy_autoencoder
+
+            copy_autoencoder(state["inference_config"]["autoencoder"], tmp)
         write_inference_files(tmp, {**state["inference_config"], **format_header()})
     return to
 
@@ -259,6 +282,9 @@ class Trainer:
         if cfg.data is None:
             raise UserError("pass --data DIR (a dataset folder written by `tesseract4d datagen`)")
         cfg.validate()
+        from tesseract4d.model.recipe import check_recipe
+
+        check_recipe(cfg, self.preset)
         self.out = Path(cfg.out)
         existing = list_checkpoints(self.out)
         if existing and not cfg.resume:
@@ -280,7 +306,6 @@ class Trainer:
         from accelerate import Accelerator
         from accelerate.utils import ProjectConfiguration
 
-        from tesseract4d.model.clips import ClipDataset
         from tesseract4d.model.build import build_codec, build_text_encoder, build_transformer
 
         self.precision = resolve_precision(cfg.precision, "cuda" if torch.cuda.is_available() else "cpu")
@@ -294,11 +319,12 @@ class Trainer:
         )
         self.device = self.accelerator.device
         self.model_space = ModelSpace(self.preset.near_m, self.preset.far_m)
-        self.data = ClipDataset(cfg.data, num_frames=self.preset.num_frames, height=self.preset.height,
-                                width=self.preset.width, model_space=self.model_space, camera=cfg.camera,
-                                show_progress=cfg.progress and self.accelerator.is_main_process)
+        from tesseract4d.model.recipe import load_training_data
+
+        self.codec = build_codec(self.preset, cfg.pretrained, autoencoder=cfg.autoencoder).to(self.device)
+        self.data = load_training_data(cfg, self.preset, self.model_space, self.codec,
+                                       progress=cfg.progress and self.accelerator.is_main_process)
         self.text_encoder = build_text_encoder(self.preset, cfg.pretrained)
-        self.codec = build_codec(self.preset, cfg.pretrained).to(self.device)
         torch.manual_seed(cfg.seed)
         model = build_transformer(self.preset, self.codec, cfg.pretrained)
         if model.backbone.config.text_embed_dim != self.text_encoder.dim:
@@ -326,12 +352,20 @@ class Trainer:
         """The loss of training step ``step`` (its batch and noise depend only on seed and step)."""
         cfg = self.cfg
         g = self._step_generator(step)
-        clips, texts = self.data.sample_batch(cfg.batch_size, g)  # (b, T, 7, H, W)
-        b = clips.shape[0]
         from tesseract4d.model.codec import make_condition
+        from tesseract4d.model.recipe import augment_condition, cell_weights, recipe_loss
 
-        x0 = self.codec.encode(clips.to(self.device), generator=g)  # (b, t', c, h, w)
-        first = self.codec.encode(clips[:, :1].to(self.device), generator=g)  # (b, 1, c, h, w)
+        objects = None
+        if getattr(self.data, "encoded", False):  # a latent cache: the encoder never runs in a step
+            x0, texts, objects = self.data.sample_batch(cfg.batch_size, g, with_objects=True)  # (b, T, c, h, w)
+            x0 = x0.to(self.device)
+            first = x0[:, :1]
+        else:
+            clips, texts = self.data.sample_batch(cfg.batch_size, g)  # (b, T, 7, H, W)
+            x0 = self.codec.encode(clips.to(self.device), generator=g)  # (b, t', c, h, w)
+            first = self.codec.encode(clips[:, :1].to(self.device), generator=g)  # (b, 1, c, h, w)
+        b = x0.shape[0]
+        first = augment_condition(first, cfg.condition_noise, g)
         text = self.text_encoder.encode(texts)  # (b, L, d)
         keep_text = (torch.rand(b, generator=g) >= cfg.text_dropout).float()
         keep_image = (torch.rand(b, generator=g) >= cfg.image_dropout).float()
@@ -343,12 +377,14 @@ class Trainer:
         t, noise = t.to(self.device), noise.to(self.device)
         tt = t[:, None, None, None, None]
         x_t = (1 - tt) * x0 + tt * noise
-        x0_hat = self.model(x_t, cond, text, t).float()
-        sq = (x0_hat - x0) ** 2
+        out = self.model(x_t, cond, text, t).float()
         channels = self.accelerator.unwrap_model(self.model).channel_slices()
-        parts = {name: sq[:, :, s].mean() for name, s in channels.items()}
-        total_w = sum(cfg.loss_weights.get(n, 0.0) for n in parts)
-        loss = sum(cfg.loss_weights.get(n, 0.0) * v for n, v in parts.items()) / total_w
+        weights = cell_weights(x0, objects, cfg)  # (b, t', 1, h, w) or None
+        parts = recipe_loss(out, cond, x0, noise, channels, weights, cfg.prediction)
+        # A joint latent group (not a modality) has weight 1.
+        weight_of = {n: cfg.loss_weights.get(n, 0.0) if n in MODALITIES else 1.0 for n in parts}
+        total_w = sum(weight_of.values())
+        loss = sum(weight_of[n] * v for n, v in parts.items()) / total_w
         return loss, {f"loss/{n}": float(v.detach()) for n, v in parts.items()}
 
     def train_step(self) -> dict[str, float]:
@@ -380,7 +416,9 @@ class Trainer:
             training={"steps": self.step, "minutes": round(self.elapsed_s / 60, 2), "data": str(self.cfg.data),
                       "episodes": len(self.data), "batch_size": self.cfg.batch_size, "lr": self.cfg.lr,
                       "precision": self.precision.name, "ema_decay": self.cfg.ema_decay, "last_loss": self.last_loss,
-                      "loss_weights": self.cfg.loss_weights, "seed": self.cfg.seed})
+                      "loss_weights": self.cfg.loss_weights, "seed": self.cfg.seed,
+                      "autoencoder": str(self.cfg.autoencoder) if self.cfg.autoencoder else None},
+            codec=self.codec, recipe=self.cfg.recipe())
 
     def save_checkpoint(self) -> Path:
         self.accelerator.wait_for_everyone()
@@ -451,8 +489,11 @@ class Trainer:
         if not idx:
             return {}
         pipe = RGBDNPipeline(self.ema.model, make_scheduler(), self.codec, self.text_encoder, self.preset,
-                             self.model_space, camera_name=self.data.camera, bf16=self.precision.bf16)
+                             self.model_space, camera_name=self.data.camera, bf16=self.precision.bf16,
+                             prediction=self.cfg.prediction)
         clips = torch.stack([self.data.clip(i)[0] for i in idx])  # (n, T, 7, H, W)
+        if getattr(self.data, "encoded", False):  # latents: compare with their decoding
+            clips = self.codec.decode(clips)
         texts = [self.data.clip(i)[1] for i in idx]
         pred = pipe(clips[:, 0], texts, num_inference_steps=VALIDATION_STEPS,
                     generator=torch.Generator().manual_seed(self.cfg.seed))

@@ -1,0 +1,180 @@
+"""Benchmark the latent world model at 128²: autoencoder and latent model, against the pixel ``tiny``.
+
+Rows (each with precision and the process's peak resident memory, VmHWM, reset before it):
+- autoencoder encode / decode of one 16-frame 128² clip;
+- autoencoder training steps/s (the trainer's own step, batch 8 frames);
+- latent model (``latent-128``) training steps/s at batch 4, reading a latent cache, and ``tiny`` beside it;
+- seconds per 16-frame clip at 10 steps with text guidance (two passes per step), decode included,
+  for ``latent-128`` and ``tiny``.
+Weights are random (speed does not depend on them) unless --autoencoder names a trained one.
+bf16 rows run only where the CPU has AMX or AVX512-BF16 (elsewhere bf16 is far slower).
+
+  .venv/bin/python benchmarks/bench_latent.py [--autoencoder-preset ae-f8c32] [--repeats 3]
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+import statistics
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+from bench_model import _peak_rss_mb, _reset_peak_rss, bench_sampling, bench_training
+
+
+def cpu_description() -> str:
+    model, flags = platform.processor() or "unknown CPU", set()
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name") and model == (platform.processor() or "unknown CPU"):
+                model = line.split(":", 1)[1].strip()
+            if line.startswith("flags"):
+                flags = set(line.split(":", 1)[1].split())
+    except OSError:
+        pass
+    isa = [f for f in ("avx2", "avx512f", "avx512_bf16", "amx_bf16", "amx_tile") if f in flags]
+    return f"{model}; ISA: {', '.join(isa) or 'none of avx2/avx512/amx'}; {os.cpu_count()} logical CPUs"
+
+
+def _median_time(fn, repeats: int) -> float:
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t0)
+    return statistics.median(times)
+
+
+def bench_autoencoder_codec(ae_dir: Path, bf16: bool, repeats: int) -> dict:
+    import torch
+
+    from tesseract4d.model.autoencoder import load_autoencoder
+
+    model = load_autoencoder(ae_dir)
+    x = torch.rand(16, 7, model.config.height, model.config.width) * 2 - 1  # one 16-frame clip
+    with torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
+        z = model.encode(x)
+        _reset_peak_rss()
+        enc = _median_time(lambda: model.encode(x), repeats)
+        with torch.no_grad():
+            dec = _median_time(lambda: model.decode(z), repeats)
+    return {"encode_s": enc, "decode_s": dec, "peak_mb": _peak_rss_mb()}
+
+
+def bench_autoencoder_training(data: Path, preset: str, bf16: bool, steps: int) -> dict:
+    from tesseract4d.model.autoencoder_trainer import AutoencoderTrainConfig, AutoencoderTrainer
+
+    with tempfile.TemporaryDirectory() as out:
+        trainer = AutoencoderTrainer(AutoencoderTrainConfig(data=data, out=Path(out) / "run", preset=preset,
+                                                            precision="bf16" if bf16 else "fp32", progress=False))
+        trainer.train_step()
+        _reset_peak_rss()
+        s = _median_time(trainer.train_step, steps)
+        return {"s_per_step": s, "peak_mb": _peak_rss_mb()}
+
+
+def bench_latent_training(data: Path, ae_dir: Path, bf16: bool, steps: int, batch_size: int) -> dict:
+    from tesseract4d.model.trainer import TrainConfig, Trainer
+
+    with tempfile.TemporaryDirectory() as out:
+        trainer = Trainer(TrainConfig(data=data, out=Path(out), preset="latent-128", autoencoder=ae_dir,
+                                      precision="bf16" if bf16 else "fp32",
+                                      max_steps=steps + 1, batch_size=batch_size, val_every=0, ckpt_every=0,
+                                      progress=False))
+        trainer.train_step()
+        _reset_peak_rss()
+        s = _median_time(trainer.train_step, steps)
+        return {"s_per_step": s, "peak_mb": _peak_rss_mb()}
+
+
+def bench_latent_sampling(ae_dir: Path, bf16: bool, steps: int, repeats: int) -> dict:
+    import torch
+
+    from tesseract4d.model.build import build_codec, build_text_encoder, build_transformer
+    from tesseract4d.model.model_space import ModelSpace
+    from tesseract4d.model.pipeline import RGBDNPipeline, make_scheduler
+    from tesseract4d.model.presets import get_preset
+
+    preset = get_preset("latent-128")
+    codec = build_codec(preset, autoencoder=ae_dir)
+    torch.manual_seed(0)
+    pipe = RGBDNPipeline(build_transformer(preset, codec), make_scheduler(), codec, build_text_encoder(preset), preset,
+                         ModelSpace(preset.near_m, preset.far_m), bf16=bf16)
+    first = torch.rand(1, 7, preset.height, preset.width) * 2 - 1
+    pipe(first, ["pick up the red cube"], num_inference_steps=1)
+    _reset_peak_rss()
+    s = _median_time(lambda: pipe(first, ["pick up the red cube"], num_inference_steps=steps,
+                                  text_guidance=preset.text_guidance, generator=torch.Generator().manual_seed(0)), repeats)
+    return {"s_per_clip": s, "peak_mb": _peak_rss_mb()}
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--autoencoder", type=Path, help="a trained autoencoder folder (default: random weights)")
+    parser.add_argument("--autoencoder-preset", default="ae-f8c32", help="preset of the random autoencoder")
+    parser.add_argument("--train-steps", type=int, default=5, help="timed training steps per row")
+    parser.add_argument("--repeats", type=int, default=3, help="timed repeats per encode/decode/sampling row")
+    parser.add_argument("--no-tiny", action="store_true", help="skip the pixel tiny rows")
+    args = parser.parse_args(argv)
+
+    from tesseract4d import runtime
+
+    runtime.configure()
+    import torch
+
+    sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
+    from synthetic_scene import write_segmented_dataset, write_synthetic_dataset
+
+    from tesseract4d.model.autoencoder import RGBDNAutoencoder, get_autoencoder_preset, save_autoencoder
+    from tesseract4d.precision import cpu_flags, has_fast_bf16
+
+    print(f"CPU: {cpu_description()}")
+    print(f"torch {torch.__version__}, {torch.get_num_threads()} threads, OMP_WAIT_POLICY={os.environ.get('OMP_WAIT_POLICY')}")
+    precisions = [False, True] if has_fast_bf16(cpu_flags()) else [False]
+    rows = []
+
+    def add(*row):
+        rows.append(row)
+        print(*row, sep=" | ", flush=True)
+
+    with tempfile.TemporaryDirectory() as tmp:
+        tmp = Path(tmp)
+        ae_dir = args.autoencoder
+        ae_preset = args.autoencoder_preset
+        if ae_dir is None:
+            torch.manual_seed(0)
+            ae_dir = save_autoencoder(RGBDNAutoencoder(get_autoencoder_preset(ae_preset)), tmp / "ae")
+        data = write_segmented_dataset(tmp / "data128", episodes=4, frames=16, size=128)
+        for bf16 in precisions:
+            p = "bf16" if bf16 else "fp32"
+            r = bench_autoencoder_codec(ae_dir, bf16, args.repeats)
+            add("autoencoder", p, "encode 16-frame 128² clip", f"{r['encode_s']:.2f} s", f"{r['peak_mb']:.0f}")
+            add("autoencoder", p, "decode 16-frame 128² clip", f"{r['decode_s']:.2f} s", f"{r['peak_mb']:.0f}")
+            r = bench_autoencoder_training(data, ae_preset, bf16, args.train_steps)
+            add(f"autoencoder {ae_preset}", p, "train b8 frames", f"{1 / r['s_per_step']:.2f} steps/s", f"{r['peak_mb']:.0f}")
+            r = bench_latent_training(data, ae_dir, bf16, args.train_steps, 4)
+            add("latent-128", p, "train b4 (latent cache)", f"{1 / r['s_per_step']:.2f} steps/s", f"{r['peak_mb']:.0f}")
+            r = bench_latent_sampling(ae_dir, bf16, 10, args.repeats)
+            add("latent-128", p, "sample 10 steps, guidance 1.5", f"{r['s_per_clip']:.2f} s/clip", f"{r['peak_mb']:.0f}")
+        if not args.no_tiny:
+            pixel = write_synthetic_dataset(tmp / "data64", episodes=4, frames=16, size=64)
+            for bf16 in precisions:
+                p = "bf16" if bf16 else "fp32"
+                r = bench_training("tiny", pixel, bf16, args.train_steps, 4)
+                add("tiny", p, "train b4", f"{1 / r['s_per_step']:.2f} steps/s", f"{r['peak_mb']:.0f}")
+                r = bench_sampling("tiny", bf16, 10, True, args.repeats)
+                add("tiny", p, "sample 10 steps, guidance 1.5", f"{r['s_per_clip']:.2f} s/clip", f"{r['peak_mb']:.0f}")
+    header = ("model", "precision", "what", "speed", "peak RSS MB")
+    widths = [max(len(str(x)) for x in col) for col in zip(header, *rows)]
+    print()
+    for row in (header, tuple("-" * w for w in widths), *rows):
+        print("  ".join(str(x).ljust(w) for x, w in zip(row, widths)))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

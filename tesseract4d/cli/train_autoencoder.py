@@ -1,0 +1,87 @@
+"""Train the RGB-D-N autoencoder of the latent world model (per frame, continuous latents).
+
+Reads every frame of a dataset folder (RGB, metric depth, normals, segmentation) into memory and
+trains a diffusers AutoencoderKL behind a pixel-unshuffle stem. Every --ckpt-minutes it writes a
+resumable checkpoint (RUN/checkpoint-XXXXXX/) and exports RUN/autoencoder/ (EMA weights, latent
+statistics), measures the fidelity gate on the --heldout frames (RGB PSNR, depth mm/AbsRel, normal
+angle; all pixels and robot/object pixels), prints it and stores it as RUN/autoencoder/fidelity.json.
+The autoencoder needs hours on a CPU: run it in the background and stop/resume at will.
+
+Example:
+  tesseract4d datagen --tasks PickCube-v1,PushCube-v1 --episodes 40 --resolution 128 --out data/ae128
+  tesseract4d datagen --tasks PickCube-v1,PushCube-v1 --episodes 3 --resolution 128 \\
+      --seed-start 100000 --instruction-split heldout --out data/ae128_heldout
+  tesseract4d train-autoencoder --data data/ae128 --heldout data/ae128_heldout --out runs/ae
+  tesseract4d train-autoencoder --data data/ae128 --heldout data/ae128_heldout --out runs/ae --resume
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from tesseract4d.model.autoencoder import AUTOENCODER_PRESETS
+from tesseract4d.model.autoencoder_trainer import AutoencoderTrainConfig
+from tesseract4d.precision import add_precision_argument
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    d = AutoencoderTrainConfig()
+    parser.add_argument("--data", type=Path, required=True, help="training dataset folder (tesseract4d datagen)")
+    parser.add_argument("--heldout", type=Path, default=None,
+                        help="held-out dataset folder for the fidelity gate (recommended; e.g. seeds >= 100000)")
+    parser.add_argument("--out", type=Path, required=True, help="run folder (new, or an existing one with --resume)")
+    parser.add_argument("--preset", default=d.preset, choices=list(AUTOENCODER_PRESETS),
+                        help="autoencoder architecture (default %(default)s)")
+    parser.add_argument("--camera", default=None, help="camera of the dataset to train on (default: its first)")
+    parser.add_argument("--max-steps", type=int, default=d.max_steps, help="steps in total, also the cosine decay length (default %(default)s)")
+    parser.add_argument("--max-minutes", type=float, default=None, help="stop with a checkpoint after this many minutes")
+    parser.add_argument("--batch-size", type=int, default=d.batch_size, help="frames per step (default %(default)s)")
+    parser.add_argument("--lr", type=float, default=d.lr, help="peak learning rate (default %(default)s)")
+    parser.add_argument("--object-weight", type=float, default=d.object_weight,
+                        help="loss weight of robot/object pixels relative to scenery (default %(default)s)")
+    parser.add_argument("--depth-weight", type=float, default=d.depth_weight, help="default %(default)s")
+    parser.add_argument("--normal-weight", type=float, default=d.normal_weight, help="default %(default)s")
+    parser.add_argument("--kl-weight", type=float, default=d.kl_weight, help="default %(default)s")
+    add_precision_argument(parser)
+    parser.add_argument("--ckpt-minutes", type=float, default=d.ckpt_minutes,
+                        help="minutes between checkpoints + fidelity gate (default %(default)s)")
+    parser.add_argument("--heldout-frames", type=int, default=d.heldout_frames,
+                        help="held-out frames in the fidelity gate (default %(default)s)")
+    parser.add_argument("--seed", type=int, default=d.seed)
+    parser.add_argument("--resume", action="store_true", help="continue the latest checkpoint in --out exactly")
+    parser.add_argument("--quiet", action="store_true", help="no progress bar")
+
+
+def run(args: argparse.Namespace) -> int:
+    import functools
+
+    import numpy as np
+
+    from tesseract4d.evaluation.autoencoder_fidelity import fidelity_metrics, format_fidelity
+    from tesseract4d.model.autoencoder_trainer import AutoencoderTrainer, load_heldout_frames
+
+    cfg = AutoencoderTrainConfig(
+        data=args.data, heldout=args.heldout, out=args.out, preset=args.preset, camera=args.camera,
+        max_steps=args.max_steps, max_minutes=args.max_minutes, batch_size=args.batch_size, lr=args.lr,
+        object_weight=args.object_weight, depth_weight=args.depth_weight, normal_weight=args.normal_weight,
+        kl_weight=args.kl_weight, precision=args.precision, ckpt_minutes=args.ckpt_minutes,
+        heldout_frames=args.heldout_frames, seed=args.seed, resume=args.resume, progress=not args.quiet,
+    )
+    trainer = AutoencoderTrainer(cfg, format_fn=format_fidelity)
+    if cfg.heldout is not None:
+        heldout = load_heldout_frames(cfg.heldout, trainer.model, cfg.heldout_frames, camera=cfg.camera)
+        trainer.fidelity_fn = functools.partial(lambda model, frames: fidelity_metrics(model, frames), frames=heldout)
+    fidelity = trainer.train()
+    print(format_fidelity(fidelity))
+    if cfg.heldout is not None:
+        import imageio.v3 as iio
+
+        from tesseract4d.evaluation.autoencoder_fidelity import reconstruction_sheet
+
+        picks = [int(i) for i in np.linspace(0, len(heldout) - 1, 4).round()]
+        sheet = reconstruction_sheet(trainer.ema.model, heldout, picks)
+        iio.imwrite(cfg.out / "reconstructions.png", sheet)
+        print(f"held-out frames (truth above, reconstruction below; RGB | depth | normals): {cfg.out / 'reconstructions.png'}")
+    print(f"autoencoder: {cfg.out / 'autoencoder'}  (resume with the same command plus --resume)")
+    return 0

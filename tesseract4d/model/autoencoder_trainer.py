@@ -1,0 +1,416 @@
+"""Training of the RGB-D-N autoencoder (``model/autoencoder.py``), per frame.
+
+Loss per frame, each term a per-pixel weighted mean with weight ``w = 1 + (object_weight - 1) *
+robot_or_object + edge_weight * depth_edge`` (robot and object pixels come from the dataset's
+segmentation; depth edges from the target's depth gradient), so small things and discontinuities
+survive compression:
+
+    rgb_weight    * |rgb_hat - rgb|
+  + depth_weight  * |depth_hat - depth|            (model space, i.e. metric over a fixed range)
+  + normal_weight * (|n_hat - n| + (1 - cos(n_hat / |n_hat|, n)))
+  + grad_weight   * (|grad depth_hat - grad depth| + |grad n_hat - grad n|)   (finite differences)
+  + kl_weight     * KL(posterior || N(0, I)) per latent element
+
+Everything random in a step (frames, posterior sample) comes from a generator seeded by
+(seed, step), so a resumed run continues exactly.
+
+Run folder::
+
+    RUN/ae_train_config.json               the resolved AutoencoderTrainConfig
+    RUN/logs/                              TensorBoard (loss terms, lr, steps/s, fidelity gate)
+    RUN/checkpoint-XXXXXX/                 training state: model/ (raw weights), model_ema/,
+                                           optimizer.safetensors + optimizer.json, trainer_state.json
+    RUN/autoencoder/                       the exported autoencoder (EMA weights, latent statistics,
+                                           fidelity.json): what latent caches and the latent model use
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import os
+import shutil
+import signal
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from tesseract4d import dataset_format as df
+from tesseract4d.errors import UserError
+from tesseract4d.precision import announce, resolve_precision
+from tesseract4d.model.autoencoder import (
+    FIDELITY_FILE, AutoencoderConfig, RGBDNAutoencoder, get_autoencoder_preset, load_autoencoder, save_autoencoder,
+)
+from tesseract4d.model.model_space import ModelSpace, channel_slices
+
+CONFIG_FILE = "ae_train_config.json"
+CHECKPOINT_PREFIX = "checkpoint-"
+STATE_FILE = "trainer_state.json"
+EXPORT_DIR = "autoencoder"
+# Segmentation names that are scenery; every other named segment is the robot or an object.
+SCENERY_SEGMENTS = frozenset({"background", "ground", "table-workspace", "goal_site"})
+DEPTH_EDGE_THRESHOLD = 0.02  # model-space depth step between neighbours (~13 mm over 0.2-1.5 m)
+LATENT_STATS_FRAMES = 256
+
+
+@dataclass
+class AutoencoderTrainConfig:
+    """Options of `tesseract4d train-autoencoder`."""
+
+    data: Path | None = None
+    heldout: Path | None = None
+    out: Path = Path("runs/autoencoder")
+    preset: str = "ae-f8c32"
+    camera: str | None = None
+    max_steps: int = 20000  # also the length of the cosine decay
+    max_minutes: float | None = None  # stop (with a checkpoint) after this much time in this invocation
+    batch_size: int = 8
+    lr: float = 4e-4
+    warmup_steps: int = 300
+    min_lr_ratio: float = 0.1
+    weight_decay: float = 0.0
+    ema_decay: float = 0.999
+    grad_clip: float = 1.0
+    rgb_weight: float = 1.0
+    depth_weight: float = 3.0
+    normal_weight: float = 2.0
+    grad_weight: float = 1.0
+    object_weight: float = 5.0
+    edge_weight: float = 2.0
+    kl_weight: float = 1e-4
+    precision: str = "auto"
+    ckpt_minutes: float = 10.0
+    keep_checkpoints: int = 2
+    heldout_frames: int = 96
+    seed: int = 0
+    resume: bool = False
+    progress: bool = True
+
+    def to_dict(self) -> dict:
+        return {k: (str(v) if isinstance(v, Path) else v) for k, v in dataclasses.asdict(self).items()}
+
+
+def lr_at(step: int, cfg: AutoencoderTrainConfig) -> float:
+    """Linear warm-up to ``lr``, then cosine decay to ``min_lr_ratio * lr`` at ``max_steps``."""
+    if step < cfg.warmup_steps:
+        return cfg.lr * (step + 1) / cfg.warmup_steps
+    progress = min(1.0, (step - cfg.warmup_steps) / max(1, cfg.max_steps - cfg.warmup_steps))
+    return cfg.lr * (cfg.min_lr_ratio + (1 - cfg.min_lr_ratio) * 0.5 * (1 + math.cos(math.pi * progress)))
+
+
+# --------------------------------------------------------------------------- data
+
+
+def robot_object_mask(segmentation: np.ndarray, seg_id_to_name: dict[int, str]) -> np.ndarray:
+    """(..., H, W) bool: pixels whose segment is the robot or an object (not scenery)."""
+    ids = [i for i, n in seg_id_to_name.items() if n not in SCENERY_SEGMENTS]
+    return np.isin(segmentation, np.asarray(ids, dtype=segmentation.dtype))
+
+
+@dataclass
+class FrameSet:
+    """Frames of a dataset folder, in model space, with their robot/object masks."""
+
+    frames: torch.Tensor  # (N, 7, H, W) float16 model space
+    masks: torch.Tensor  # (N, H, W) bool robot/object pixels
+    episode_ids: list[str] = field(default_factory=list)
+
+    def __len__(self) -> int:
+        return int(self.frames.shape[0])
+
+    @classmethod
+    def load(cls, root: str | os.PathLike, *, height: int, width: int, model_space: ModelSpace,
+             camera: str | None = None, frame_stride: int = 1, max_frames: int | None = None,
+             progress: bool = False) -> "FrameSet":
+        info = df.read_info(root)
+        if (info.height, info.width) != (height, width):
+            raise UserError(f"{root} holds {info.height}x{info.width} episodes but the autoencoder works at "
+                            f"{height}x{width}; generate data with `tesseract4d datagen --resolution {height}` "
+                            f"or pick a matching autoencoder preset")
+        camera = camera or info.cameras[0]
+        if camera not in info.cameras:
+            raise UserError(f"{root} has no camera {camera!r}; it has {', '.join(info.cameras)}")
+        files = df.list_episode_files(root)
+        if not files:
+            raise UserError(f"{root} holds no episodes; write some with `tesseract4d datagen --out {root}`")
+        if progress:
+            from tqdm import tqdm
+
+            files = tqdm(files, desc=f"loading {Path(root).name}", unit="ep")
+        frames, masks, ids = [], [], []
+        for path in files:
+            ep = df.read_episode(path, cameras=[camera])
+            cam = ep.cameras[camera]
+            if cam.segmentation is None:
+                raise UserError(f"{path} has no segmentation; regenerate the dataset with `tesseract4d datagen` "
+                                f"(the autoencoder weights robot and object pixels by it)")
+            sel = slice(None, None, frame_stride)
+            frames.append(model_space.encode(cam.rgb[sel], cam.depth_m[sel], cam.normal_cam[sel]).half())
+            masks.append(torch.from_numpy(robot_object_mask(cam.segmentation[sel], cam.seg_id_to_name)))
+            ids.extend([ep.episode_id] * len(masks[-1]))
+        out = cls(torch.cat(frames), torch.cat(masks), ids)
+        if max_frames is not None and len(out) > max_frames:
+            keep = torch.linspace(0, len(out) - 1, max_frames).round().long()
+            out = cls(out.frames[keep], out.masks[keep], [out.episode_ids[i] for i in keep.tolist()])
+        return out
+
+    def batch(self, batch_size: int, generator: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
+        """(b, 7, H, W) float32 frames and (b, H, W) masks at random indices."""
+        idx = torch.randint(len(self), (batch_size,), generator=generator)
+        return self.frames[idx].float(), self.masks[idx]
+
+
+# --------------------------------------------------------------------------- loss
+
+
+def _grad_xy(x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Forward differences of (n, c, H, W) along x and y: (n, c, H, W-1), (n, c, H-1, W)."""
+    return x[..., :, 1:] - x[..., :, :-1], x[..., 1:, :] - x[..., :-1, :]
+
+
+def pixel_weights(target: torch.Tensor, mask: torch.Tensor, cfg: AutoencoderTrainConfig) -> torch.Tensor:
+    """(n, 1, H, W) loss weight per pixel: robot/object pixels and depth edges count more."""
+    depth = target[:, channel_slices()["depth"]]  # (n, 1, H, W)
+    gx, gy = _grad_xy(depth)
+    edge = torch.zeros_like(depth)
+    edge[..., :, 1:] = torch.maximum(edge[..., :, 1:], (gx.abs() > DEPTH_EDGE_THRESHOLD).float())
+    edge[..., 1:, :] = torch.maximum(edge[..., 1:, :], (gy.abs() > DEPTH_EDGE_THRESHOLD).float())
+    edge = F.max_pool2d(edge, 3, stride=1, padding=1)  # both sides of an edge
+    return 1.0 + (cfg.object_weight - 1.0) * mask[:, None].float() + cfg.edge_weight * edge
+
+
+def _wmean(err: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
+    """Weighted mean of (n, c, h, w) errors with (n, 1, h, w) weights (cropped to match)."""
+    w = w[..., : err.shape[-2], : err.shape[-1]]
+    return (err.mean(dim=1, keepdim=True) * w).sum() / w.sum().clamp_min(1e-6)
+
+
+def reconstruction_loss(pred: torch.Tensor, target: torch.Tensor, mask: torch.Tensor, kl: torch.Tensor,
+                        cfg: AutoencoderTrainConfig) -> tuple[torch.Tensor, dict[str, float]]:
+    """pred, target (n, 7, H, W) model space (pred before renormalisation); mask (n, H, W); kl (n,) summed
+    over latent elements divided by their count. Returns the total and its terms."""
+    s = channel_slices()
+    pred, target = pred.float(), target.float()
+    w = pixel_weights(target, mask, cfg)
+    parts = {
+        "rgb": _wmean((pred[:, s["rgb"]] - target[:, s["rgb"]]).abs(), w),
+        "depth": _wmean((pred[:, s["depth"]] - target[:, s["depth"]]).abs(), w),
+    }
+    n_hat, n = pred[:, s["normal"]], target[:, s["normal"]]
+    cos = F.cosine_similarity(n_hat, n, dim=1, eps=1e-6)[:, None]  # (n, 1, H, W)
+    parts["normal"] = _wmean((n_hat - n).abs(), w) + _wmean(1.0 - cos, w)
+    grad = 0.0
+    for name in ("depth", "normal"):
+        for gp, gt in zip(_grad_xy(pred[:, s[name]]), _grad_xy(target[:, s[name]])):
+            grad = grad + _wmean((gp - gt).abs(), w)
+    parts["grad"] = grad
+    parts["kl"] = kl.mean()
+    total = (cfg.rgb_weight * parts["rgb"] + cfg.depth_weight * parts["depth"] + cfg.normal_weight * parts["normal"]
+             + cfg.grad_weight * parts["grad"] + cfg.kl_weight * parts["kl"])
+    return total, {k: float(v.detach()) for k, v in parts.items()}
+
+
+# --------------------------------------------------------------------------- trainer
+
+
+def list_checkpoints(run: Path) -> list[Path]:
+    return sorted(p for p in Path(run).glob(f"{CHECKPOINT_PREFIX}*") if p.is_dir() and (p / STATE_FILE).is_file())
+
+
+@torch.no_grad()
+def measure_latent_stats(model: RGBDNAutoencoder, frames: torch.Tensor, chunk: int = 32) -> tuple[torch.Tensor, torch.Tensor]:
+    """Per-channel mean and std of the posterior means of ``frames`` (n, 7, H, W)."""
+    z = torch.cat([model.posterior(frames[i:i + chunk].float()).mean for i in range(0, len(frames), chunk)])
+    return z.mean(dim=(0, 2, 3)), z.std(dim=(0, 2, 3))  # (C,), (C,)
+
+
+class AutoencoderTrainer:
+    """Owns the autoencoder, its EMA, the optimiser, the frames and the loss.
+
+    ``fidelity_fn(model) -> dict`` (given by the command line, from the evaluation floor) measures the
+    exported autoencoder on held-out frames; its result is printed and stored as fidelity.json.
+    """
+
+    def __init__(self, cfg: AutoencoderTrainConfig, fidelity_fn: Callable[[RGBDNAutoencoder], dict] | None = None,
+                 format_fn: Callable[[dict], str] | None = None):
+        if cfg.data is None:
+            raise UserError("--data is required: a dataset folder written by `tesseract4d datagen --resolution 128`")
+        self.cfg = cfg
+        self.fidelity_fn = fidelity_fn
+        self.format_fn = format_fn or (lambda d: json.dumps(d))
+        self.out = Path(cfg.out)
+        chosen = resolve_precision(cfg.precision, "cpu")
+        announce(chosen)
+        self.precision = chosen.name
+        self._check_run_folder()
+        from tesseract4d.model.trainer import EMA
+
+        ae_cfg: AutoencoderConfig = get_autoencoder_preset(cfg.preset)
+        torch.manual_seed(cfg.seed)
+        self.model = RGBDNAutoencoder(ae_cfg)
+        self.ema = EMA(self.model, cfg.ema_decay)
+        self.optimizer = torch.optim.AdamW(self.model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay,
+                                           betas=(0.9, 0.99))
+        self.frames = FrameSet.load(cfg.data, height=ae_cfg.height, width=ae_cfg.width,
+                                    model_space=self.model.model_space, camera=cfg.camera, progress=cfg.progress)
+        self.step = 0
+        self.stop_requested = False
+
+    def _check_run_folder(self) -> None:
+        cfg_path = self.out / CONFIG_FILE
+        if self.cfg.resume:
+            if not list_checkpoints(self.out):
+                raise UserError(f"--resume: {self.out} holds no checkpoint; start without --resume")
+            saved = json.loads(cfg_path.read_text())
+            if saved.get("preset") != self.cfg.preset:
+                raise UserError(f"--resume: {self.out} trains preset {saved.get('preset')!r}, not {self.cfg.preset!r}; "
+                                f"pass --preset {saved.get('preset')}")
+        elif self.out.exists() and any(self.out.iterdir()):
+            raise UserError(f"{self.out} is not empty; continue it with --resume or choose a new --out")
+
+    # ------------------------------------------------------------------ state
+    def save_checkpoint(self) -> Path:
+        from tesseract4d.model.trainer import save_optimizer
+
+        final = self.out / f"{CHECKPOINT_PREFIX}{self.step:06d}"
+        tmp = self.out / f".{final.name}.tmp"
+        shutil.rmtree(tmp, ignore_errors=True)
+        save_autoencoder(self.model, tmp / "model")
+        save_autoencoder(self.ema.model, tmp / "model_ema")
+        save_optimizer(self.optimizer, tmp)
+        (tmp / STATE_FILE).write_text(json.dumps({"step": self.step, "precision": self.precision}))
+        if final.exists():
+            shutil.rmtree(final)
+        os.replace(tmp, final)
+        for old in list_checkpoints(self.out)[: -self.cfg.keep_checkpoints]:
+            shutil.rmtree(old)
+        return final
+
+    def load_checkpoint(self) -> None:
+        from safetensors.torch import load_file
+
+        from tesseract4d.model.trainer import load_optimizer
+
+        ckpt = list_checkpoints(self.out)[-1]
+        self.model.load_state_dict(load_file(str(ckpt / "model" / "model.safetensors")))
+        self.ema.model.load_state_dict(load_file(str(ckpt / "model_ema" / "model.safetensors")))
+        load_optimizer(self.optimizer, ckpt)
+        self.step = json.loads((ckpt / STATE_FILE).read_text())["step"]
+
+    def export(self) -> dict:
+        """Write RUN/autoencoder (EMA weights + latent statistics + fidelity.json) atomically; return the gate."""
+        model = self.ema.model
+        g = torch.Generator().manual_seed(12345)
+        idx = torch.randperm(len(self.frames), generator=g)[:LATENT_STATS_FRAMES]
+        mean, std = measure_latent_stats(model, self.frames.frames[idx])
+        model.set_latent_stats(mean, std)
+        fidelity = self.fidelity_fn(model) if self.fidelity_fn is not None else {}
+        fidelity = {"step": self.step, **fidelity}
+        final = self.out / EXPORT_DIR
+        tmp = self.out / f".{EXPORT_DIR}.tmp"
+        shutil.rmtree(tmp, ignore_errors=True)
+        save_autoencoder(model, tmp)
+        (tmp / FIDELITY_FILE).write_text(json.dumps(fidelity, indent=2))
+        if final.exists():
+            shutil.rmtree(final)
+        os.replace(tmp, final)
+        return fidelity
+
+    # ------------------------------------------------------------------ loop
+    def train_step(self) -> dict[str, float]:
+        cfg = self.cfg
+        g = torch.Generator().manual_seed(cfg.seed * 1_000_003 + self.step)
+        x, mask = self.frames.batch(cfg.batch_size, g)
+        lr = lr_at(self.step, cfg)
+        for group in self.optimizer.param_groups:
+            group["lr"] = lr
+        self.model.train()
+        with torch.autocast("cpu", dtype=torch.bfloat16, enabled=self.precision == "bf16"):
+            post = self.model.posterior(x)
+            z = post.sample(generator=g)
+            pred = self.model.decode_raw(z)
+        kl = post.kl().float() / z[0].numel()  # (b,) per latent element
+        loss, parts = reconstruction_loss(pred, x, mask, kl, cfg)
+        self.optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        grad_norm = torch.nn.utils.clip_grad_norm_(self.model.parameters(), cfg.grad_clip)
+        if not torch.isfinite(loss):
+            raise RuntimeError(f"autoencoder loss is {float(loss)} at step {self.step}; lower --lr or use --precision fp32")
+        self.optimizer.step()
+        self.ema.update(self.model, self.step)
+        self.step += 1
+        return {"loss": float(loss.detach()), "lr": lr, "grad_norm": float(grad_norm), **parts}
+
+    def train(self) -> dict:
+        from torch.utils.tensorboard import SummaryWriter
+        from tqdm import tqdm
+
+        cfg = self.cfg
+        self.out.mkdir(parents=True, exist_ok=True)
+        if cfg.resume:
+            self.load_checkpoint()
+            print(f"resumed {self.out} at step {self.step}")
+        else:
+            df.atomic_write_text(self.out / CONFIG_FILE, json.dumps(cfg.to_dict(), indent=2))
+        print(f"autoencoder {cfg.preset}: {sum(p.numel() for p in self.model.parameters()) / 1e6:.2f} M params, "
+              f"{len(self.frames)} training frames, precision {self.precision}, "
+              f"{self.model.config.spatial_compression}x -> latent {self.model.config.latent_shape}")
+        writer = SummaryWriter(str(self.out / "logs"))
+        previous = {s: signal.getsignal(s) for s in (signal.SIGTERM, signal.SIGINT)}
+
+        def request_stop(signum, frame):
+            self.stop_requested = True
+
+        for s in previous:
+            signal.signal(s, request_stop)
+        start = last_ckpt = time.time()
+        bar = tqdm(total=cfg.max_steps, initial=self.step, desc="train-autoencoder", unit="step", disable=not cfg.progress)
+        fidelity: dict = {}
+        try:
+            while self.step < cfg.max_steps and not self.stop_requested:
+                t0 = time.perf_counter()
+                logs = self.train_step()
+                logs["steps_per_s"] = 1.0 / (time.perf_counter() - t0)
+                for k, v in logs.items():
+                    writer.add_scalar(f"train/{k}", v, self.step)
+                bar.update(1)
+                bar.set_postfix(loss=f"{logs['loss']:.4f}", depth=f"{logs['depth']:.4f}", refresh=False)
+                out_of_time = cfg.max_minutes is not None and time.time() - start > cfg.max_minutes * 60
+                if time.time() - last_ckpt > cfg.ckpt_minutes * 60 or out_of_time:
+                    fidelity = self._checkpoint(writer, bar)
+                    last_ckpt = time.time()
+                if out_of_time:
+                    break
+            if not fidelity or fidelity.get("step") != self.step:
+                fidelity = self._checkpoint(writer, bar)
+        finally:
+            bar.close()
+            writer.close()
+            for s, h in previous.items():
+                signal.signal(s, h)
+        return fidelity
+
+    def _checkpoint(self, writer, bar) -> dict:
+        self.save_checkpoint()
+        fidelity = self.export()
+        for k, v in fidelity.items():
+            if isinstance(v, (int, float)) and k != "step":
+                writer.add_scalar(f"fidelity/{k}", v, self.step)
+        writer.flush()
+        bar.write(f"step {self.step}: checkpoint + {self.out / EXPORT_DIR}\n{self.format_fn(fidelity)}")
+        return fidelity
+
+
+def load_heldout_frames(root: str | os.PathLike, model: RGBDNAutoencoder, count: int, camera: str | None = None) -> FrameSet:
+    """Up to ``count`` evenly spread frames of a held-out dataset, for the fidelity gate."""
+    return FrameSet.load(root, height=model.config.height, width=model.config.width, model_space=model.model_space,
+                         camera=camera, max_frames=count)
+
+
+__all__ = ["AutoencoderTrainConfig", "AutoencoderTrainer", "FrameSet", "load_autoencoder", "reconstruction_loss"]

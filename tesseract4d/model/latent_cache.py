@@ -1,0 +1,228 @@
+"""Latent cache: a dataset encoded once per autoencoder, so a diffusion training step never runs
+the encoder.
+
+A cache folder (default ``DATASET/latent_cache/<camera>/``) holds::
+
+    cache.json            autoencoder hash, dataset fingerprint (episode files, sizes, mtimes), shapes
+    latents.safetensors   per episode: "<i>.latents" (T, C, h, w) float16 normalised latents and
+                          "<i>.objects" (T, h, w) float16 share of robot/object pixels per latent cell
+
+The cache is valid only for the autoencoder whose ``autoencoder_hash`` it records and the dataset
+files it was built from; ``ensure_latent_cache`` rebuilds it when either changed, writing into a
+temporary sibling that is renamed into place (never half-written). ``open_latent_cache`` only
+reads and refuses a cache of another autoencoder with a message saying what to run.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+import torch.nn.functional as F
+
+from tesseract4d import dataset_format as df
+from tesseract4d.errors import UserError
+
+CACHE_FILE = "cache.json"
+LATENTS_FILE = "latents.safetensors"
+CACHE_DIR = "latent_cache"
+FORMAT = "tesseract4d-latent-cache"
+
+
+def default_cache_dir(dataset: str | os.PathLike, camera: str) -> Path:
+    return Path(dataset) / CACHE_DIR / camera
+
+
+def dataset_fingerprint(dataset: str | os.PathLike) -> list[list]:
+    """[relative path, size, mtime_ns] of every episode file: changes when episodes are added or rewritten."""
+    root = Path(dataset)
+    return [[str(p.relative_to(root)), p.stat().st_size, p.stat().st_mtime_ns] for p in df.list_episode_files(root)]
+
+
+@dataclass
+class LatentEpisode:
+    episode_id: str
+    instruction: str
+    latents: torch.Tensor  # (T, C, h, w) float16, normalised latents
+    objects: torch.Tensor  # (T, h, w) float16, share of robot/object pixels per latent cell
+
+
+@dataclass
+class LatentCache:
+    folder: Path
+    meta: dict
+    episodes: list[LatentEpisode]
+
+    @property
+    def autoencoder_hash(self) -> str:
+        return self.meta["autoencoder_hash"]
+
+
+def _build(dataset: Path, autoencoder_dir: Path, camera: str, folder: Path, progress: bool) -> None:
+    from safetensors.torch import save_file
+
+    from tesseract4d.model.autoencoder import autoencoder_hash, load_autoencoder
+    from tesseract4d.model.autoencoder_trainer import robot_object_mask
+
+    model = load_autoencoder(autoencoder_dir)
+    info = df.read_info(dataset)
+    if (info.height, info.width) != (model.config.height, model.config.width):
+        raise UserError(f"{dataset} holds {info.height}x{info.width} episodes but the autoencoder {autoencoder_dir} "
+                        f"works at {model.config.height}x{model.config.width}; generate data with "
+                        f"`tesseract4d datagen --resolution {model.config.height} --out DIR`")
+    files = df.list_episode_files(dataset)
+    if not files:
+        raise UserError(f"{dataset} holds no episodes; write some with `tesseract4d datagen --out {dataset}`")
+    f = model.config.spatial_compression
+    tensors, episodes = {}, []
+    iterator = files
+    if progress:
+        from tqdm import tqdm
+
+        iterator = tqdm(files, desc="encoding latents", unit="ep")
+    for i, path in enumerate(iterator):
+        ep = df.read_episode(path, cameras=[camera])
+        cam = ep.cameras[camera]
+        x = model.model_space.encode(cam.rgb, cam.depth_m, cam.normal_cam)  # (T, 7, H, W)
+        z = torch.cat([model.encode(x[k:k + 16]) for k in range(0, len(x), 16)])  # (T, C, h, w)
+        if cam.segmentation is not None:
+            mask = torch.from_numpy(robot_object_mask(cam.segmentation, cam.seg_id_to_name)).float()  # (T, H, W)
+        else:
+            mask = torch.zeros(x.shape[0], x.shape[2], x.shape[3])
+        objects = F.avg_pool2d(mask[:, None], f)[:, 0]  # (T, h, w)
+        tensors[f"{i}.latents"] = z.half().contiguous()
+        tensors[f"{i}.objects"] = objects.half().contiguous()
+        episodes.append({"episode_id": ep.episode_id, "instruction": ep.instruction, "file": str(path.relative_to(dataset))})
+    folder.mkdir(parents=True)
+    save_file(tensors, str(folder / LATENTS_FILE))
+    meta = {
+        "format": FORMAT, "autoencoder_hash": autoencoder_hash(autoencoder_dir), "autoencoder_dir": str(autoencoder_dir),
+        "camera": camera, "latent_shape": list(model.config.latent_shape), "resolution": [info.height, info.width],
+        "dataset_fingerprint": dataset_fingerprint(dataset), "episodes": episodes,
+    }
+    (folder / CACHE_FILE).write_text(json.dumps(meta, indent=1))
+
+
+def _read_meta(folder: Path) -> dict | None:
+    path = folder / CACHE_FILE
+    if not path.is_file() or not (folder / LATENTS_FILE).is_file():
+        return None
+    meta = json.loads(path.read_text())
+    return meta if meta.get("format") == FORMAT else None
+
+
+def open_latent_cache(folder: str | os.PathLike, autoencoder_dir: str | os.PathLike | None = None) -> LatentCache:
+    """Read a cache; with ``autoencoder_dir``, refuse one built by another autoencoder."""
+    from safetensors.torch import load_file
+
+    folder = Path(folder)
+    meta = _read_meta(folder)
+    if meta is None:
+        raise UserError(f"{folder} is not a latent cache; build one with "
+                        f"`tesseract4d encode-latents --data DATASET --autoencoder AE_DIR`")
+    if autoencoder_dir is not None:
+        from tesseract4d.model.autoencoder import autoencoder_hash
+
+        want = autoencoder_hash(autoencoder_dir)
+        if meta["autoencoder_hash"] != want:
+            raise UserError(f"the latent cache {folder} was built by autoencoder {meta['autoencoder_hash']} "
+                            f"({meta.get('autoencoder_dir')}), not {want} ({autoencoder_dir}); rebuild it with "
+                            f"`tesseract4d encode-latents --data DATASET --autoencoder {autoencoder_dir} --rebuild`")
+    tensors = load_file(str(folder / LATENTS_FILE))
+    episodes = [LatentEpisode(e["episode_id"], e["instruction"], tensors[f"{i}.latents"], tensors[f"{i}.objects"])
+                for i, e in enumerate(meta["episodes"])]
+    return LatentCache(folder, meta, episodes)
+
+
+def ensure_latent_cache(dataset: str | os.PathLike, autoencoder_dir: str | os.PathLike, *, camera: str | None = None,
+                        folder: str | os.PathLike | None = None, rebuild: bool = False,
+                        progress: bool = False) -> tuple[LatentCache, bool]:
+    """The valid cache of ``dataset`` for ``autoencoder_dir``, built (or rebuilt) when needed.
+
+    Returns (cache, built): ``built`` is False when an existing valid cache was reused.
+    """
+    from tesseract4d.model.autoencoder import autoencoder_hash
+
+    dataset, autoencoder_dir = Path(dataset), Path(autoencoder_dir)
+    info = df.read_info(dataset)
+    camera = camera or info.cameras[0]
+    if camera not in info.cameras:
+        raise UserError(f"{dataset} has no camera {camera!r}; it has {', '.join(info.cameras)}")
+    folder = Path(folder) if folder is not None else default_cache_dir(dataset, camera)
+    meta = _read_meta(folder)
+    if folder.exists() and meta is None and any(folder.iterdir()):
+        raise UserError(f"{folder} exists and is not a latent cache; choose another cache folder")
+    valid = (meta is not None and not rebuild and meta["autoencoder_hash"] == autoencoder_hash(autoencoder_dir)
+             and meta["camera"] == camera and meta["dataset_fingerprint"] == dataset_fingerprint(dataset))
+    if valid:
+        return open_latent_cache(folder), False
+    tmp = folder.with_name(f".{folder.name}.tmp")
+    shutil.rmtree(tmp, ignore_errors=True)
+    _build(dataset, autoencoder_dir, camera, tmp, progress)
+    if folder.exists():
+        shutil.rmtree(folder)  # a cache this module wrote (checked above)
+    os.replace(tmp, folder)
+    return open_latent_cache(folder), True
+
+
+class LatentClipDataset:
+    """Clips of ``num_frames`` latent frames from a latent cache; the same interface as
+    ``clips.ClipDataset`` (``encoded = True``: batches are latents, not model-space pixels)."""
+
+    encoded = True
+
+    def __init__(self, cache: LatentCache, *, num_frames: int):
+        self.cache = cache
+        self.camera = cache.meta["camera"]
+        self.num_frames = num_frames
+        self.sources = [e for e in cache.episodes if e.latents.shape[0] >= num_frames]
+        if not self.sources:
+            raise UserError(f"no episode in the latent cache {cache.folder} has {num_frames} frames (the preset's clip "
+                            f"length); regenerate the dataset with `tesseract4d datagen --frames {num_frames}`")
+        self.skipped = len(cache.episodes) - len(self.sources)
+
+    def __len__(self) -> int:
+        return len(self.sources)
+
+    def clip(self, index: int, start: int = 0) -> tuple[torch.Tensor, str]:
+        """One clip of latents (T, C, h, w) float32 and its instruction."""
+        src = self.sources[index]
+        return src.latents[start:start + self.num_frames].float(), src.instruction
+
+    def objects(self, index: int, start: int = 0) -> torch.Tensor:
+        """Robot/object share per latent cell of one clip, (T, h, w) float32."""
+        return self.sources[index].objects[start:start + self.num_frames].float()
+
+    def sample_batch(self, batch_size: int, generator: torch.Generator,
+                     with_objects: bool = False):
+        """(b, T, C, h, w) latent clips at random episodes and starts, their instructions and, with
+        ``with_objects``, the (b, T, h, w) robot/object share per latent cell."""
+        idx = torch.randint(len(self.sources), (batch_size,), generator=generator).tolist()
+        clips, texts, objects = [], [], []
+        for i in idx:
+            n = self.sources[i].latents.shape[0] - self.num_frames + 1
+            start = int(torch.randint(n, (1,), generator=generator))
+            clip, text = self.clip(i, start)
+            clips.append(clip)
+            texts.append(text)
+            objects.append(self.objects(i, start))
+        if with_objects:
+            return torch.stack(clips), texts, torch.stack(objects)
+        return torch.stack(clips), texts
+
+    def validation_indices(self, count: int) -> list[int]:
+        """Up to ``count`` fixed episodes, spread over the tasks."""
+        by_task: dict[str, list[int]] = {}
+        for i, s in enumerate(self.sources):
+            by_task.setdefault(s.episode_id.split("/")[0], []).append(i)
+        out: list[int] = []
+        while len(out) < min(count, len(self.sources)):
+            for ids in by_task.values():
+                taken = [i for i in ids if i not in out]
+                if taken and len(out) < count:
+                    out.append(taken[0])
+        return out

@@ -1,0 +1,164 @@
+"""The RGB-D-N autoencoder, its trainer and the latent cache, on a tiny random config (seconds)."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from tesseract4d import dataset_format as df
+from tesseract4d.errors import UserError
+from tesseract4d.model.autoencoder import (
+    RGBDNAutoencoder, autoencoder_hash, get_autoencoder_preset, load_autoencoder, save_autoencoder,
+)
+from tesseract4d.model.model_space import ModelSpace, channel_slices
+
+from synthetic_scene import synthetic_episode, write_segmented_dataset
+
+def test_round_trip_shapes_metric_depth_and_unit_normals():
+    torch.manual_seed(0)
+    cfg = get_autoencoder_preset("ae-test")
+    assert cfg.spatial_compression >= 8
+    model = RGBDNAutoencoder(cfg).eval()
+    ms = model.model_space
+    ep = synthetic_episode(0, frames=4, size=32)
+    cam = ep.cameras["close"]
+    x = ms.encode(cam.rgb, cam.depth_m, cam.normal_cam)  # (4, 7, 32, 32)
+    z = model.encode(x)
+    assert tuple(z.shape) == (4, *cfg.latent_shape) == (4, 4, 4, 4)
+    with torch.no_grad():
+        y = model.decode(z)
+    assert tuple(y.shape) == tuple(x.shape)
+    assert float(y.abs().max()) <= 1.0
+    rgb, depth_m, normal = ms.decode(y)
+    assert rgb.dtype == np.uint8 and rgb.shape == (4, 32, 32, 3)
+    hit = depth_m > 0
+    assert np.all((depth_m[hit] >= ms.near_m - 1e-6) & (depth_m[hit] <= ms.far_m + 1e-6))
+    n = y[:, channel_slices()["normal"]].norm(dim=1)  # (4, 32, 32), in the tensor itself
+    assert torch.all(((n - 1.0).abs() < 1e-4) | (n == 0))
+    length = np.linalg.norm(normal, axis=-1)
+    assert np.all((np.abs(length - 1) < 1e-4) | (length == 0))
+    # clips: (b, t, 7, H, W) -> (b, t, C, h, w) -> back
+    zc = model.encode_clips(x[None].repeat(2, 1, 1, 1, 1), chunk=3)
+    assert tuple(zc.shape) == (2, 4, *cfg.latent_shape)
+    with torch.no_grad():
+        assert tuple(model.decode_clips(zc).shape) == (2, 4, 7, 32, 32)
+
+
+def test_save_load_same_outputs_and_hash(tmp_path):
+    torch.manual_seed(1)
+    model = RGBDNAutoencoder(get_autoencoder_preset("ae-test")).eval()
+    model.set_latent_stats(torch.full((4,), 0.1), torch.full((4,), 2.0))
+    save_autoencoder(model, tmp_path / "ae")
+    loaded = load_autoencoder(tmp_path / "ae")
+    x = torch.rand(2, 7, 32, 32) * 2 - 1
+    assert torch.equal(model.encode(x), loaded.encode(x))
+    assert loaded.config.latent_std == [2.0] * 4
+    h = autoencoder_hash(tmp_path / "ae")
+    loaded.set_latent_stats(torch.zeros(4), torch.ones(4))
+    save_autoencoder(loaded, tmp_path / "ae2")
+    assert autoencoder_hash(tmp_path / "ae2") != h
+    with pytest.raises(UserError, match="train-autoencoder"):
+        load_autoencoder(tmp_path / "missing")
+
+
+def _train_cfg(data, out, **kw):
+    from tesseract4d.model.autoencoder_trainer import AutoencoderTrainConfig
+
+    return AutoencoderTrainConfig(data=data, out=out, preset="ae-test", batch_size=2, warmup_steps=1,
+                                  precision="fp32", progress=False, **kw)
+
+
+def test_trainer_resume_is_exact_and_gate_is_stored(tmp_path):
+    from tesseract4d.evaluation.autoencoder_fidelity import fidelity_metrics
+    from tesseract4d.model.autoencoder_trainer import AutoencoderTrainer, load_heldout_frames
+
+    data = write_segmented_dataset(tmp_path / "data")
+    full = AutoencoderTrainer(_train_cfg(data, tmp_path / "full", max_steps=4))
+    full.train()
+    first = AutoencoderTrainer(_train_cfg(data, tmp_path / "split", max_steps=2))
+    first.train()
+    second = AutoencoderTrainer(_train_cfg(data, tmp_path / "split", max_steps=4, resume=True))
+    heldout = load_heldout_frames(data, second.model, 8)
+    second.fidelity_fn = lambda m: fidelity_metrics(m, heldout)
+    gate = second.train()
+    for a, b in zip(full.model.state_dict().values(), second.model.state_dict().values()):
+        assert torch.equal(a, b)
+    stored = json.loads((tmp_path / "split" / "autoencoder" / "fidelity.json").read_text())
+    assert stored["step"] == 4 and stored == json.loads(json.dumps(gate))
+    for key in ("rgb_psnr_db", "object_rgb_psnr_db", "depth_mae_mm", "object_depth_mae_mm", "depth_abs_rel",
+                "normal_mean_deg", "object_normal_mean_deg"):
+        assert np.isfinite(stored[key]), key
+    exported = load_autoencoder(tmp_path / "split" / "autoencoder")
+    assert exported.config.latent_mean is not None and len(exported.config.latent_std) == 4
+    with pytest.raises(UserError, match="--resume"):
+        AutoencoderTrainer(_train_cfg(data, tmp_path / "split", max_steps=4))
+
+
+def test_wrong_resolution_is_a_user_error(tmp_path):
+    from tesseract4d.model.autoencoder_trainer import AutoencoderTrainer
+
+    data = write_segmented_dataset(tmp_path / "data", episodes=1, size=64)
+    with pytest.raises(UserError, match="--resolution 32"):
+        AutoencoderTrainer(_train_cfg(data, tmp_path / "run"))
+
+
+def test_loss_weights_robot_and_object_pixels_and_edges():
+    from tesseract4d.model.autoencoder_trainer import AutoencoderTrainConfig, pixel_weights
+
+    ms = ModelSpace()
+    ep = synthetic_episode(0, frames=1, size=32)
+    cam = ep.cameras["close"]
+    x = ms.encode(cam.rgb, cam.depth_m, cam.normal_cam)
+    mask = torch.from_numpy(np.isclose(cam.depth_m, 0.5))
+    w = pixel_weights(x, mask, AutoencoderTrainConfig(object_weight=5.0, edge_weight=2.0))[:, 0]  # (1, 32, 32)
+    inside = mask & ~torch.from_numpy(np.pad(~np.isclose(cam.depth_m[0], 0.5), 1, constant_values=True)[None, 2:, 1:-1])
+    assert float(w[mask].max()) == pytest.approx(7.0)  # object pixel at the square's edge
+    assert float(w[~mask].min()) == pytest.approx(1.0)  # plain scenery
+    assert inside.any()
+
+
+# --------------------------------------------------------------------------- latent cache
+
+
+def test_latent_cache_reused_when_valid_rebuilt_when_autoencoder_changes(tmp_path):
+    from tesseract4d.model.latent_cache import LatentClipDataset, ensure_latent_cache, open_latent_cache
+
+    data = write_segmented_dataset(tmp_path / "data", episodes=2)
+    torch.manual_seed(0)
+    ae = RGBDNAutoencoder(get_autoencoder_preset("ae-test")).eval()
+    save_autoencoder(ae, tmp_path / "ae_a")
+    cache, built = ensure_latent_cache(data, tmp_path / "ae_a")
+    assert built and len(cache.episodes) == 2
+    lat = cache.episodes[0].latents
+    assert tuple(lat.shape) == (8, 4, 4, 4) and lat.dtype == torch.float16
+    x = ae.model_space.encode(*(getattr(df.read_episode(df.list_episode_files(data)[0]).cameras["close"], k)
+                               for k in ("rgb", "depth_m", "normal_cam")))
+    assert torch.allclose(lat.float(), ae.encode(x), atol=1e-2)
+    assert float(cache.episodes[0].objects.max()) > 0  # the square is an object
+    mtime = (cache.folder / "latents.safetensors").stat().st_mtime_ns
+    again, built = ensure_latent_cache(data, tmp_path / "ae_a")
+    assert not built and (again.folder / "latents.safetensors").stat().st_mtime_ns == mtime
+    # another autoencoder: open refuses, ensure rebuilds
+    torch.manual_seed(1)
+    save_autoencoder(RGBDNAutoencoder(get_autoencoder_preset("ae-test")), tmp_path / "ae_b")
+    with pytest.raises(UserError, match="encode-latents"):
+        open_latent_cache(cache.folder, tmp_path / "ae_b")
+    rebuilt, built = ensure_latent_cache(data, tmp_path / "ae_b")
+    assert built and rebuilt.autoencoder_hash == autoencoder_hash(tmp_path / "ae_b")
+    assert not torch.equal(rebuilt.episodes[0].latents, lat)
+    assert not list(cache.folder.parent.glob(".*tmp"))
+    clips = LatentClipDataset(rebuilt, num_frames=4)
+    batch, texts, objects = clips.sample_batch(3, torch.Generator().manual_seed(0), with_objects=True)
+    assert tuple(batch.shape) == (3, 4, 4, 4, 4) and len(texts) == 3 and tuple(objects.shape) == (3, 4, 4, 4)
+
+
+def test_latent_cache_rejects_other_resolution(tmp_path):
+    from tesseract4d.model.latent_cache import ensure_latent_cache
+
+    data = write_segmented_dataset(tmp_path / "data", episodes=1, size=64)
+    save_autoencoder(RGBDNAutoencoder(get_autoencoder_preset("ae-test")), tmp_path / "ae")
+    with pytest.raises(UserError, match="--resolution 32"):
+        ensure_latent_cache(data, tmp_path / "ae")
