@@ -35,6 +35,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--noise-frac", type=float, default=d.noise_frac,
                         help="share of future points given Gaussian noise, for generated frames (default %(default)s)")
     parser.add_argument("--noise-m", type=float, default=d.noise_m, help="that noise's std in metres (default %(default)s)")
+    parser.add_argument("--gap-scales", default=",".join(str(g) for g in d.gap_scales),
+                        help="future frames at these multiples of episode_steps/15 ahead (default %(default)s)")
     parser.add_argument("--ckpt-every", type=int, default=d.ckpt_every, help="checkpoint every K steps (default %(default)s)")
     parser.add_argument("--max-minutes", type=float, help="stop with a checkpoint after this many minutes")
     parser.add_argument("--seed", type=int, default=d.seed)
@@ -50,7 +52,8 @@ def run(args: argparse.Namespace) -> int:
         tasks=[t.strip() for t in args.tasks.split(",") if t.strip()] if args.tasks else None,
         max_episodes_per_task=args.max_episodes_per_task, camera=args.camera, steps=args.steps,
         batch_size=args.batch_size, lr=args.lr, num_points=args.num_points, chunk_len=args.chunk_len,
-        noise_frac=args.noise_frac, noise_m=args.noise_m, seed=args.seed, ckpt_every=args.ckpt_every,
+        noise_frac=args.noise_frac, noise_m=args.noise_m,
+        gap_scales=tuple(float(g) for g in args.gap_scales.split(",")), seed=args.seed, ckpt_every=args.ckpt_every,
         max_minutes=args.max_minutes, resume=args.resume, progress=not args.no_progress,
     )
     trainer = IDMTrainer(cfg)

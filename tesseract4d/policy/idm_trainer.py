@@ -47,6 +47,7 @@ class IDMTrainConfig:
     chunk_len: int = 8
     noise_frac: float = 0.2
     noise_m: float = 0.02
+    gap_scales: tuple[float, ...] = (0.5, 1.0, 2.0)
     seed: int = 0
     ckpt_every: int = 500
     max_minutes: float | None = None
@@ -71,19 +72,23 @@ class PairSet:
     episodes: list[str]
 
 
-def pair_frames(frame_steps: np.ndarray, num_steps: int) -> list[tuple[int, int]]:
-    """(i, j) frame pairs: j is the kept frame nearest to G steps after frame i (G = num_steps / 15)."""
-    gap = max(1, int(round(num_steps / CLIP_INTERVALS)))
+def pair_frames(frame_steps: np.ndarray, num_steps: int, gap_scales: tuple[float, ...] = (1.0,)) -> list[tuple[int, int]]:
+    """(i, j) frame pairs: j is the kept frame nearest to s * G steps after frame i, for each s in
+    ``gap_scales`` (G = num_steps / 15). Scales other than 1 teach the IDM to catch up with a future
+    further ahead (a robot lagging its plan) or nearer; duplicates are dropped."""
     steps = np.asarray(frame_steps, np.int64)
     pairs = []
-    for i in range(len(steps) - 1):
-        j = i + 1 + int(np.argmin(np.abs(steps[i + 1:] - (steps[i] + gap))))
-        pairs.append((i, j))
-    return pairs
+    for scale in gap_scales:
+        gap = max(1, int(round(scale * num_steps / CLIP_INTERVALS)))
+        for i in range(len(steps) - 1):
+            j = i + 1 + int(np.argmin(np.abs(steps[i + 1:] - (steps[i] + gap))))
+            pairs.append((i, j))
+    return list(dict.fromkeys(pairs))
 
 
 def load_pairs(data: str | Path, *, camera: str | None, num_points: int, chunk_len: int, tasks: list[str] | None,
-               max_episodes_per_task: int, text_encoder, seed: int = 0, progress: bool = True) -> PairSet:
+               max_episodes_per_task: int, text_encoder, seed: int = 0, progress: bool = True,
+               gap_scales: tuple[float, ...] = (1.0,)) -> PairSet:
     from tqdm import tqdm
 
     files = df.list_episode_files(data)
@@ -120,7 +125,7 @@ def load_pairs(data: str | Path, *, camera: str | None, num_points: int, chunk_l
         qpos.append(ep.qpos.astype(np.float32))
         emb = sentence_embeddings(text_encoder, [ep.instruction])[0].numpy()
         text.append(np.repeat(emb[None], ep.num_frames, 0))
-        for i, j in pair_frames(ep.frame_steps, len(ep.actions)):
+        for i, j in pair_frames(ep.frame_steps, len(ep.actions), gap_scales):
             s0, s1 = int(ep.frame_steps[i]), int(ep.frame_steps[j])
             now.append(offset + i)
             nxt.append(offset + j)
@@ -188,14 +193,15 @@ class IDMTrainer:
         self.text_encoder = text_encoder or TextEncoder("minilm", max_tokens=32)
         self.pairs = load_pairs(cfg.data, camera=cfg.camera, num_points=cfg.num_points, chunk_len=cfg.chunk_len,
                                 tasks=cfg.tasks, max_episodes_per_task=cfg.max_episodes_per_task,
-                                text_encoder=self.text_encoder, seed=cfg.seed, progress=cfg.progress)
+                                text_encoder=self.text_encoder, seed=cfg.seed, progress=cfg.progress,
+                                gap_scales=tuple(cfg.gap_scales))
         p = self.pairs
         self.idm_config = IDMConfig(
             use_future=cfg.use_future, num_points=cfg.num_points, chunk_len=cfg.chunk_len, action_dim=p.action_dim,
             qpos_dim=int(p.qpos.shape[1]), text_dim=int(p.text.shape[1]), control_mode=p.control_mode, camera=p.camera,
             resolution=list(p.resolution),
             training={"data": str(cfg.data), "episodes": len(p.episodes), "pairs": int(len(p.now)), "steps": cfg.steps,
-                      "batch_size": cfg.batch_size, "lr": cfg.lr, "noise_frac": cfg.noise_frac, "noise_m": cfg.noise_m,
+                      "batch_size": cfg.batch_size, "lr": cfg.lr, "noise_frac": cfg.noise_frac, "noise_m": cfg.noise_m, "gap_scales": list(cfg.gap_scales),
                       "tasks": sorted({e.split("/")[0] for e in p.episodes}), "seed": cfg.seed},
         )
         torch.manual_seed(cfg.seed)
