@@ -154,9 +154,10 @@ def make_batch(pairs: PairSet, idx: np.ndarray, rng: np.random.Generator, noise_
 
 
 def fit_report(model: InverseDynamics, pairs: PairSet, max_pairs: int = 2048) -> dict:
-    """Errors of the model on (up to max_pairs of) the pairs, without noise: arm joint targets
-    (rad, mean and 95th percentile of |error|), gripper command sign agreement, steps (relative)."""
-    idx = np.arange(min(len(pairs.now), max_pairs))
+    """Errors of the model on (a fixed random subset of up to max_pairs of) the pairs, without noise:
+    arm joint targets (rad, mean and 95th percentile of |error|), gripper command sign agreement,
+    steps a chunk spans (relative error)."""
+    idx = np.sort(np.random.default_rng(0).permutation(len(pairs.now))[:max_pairs])
     errs, grip, steps_rel = [], [], []
     model.eval()
     with torch.no_grad():
