@@ -111,7 +111,7 @@ def format_markdown(summary: dict, arms: list[str], tasks: list[str], timing: di
     return "\n".join(lines) + "\n"
 
 
-def cycle_timing(results: list[EpisodeResult], replan_every: int) -> dict:
+def cycle_timing(results: list[EpisodeResult]) -> dict:
     """Mean seconds per replanning cycle: one prediction, and the reconstruct/IDM work of its k chunks."""
     cycles = sum(max(r.replans, 1) if r.arm != "behavior_cloning" else r.chunks for r in results) or 1
     tot = {s: sum(r.stage_seconds.get(s, 0.0) for r in results) for s in ("predict", "reconstruct", "idm")}
@@ -281,7 +281,7 @@ def run_rollouts(cfg: RolloutConfig, progress: bool = True) -> dict:
             sim.close()
     bar.close()
     summary = summarize(rows, cfg.arms, cfg.tasks)
-    timing = {a: cycle_timing(rs, lc.replan_every) for a, rs in results.items() if a != "motion_planner" and rs}
+    timing = {a: cycle_timing(rs) for a, rs in results.items() if a != "motion_planner" and rs}
     report = {"config": dataclasses.asdict(cfg), "summary": summary, "timing_s": timing, "episodes": rows,
               "idm": idm.config.training if idm is not None else None, "bc": bc.config.training if bc is not None else None}
     df.atomic_write_text(out / "report.json", json.dumps(report, indent=2, default=str))
