@@ -200,6 +200,11 @@ class EpisodeSimulator:
         return self._render(seed, [env.states[0]], np.zeros(1, np.int64), np.zeros((0, action_dim), np.float32),
                             success=None)
 
+    def observe(self) -> dict:
+        """Render the episode's cameras (placed by ``first_frame`` or ``run``) at the env's current
+        state: camera name -> capture.Frame. Used by the closed-loop policy between actions."""
+        return self._renderer.capture(self.env.unwrapped)
+
     def _set_up_scene(self, seed: int) -> tuple[list, dict]:
         """Place the (jittered) cameras and set colours and lighting for this seed."""
         cfg, spec, base = self.config, self.spec, self.env.unwrapped

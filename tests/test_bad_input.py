@@ -111,6 +111,19 @@ def test_reconstruct_out_holding_foreign_files_is_refused(sandbox, capsys):
     assert changed(before, snapshot(sandbox)) == set()
 
 
+@pytest.mark.parametrize("argv", [
+    ["rollout", "--tasks", "PushCube-v1", "--arms", "motion_planner", "--episodes", "1", "--out", "out"],
+    ["train-idm", "--data", "data", "--out", "out", "--steps", "1"],
+], ids=["rollout", "train-idm"])
+def test_policy_commands_refuse_an_out_holding_foreign_files(sandbox, capsys, argv):
+    (sandbox / "out").mkdir()
+    (sandbox / "out" / "report.json").write_text("the user's own report")
+    before = snapshot(sandbox)
+    rc, _, err = run_cli(capsys, *argv)
+    assert_one_line_error(rc, err, "out", "did not write")
+    assert changed(before, snapshot(sandbox)) == set()
+
+
 def test_reconstruct_out_dotdot_from_a_nested_directory_is_refused(sandbox, capsys, monkeypatch):
     nested = sandbox / "work" / "inner"
     nested.mkdir(parents=True)

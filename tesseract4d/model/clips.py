@@ -89,13 +89,18 @@ class ClipDataset:
 
     def validation_indices(self, count: int) -> list[int]:
         """Up to ``count`` fixed episodes for validation videos, spread over the tasks."""
-        by_task: dict[str, list[int]] = {}
-        for i, s in enumerate(self.sources):
-            by_task.setdefault(s.episode_id.split("/")[0], []).append(i)
-        out: list[int] = []
-        while len(out) < min(count, len(self.sources)):
-            for ids in by_task.values():
-                taken = [i for i in ids if i not in out]
-                if taken and len(out) < count:
-                    out.append(taken[0])
-        return out
+        return spread_over_tasks([s.episode_id for s in self.sources], count)
+
+
+def spread_over_tasks(episode_ids: list[str], count: int) -> list[int]:
+    """Indices of up to ``count`` episodes (ids ``TASK/...``), taking the tasks in turn."""
+    by_task: dict[str, list[int]] = {}
+    for i, episode_id in enumerate(episode_ids):
+        by_task.setdefault(episode_id.split("/")[0], []).append(i)
+    out: list[int] = []
+    while len(out) < min(count, len(episode_ids)):
+        for ids in by_task.values():
+            taken = [i for i in ids if i not in out]
+            if taken and len(out) < count:
+                out.append(taken[0])
+    return out

@@ -216,13 +216,6 @@ class LatentClipDataset:
 
     def validation_indices(self, count: int) -> list[int]:
         """Up to ``count`` fixed episodes, spread over the tasks."""
-        by_task: dict[str, list[int]] = {}
-        for i, s in enumerate(self.sources):
-            by_task.setdefault(s.episode_id.split("/")[0], []).append(i)
-        out: list[int] = []
-        while len(out) < min(count, len(self.sources)):
-            for ids in by_task.values():
-                taken = [i for i in ids if i not in out]
-                if taken and len(out) < count:
-                    out.append(taken[0])
-        return out
+        from tesseract4d.model.clips import spread_over_tasks
+
+        return spread_over_tasks([s.episode_id for s in self.sources], count)

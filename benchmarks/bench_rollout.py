@@ -1,0 +1,117 @@
+"""Closed-loop benchmark: seconds per replanning cycle (predict + reconstruct + IDM), per stage.
+
+One cycle = one world-model prediction (16 frames from the current frame and the instruction)
+plus, for each of the k clip frames executed, back-projecting the current and the predicted frame
+into point clouds and one IDM forward pass. Also timed for comparison: the full 4D reconstruction
+of the predicted clip (normal integration + temporal consistency + TSDF), which the loop does not
+use (see the table), and rendering one observation.
+
+  PYTHONPATH=. OMP_WAIT_POLICY=PASSIVE python benchmarks/bench_rollout.py --idm runs/idm/final \
+      --checkpoint tesseract4d/checkpoints/tiny --repeats 5
+
+Target (issue 15): a cycle <= 2 s on the 2-core CPU.
+"""
+
+from __future__ import annotations
+
+import argparse
+import platform
+import statistics
+import time
+
+
+def cpu_description() -> str:
+    import torch
+
+    model, flags = platform.processor() or "unknown CPU", set()
+    try:
+        for line in open("/proc/cpuinfo"):
+            if line.startswith("model name"):
+                model = line.split(":", 1)[1].strip()
+            elif line.startswith("flags"):
+                flags = set(line.split(":", 1)[1].split())
+    except OSError:
+        pass
+    isa = [f for f in ("avx2", "avx512f", "avx512_bf16", "amx_bf16") if f in flags]
+    return f"{model}; ISA {'/'.join(isa) or 'baseline'}; torch capability {torch.backends.cpu.get_cpu_capability()}; " \
+           f"{torch.get_num_threads()} threads"
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--idm", required=True, help="IDM folder (train-idm RUN/final)")
+    ap.add_argument("--checkpoint", default="tesseract4d/checkpoints/tiny")
+    ap.add_argument("--task", default="PushCube-v1")
+    ap.add_argument("--seed", type=int, default=100000)
+    ap.add_argument("--replan-every", type=int, default=4)
+    ap.add_argument("--sample-steps", type=int, default=10)
+    ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--precision", choices=("auto", "fp32", "bf16"), default="auto",
+                    help="world-model precision (default %(default)s: bf16 only where the CPU has it)")
+    args = ap.parse_args()
+
+    from tesseract4d import runtime
+
+    runtime.configure()
+    import numpy as np
+    import torch
+
+    from datagen.simulate import EpisodeSimulator, SimConfig
+    from reconstruction.reconstruct import reconstruct_episode
+    from tesseract4d.model.predict import load_pipeline
+    from tesseract4d.model.text_encoder import TextEncoder
+    from tesseract4d.policy.idm import load_idm, sentence_embeddings
+    from tesseract4d.policy.loop import LoopConfig, WorldModelFuture
+    from tesseract4d.policy.points import frame_points
+
+    idm = load_idm(args.idm)
+    pipe = load_pipeline(args.checkpoint, precision=args.precision)
+    cfg = LoopConfig(replan_every=args.replan_every, sample_steps=args.sample_steps,
+                     resolution=tuple(pipe.resolution), camera=pipe.camera_name or "close")
+    wm = WorldModelFuture(pipe, cfg)
+    sim = EpisodeSimulator(args.task, SimConfig(height=cfg.resolution[0], width=cfg.resolution[1], cameras=[cfg.camera]))
+    first = sim.first_frame(args.seed)
+    text = sentence_embeddings(TextEncoder("minilm", max_tokens=32), [first.instruction])
+    qpos = torch.from_numpy(sim.env.unwrapped.agent.robot.get_qpos()[0].numpy().astype(np.float32))[None]
+    rng = np.random.default_rng(0)
+    rows = {k: [] for k in ("observe", "predict", "reconstruct", "idm", "cycle", "full_4d_reconstruction")}
+    for r in range(args.repeats + 1):  # the first round warms up and is not counted
+        t0 = time.perf_counter()
+        frame = sim.observe()[cfg.camera]
+        t1 = time.perf_counter()
+        clip = wm.clip(frame, args.task, args.seed, first.instruction, r)
+        t2 = time.perf_counter()
+        recon = idm_s = 0.0
+        for j in range(1, cfg.replan_every + 1):
+            a = time.perf_counter()
+            now = frame_points(frame.rgb, frame.depth_m, frame.K, frame.T_world_cam, idm.config.num_points, rng)
+            nxt = frame_points(clip.rgb[j], clip.depth_m[j], clip.K[j], clip.T_world_cam[j], idm.config.num_points, rng)
+            b = time.perf_counter()
+            with torch.no_grad():
+                idm.decode(idm(torch.from_numpy(now)[None], torch.from_numpy(nxt)[None], text, qpos), qpos)
+            recon += b - a
+            idm_s += time.perf_counter() - b
+        t3 = time.perf_counter()
+        reconstruct_episode(clip.episode)
+        t4 = time.perf_counter()
+        if r == 0:
+            continue
+        rows["observe"].append(t1 - t0)
+        rows["predict"].append(t2 - t1)
+        rows["reconstruct"].append(recon)
+        rows["idm"].append(idm_s)
+        rows["cycle"].append((t2 - t1) + recon + idm_s)
+        rows["full_4d_reconstruction"].append(t4 - t3)
+    sim.close()
+    print(f"CPU: {cpu_description()}")
+    print(f"task {args.task}, k = {cfg.replan_every} clip frames per cycle, {args.sample_steps} diffusion steps, "
+          f"{idm.config.num_points} points per cloud, world model {pipe.resolution[0]}x{pipe.resolution[1]}, "
+          f"{'bf16' if pipe.bf16 else 'fp32'}, {args.repeats} repeats")
+    print(f"{'stage':<26}{'median s':>10}{'min s':>10}")
+    for k, v in rows.items():
+        note = "  (not in the loop)" if k == "full_4d_reconstruction" else ("  (per observation)" if k == "observe" else "")
+        print(f"{k:<26}{statistics.median(v):>10.3f}{min(v):>10.3f}{note}")
+
+
+if __name__ == "__main__":
+    main()

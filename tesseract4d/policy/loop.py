@@ -1,0 +1,232 @@
+"""The policy loop: observe -> predict the clip -> reconstruct -> inverse dynamics -> act -> replan.
+
+One episode in ManiSkill on the CPU:
+
+1. observe: render the camera (RGB-D-N) at the current state;
+2. predict: a 16-frame clip from the current frame and the instruction (``WorldModelFuture``), or
+   the true future of the motion planner's episode of the same seed (``OracleFuture``);
+3. reconstruct: back-project the current and the next clip frame into world point clouds;
+4. IDM: the action chunk between them and how many env steps it spans; execute it;
+5. observe again and go to 3 with the next clip frame; every ``replan_every`` clip frames go to 2.
+
+Behaviour cloning runs the same loop without steps 2 and the future cloud. Success is the env's own
+``info["success"]``, reached at any step (ManiSkill's ``success_once``).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+
+from tesseract4d import dataset_format as df
+from tesseract4d.errors import UserError
+from tesseract4d.policy.idm import InverseDynamics, check_compatible, expand_chunk, sentence_embeddings
+from tesseract4d.policy.points import frame_points
+
+STAGES = ("observe", "predict", "reconstruct", "idm", "act")
+
+
+@dataclass
+class LoopConfig:
+    # Clip frames executed per prediction (k). 15 = the whole clip, then a new prediction: measured
+    # better with the shipped tiny model (trained only on clips that start an episode), whose clips
+    # predicted from mid-episode frames degrade: world-model arm 3/10 at k = 15 vs 0/10 at k = 4
+    # on PushCube + PullCube, 5 held-out seeds each.
+    replan_every: int = 15
+    max_steps: int = 200  # env steps before the episode counts as failed
+    max_chunk_steps: int = 30  # upper bound on the steps one IDM chunk may span
+    num_frames: int = 16  # frames per predicted clip
+    sample_steps: int = 10  # diffusion steps per prediction
+    sample_seed: int = 0
+    camera: str = "close"
+    resolution: tuple[int, int] = (64, 64)
+    instruction_split: str = "heldout"
+    point_seed: int = 0
+
+
+@dataclass
+class FutureClip:
+    """Frames 0..T-1 of a future starting at the current observation (frame 0)."""
+
+    rgb: np.ndarray  # (T, H, W, 3) uint8
+    depth_m: np.ndarray  # (T, H, W)
+    K: np.ndarray  # (T, 3, 3)
+    T_world_cam: np.ndarray  # (T, 4, 4)
+    episode: df.Episode | None = None  # the prediction as a dataset episode (viewer)
+
+
+@dataclass
+class EpisodeResult:
+    env_id: str
+    seed: int
+    arm: str
+    success: bool
+    success_at_end: bool
+    steps: int
+    replans: int
+    chunks: int
+    seconds: float
+    stage_seconds: dict = field(default_factory=dict)
+    instruction: str = ""
+    error: str = ""
+
+
+@dataclass
+class Trace:
+    """What the robot saw and what it was steering toward, per executed chunk (for MP4s and the viewer)."""
+
+    observed: list = field(default_factory=list)  # capture.Frame after each chunk (index 0 = start)
+    targets: list = field(default_factory=list)  # (H, W, 3) uint8 target frame per chunk, or None
+    replans: list = field(default_factory=list)  # (first observed index, FutureClip) per replan
+
+
+def observation_episode(frames: list, env_id: str, seed: int, instruction: str, camera: str) -> df.Episode:
+    """Observed capture.Frames as a dataset episode (viewer / world-model input)."""
+    cam = df.CameraFrames(
+        rgb=np.stack([f.rgb for f in frames]), depth_m=np.stack([f.depth_m for f in frames]).astype(np.float32),
+        normal_cam=np.stack([f.normal_cam for f in frames]).astype(np.float32), K=np.stack([f.K for f in frames]),
+        T_world_cam=np.stack([f.T_world_cam for f in frames]),
+    )
+    return df.Episode(env_id=env_id, seed=int(seed), instruction=instruction, cameras={camera: cam},
+                      frame_steps=np.arange(len(frames), dtype=np.int32), source="rollout observation")
+
+
+class WorldModelFuture:
+    """The world model's clip from the current frame and the instruction."""
+
+    name = "world_model"
+
+    def __init__(self, pipeline, config: LoopConfig):
+        self.pipeline = pipeline
+        self.config = config
+        ckpt_cam = pipeline.camera_name
+        if tuple(pipeline.resolution) != tuple(config.resolution) or (ckpt_cam and ckpt_cam != config.camera):
+            raise UserError(f"the world model was trained on camera {ckpt_cam!r} at {pipeline.resolution[0]}x{pipeline.resolution[1]} "
+                            f"but the rollout renders camera {config.camera!r} at {config.resolution[0]}x{config.resolution[1]}; "
+                            f"pass --camera {ckpt_cam} --resolution {pipeline.resolution[0]} or use a matching checkpoint")
+
+    def clip(self, frame, env_id: str, seed: int, instruction: str, step: int) -> FutureClip:
+        from tesseract4d.model.predict import predict_episode
+
+        c = self.config
+        first = observation_episode([frame], env_id, seed, instruction, c.camera)
+        pred = predict_episode(self.pipeline, first, instruction, num_frames=c.num_frames, num_steps=c.sample_steps,
+                               seed=c.sample_seed + step)
+        cam = pred.cameras[c.camera]
+        return FutureClip(cam.rgb, cam.depth_m, cam.K, cam.T_world_cam, episode=pred)
+
+
+class OracleFuture:
+    """The true future: the motion planner's episode of the same seed (rendered every step),
+    sampled from the current step every G steps (G = planner steps / 15, as in training)."""
+
+    name = "oracle_future"
+
+    def __init__(self, planner_episode: df.Episode, config: LoopConfig):
+        self.episode = planner_episode
+        self.config = config
+        self.cam = planner_episode.cameras[config.camera]
+        steps = len(planner_episode.actions)
+        self.gap = max(1, int(round(steps / (config.num_frames - 1))))
+        if not np.array_equal(planner_episode.frame_steps, np.arange(steps + 1)):
+            raise UserError("the oracle future needs the planner episode rendered at every step (frames=0)")
+
+    def clip(self, frame, env_id: str, seed: int, instruction: str, step: int) -> FutureClip:
+        last = len(self.cam.rgb) - 1
+        idx = np.minimum(step + self.gap * np.arange(self.config.num_frames), last)
+        c = self.cam
+        return FutureClip(c.rgb[idx], c.depth_m[idx], c.K[idx], c.T_world_cam[idx])
+
+
+class PolicyRunner:
+    """Runs episodes of one arm ("oracle_future", "world_model" or "behavior_cloning") in one env."""
+
+    def __init__(self, simulator, model: InverseDynamics, text_encoder, config: LoopConfig):
+        self.sim = simulator
+        self.model = model
+        self.text_encoder = text_encoder
+        self.config = config
+        if (config.replan_every < 1 or config.replan_every >= config.num_frames) and model.config.use_future:
+            raise UserError(f"--replan-every must be between 1 and {config.num_frames - 1} clip frames")
+
+    def check_env(self) -> None:
+        env = self.sim.env
+        from datagen.tasks import CONTROL_MODE
+
+        action_dim = int(np.prod(env.unwrapped.single_action_space.shape))
+        check_compatible(self.model.config, control_mode=CONTROL_MODE, action_dim=action_dim, camera=self.config.camera,
+                         resolution=tuple(self.config.resolution), what=f"the rollout env {self.sim.env_id}")
+
+    @torch.no_grad()
+    def run(self, seed: int, future=None, trace: Trace | None = None) -> EpisodeResult:
+        c, model = self.config, self.model
+        arm = future.name if future is not None else "behavior_cloning"
+        if model.config.use_future != (future is not None):
+            raise UserError(f"arm {arm} needs an IDM with use_future={future is not None}; this one has "
+                            f"use_future={model.config.use_future}")
+        self.check_env()
+        timings = dict.fromkeys(STAGES, 0.0)
+        t_start = time.perf_counter()
+        tick = time.perf_counter()
+
+        def lap(stage: str) -> None:
+            nonlocal tick
+            now = time.perf_counter()
+            timings[stage] += now - tick
+            tick = now
+
+        first = self.sim.first_frame(seed)
+        instruction = first.instruction
+        frame = self.sim.observe()[c.camera]
+        lap("observe")
+        text = sentence_embeddings(self.text_encoder, [instruction])  # (1, d)
+        rng = np.random.default_rng([c.point_seed, seed])
+        env = self.sim.env
+        success = success_now = False
+        steps = replans = chunks = 0
+        if trace is not None:
+            trace.observed.append(frame)
+            trace.targets.append(None)
+        while steps < c.max_steps and not success:
+            clip = None
+            if future is not None:
+                clip = future.clip(frame, self.sim.env_id, seed, instruction, steps)
+                replans += 1
+                if trace is not None:
+                    trace.replans.append((len(trace.observed) - 1, clip))
+                lap("predict")
+            targets = range(1, c.replan_every + 1) if clip is not None else range(1)
+            for j in targets:
+                now_pts = frame_points(frame.rgb, frame.depth_m, frame.K, frame.T_world_cam, model.config.num_points, rng)
+                next_pts = None
+                if clip is not None:
+                    next_pts = torch.from_numpy(frame_points(clip.rgb[j], clip.depth_m[j], clip.K[j], clip.T_world_cam[j],
+                                                             model.config.num_points, rng))[None]
+                lap("reconstruct")
+                qpos = torch.from_numpy(self.sim.env.unwrapped.agent.robot.get_qpos()[0].cpu().numpy().astype(np.float32))[None]
+                out = model(torch.from_numpy(now_pts)[None], next_pts, text, qpos)
+                chunk, n = model.decode(out, qpos)
+                n_steps = int(np.clip(round(float(n[0])), 1, c.max_chunk_steps))
+                actions = expand_chunk(chunk[0].numpy(), n_steps)  # (n_steps, A)
+                lap("idm")
+                for a in actions:
+                    _, _, _, _, info = env.step(a)
+                    steps += 1
+                    success_now = bool(np.asarray(info["success"]).reshape(-1)[0])
+                    success |= success_now
+                    if success or steps >= c.max_steps:
+                        break
+                chunks += 1
+                lap("act")
+                frame = self.sim.observe()[c.camera]
+                lap("observe")
+                if trace is not None:
+                    trace.observed.append(frame)
+                    trace.targets.append(clip.rgb[j] if clip is not None else None)
+                if success or steps >= c.max_steps:
+                    break
+        return EpisodeResult(self.sim.env_id, int(seed), arm, success, success_now, steps, replans, chunks,
+                             time.perf_counter() - t_start, {k: round(v, 3) for k, v in timings.items()}, instruction)
