@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import argparse
 import os
-import platform
 import statistics
 import sys
 import tempfile
@@ -24,20 +23,6 @@ import time
 from pathlib import Path
 
 from bench_model import _peak_rss_mb, _reset_peak_rss, bench_sampling, bench_training
-
-
-def cpu_description() -> str:
-    model, flags = platform.processor() or "unknown CPU", set()
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name") and model == (platform.processor() or "unknown CPU"):
-                model = line.split(":", 1)[1].strip()
-            if line.startswith("flags"):
-                flags = set(line.split(":", 1)[1].split())
-    except OSError:
-        pass
-    isa = [f for f in ("avx2", "avx512f", "avx512_bf16", "amx_bf16", "amx_tile") if f in flags]
-    return f"{model}; ISA: {', '.join(isa) or 'none of avx2/avx512/amx'}; {os.cpu_count()} logical CPUs"
 
 
 def _median_time(fn, repeats: int) -> float:
@@ -132,7 +117,9 @@ def main(argv: list[str] | None = None) -> int:
     from tesseract4d.model.autoencoder import RGBDNAutoencoder, get_autoencoder_preset, save_autoencoder
     from tesseract4d.precision import cpu_flags, has_fast_bf16
 
-    print(f"CPU: {cpu_description()}")
+    from tesseract4d.precision import describe_cpu
+
+    print(f"CPU: {describe_cpu()}; {os.cpu_count()} logical CPUs")
     print(f"torch {torch.__version__}, {torch.get_num_threads()} threads, OMP_WAIT_POLICY={os.environ.get('OMP_WAIT_POLICY')}")
     precisions = [False, True] if has_fast_bf16(cpu_flags()) else [False]
     rows = []

@@ -15,26 +15,8 @@ Target (issue 15): a cycle <= 2 s on the 2-core CPU.
 from __future__ import annotations
 
 import argparse
-import platform
 import statistics
 import time
-
-
-def cpu_description() -> str:
-    import torch
-
-    model, flags = platform.processor() or "unknown CPU", set()
-    try:
-        for line in open("/proc/cpuinfo"):
-            if line.startswith("model name"):
-                model = line.split(":", 1)[1].strip()
-            elif line.startswith("flags"):
-                flags = set(line.split(":", 1)[1].split())
-    except OSError:
-        pass
-    isa = [f for f in ("avx2", "avx512f", "avx512_bf16", "amx_bf16") if f in flags]
-    return f"{model}; ISA {'/'.join(isa) or 'baseline'}; torch capability {torch.backends.cpu.get_cpu_capability()}; " \
-           f"{torch.get_num_threads()} threads"
 
 
 def main() -> None:
@@ -103,7 +85,11 @@ def main() -> None:
         rows["cycle"].append((t2 - t1) + recon + idm_s)
         rows["full_4d_reconstruction"].append(t4 - t3)
     sim.close()
-    print(f"CPU: {cpu_description()}")
+    import torch
+
+    from tesseract4d.precision import describe_cpu
+
+    print(f"CPU: {describe_cpu()}; torch capability {torch.backends.cpu.get_cpu_capability()}; {torch.get_num_threads()} threads")
     print(f"task {args.task}, k = {cfg.replan_every} clip frames per cycle, {args.sample_steps} diffusion steps, "
           f"{idm.config.num_points} points per cloud, world model {pipe.resolution[0]}x{pipe.resolution[1]}, "
           f"{'bf16' if pipe.bf16 else 'fp32'}, {args.repeats} repeats")

@@ -16,25 +16,7 @@ from __future__ import annotations
 
 import argparse
 import os
-import platform
 import time
-
-
-def cpu_model() -> tuple[str, str]:
-    """CPU model name and the vector ISA extensions that matter here."""
-    model, flags = platform.processor() or "unknown", set()
-    try:
-        with open("/proc/cpuinfo") as f:
-            for line in f:
-                if line.startswith("model name") and model in ("unknown", "", platform.processor()):
-                    model = line.split(":", 1)[1].strip()
-                if line.startswith("flags"):
-                    flags = set(line.split(":", 1)[1].split())
-                    break
-    except OSError:
-        pass
-    isa = [f for f in ("avx2", "avx512f", "avx512_bf16", "amx_bf16") if f in flags]
-    return model, ",".join(isa) or "-"
 
 
 def main() -> None:
@@ -114,10 +96,11 @@ def main() -> None:
         print(f"  {name}: {ok}/{args.seeds}", flush=True)
     sim.close()
 
-    model, isa = cpu_model()
+    from tesseract4d.precision import describe_cpu
+
     print(f"\nSkills in {ENV_ID}, {args.seeds} seeds each; frames/s = RGB-D-N + segmentation, camera "
           f"'{args.camera}', {args.resolution}x{args.resolution}, 1 rasteriser thread")
-    print(f"CPU: {model} ({isa}), {os.cpu_count()} cores, load when measured: {os.getloadavg()[0]:.2f}")
+    print(f"CPU: {describe_cpu()}, {os.cpu_count()} cores, load when measured: {os.getloadavg()[0]:.2f}")
     print(f"| {'skill':<14} | {'planner success':>15} | {'no target':>9} | {'plan s/seed':>11} | {'sim steps':>9} | {'frames/s':>8} |")
     print(f"|{'-' * 16}|{'-' * 17}|{'-' * 11}|{'-' * 13}|{'-' * 11}|{'-' * 10}|")
     for name, ok, n, nt, ps, st, fps in rows:
