@@ -181,6 +181,7 @@ def test_evaluate_scores_several_checkpoints_side_by_side(two_checkpoints, tmp_p
     assert report["summary"]["static"]["contrast"] == pytest.approx(1 / 3)
     assert report["contrast"]["ground_truth"]["share"] == 1.0
     assert report["contrast"]["static"]["per_skill"] == {"keep_still": 1.0, "push": 0.0}
+    assert report["contrast"]["static"]["per_task"] == {"Synthetic-v0": pytest.approx(1 / 3)}
     md = (out / "report.md").read_text()
     for label in report["methods"].values():
         assert label in md
@@ -195,3 +196,24 @@ def test_single_checkpoint_keeps_the_report_keys(two_checkpoints):
     assert list(report["methods"]) == ["model", "model_raw", "static"]
     assert {"model", "model_raw", "static"} <= set(report["summary"]) and "model" in report["instruction_following"]
     assert "model + consistency" in format_markdown(report)
+
+
+def test_a_shaded_object_is_tracked_and_found_by_its_own_colours():
+    from tesseract4d.evaluation.believability import objects_present
+    from tesseract4d.evaluation.heldout_believability import track_object
+    from tesseract4d.evaluation.instruction_following import track_colour
+
+    # A cube with a lit top and a dark side on a grey table: its mean colour matches none of its pixels.
+    rgb = np.full((2, 32, 32, 3), 100, np.uint8)
+    seg = np.zeros((2, 32, 32), np.int32)
+    for t, u0 in enumerate((8, 14)):
+        rgb[t, 10:14, u0:u0 + 8] = (240, 240, 60)
+        rgb[t, 14:18, u0:u0 + 8] = (90, 90, 20)
+        seg[t, 10:18, u0:u0 + 8] = 1
+    assert track_colour(rgb[0], seg[0] == 1, rgb[1]) is None  # the mean-colour tracker loses it
+    du, dv = track_object(rgb[0], seg[0] == 1, rgb[1])
+    assert du == pytest.approx(6.0) and dv == pytest.approx(0.0)
+    assert track_object(rgb[0], seg[0] == 1, rgb[0]) == (0.0, 0.0)
+    assert objects_present(rgb, seg, [1], rgb).frames_all_present == 1.0
+    table_only = np.full_like(rgb, 100)
+    assert objects_present(rgb, seg, [1], table_only).frames_all_present == 0.0

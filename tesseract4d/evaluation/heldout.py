@@ -332,7 +332,7 @@ def format_markdown(report: dict) -> str:
         for key, entry in table.items():
             cells = []
             for m in methods:
-                c = (contrast or {}).get(m, {}).get("per_skill", {}).get(key) if by == "per_skill" else None
+                c = (contrast or {}).get(m, {}).get(by, {}).get(key)
                 cells.append(f"{_fmt(entry[m].get('rgb_psnr_db_moving'), '')} / {_fmt(entry[m].get('objects_present'), '')}"
                              f" / {_fmt(c, '')}")
             lines.append(f"| {key} | {n_eps.get(key, '')} | " + " | ".join(cells) + " |")

@@ -13,7 +13,7 @@ Per episode and per method (a predicted clip against the episode's ground truth)
 - ``motion``: mean absolute RGB change from the first frame (0-255 units).
 - a contrast entry (:func:`contrast_entry`) when the episode has a structured intent: the
   commanded world displacement of the instructed object projected into the image with K and
-  T_world_cam, and the displacement the colour tracker finds in the prediction's last frame.
+  T_world_cam, and the displacement :func:`track_object` finds in the prediction's last frame.
 
 :func:`contrast_by_group` scores each counterfactual group (episodes sharing ``group_id``) with
 :func:`believability.instruction_contrast`; :func:`breakdown` averages any per-episode metric per
@@ -24,9 +24,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from tesseract4d.evaluation.believability import (RIGHT_WAY_COSINE, STILL_SHARE, edge_sharpness, instruction_contrast,
-                                                  objects_present, token_grid_ratio)
-from tesseract4d.evaluation.instruction_following import object_pixel_track, track_colour
+from tesseract4d.evaluation.believability import (MIN_OBJECT_PIXELS, OBJECT_COLOUR_TOL, PRESENCE_SLACK_PX,
+                                                  RIGHT_WAY_COSINE, STILL_SHARE, _dilate, _min_colour_distance,
+                                                  edge_sharpness, instruction_contrast, objects_present, token_grid_ratio)
+from tesseract4d.evaluation.instruction_following import object_pixel_track
 
 PRESENCE_GOAL = 0.95  # issue: every visible object present in at least 95 % of frames
 CONTRAST_GOAL = 0.70  # issue: at least 70 % of a group's instructions right
@@ -69,6 +70,41 @@ def commanded_px(intent: dict, start_xyz_world: np.ndarray, K: np.ndarray, T_wor
     return float(d[0]), float(d[1])
 
 
+def track_object(first_rgb: np.ndarray, object_mask: np.ndarray, target_rgb: np.ndarray,
+                 search_px: int = 24) -> tuple[float, float] | None:
+    """Displacement (du, dv) of an object from the ground truth's first frame to ``target_rgb``.
+
+    The colour tracker of :mod:`instruction_following` with the object's *distinctive* colours (as
+    :func:`believability.objects_present`: its first-frame pixels unlike everything around it) in
+    place of its mean colour, which a shaded cube (lit top, dark sides) may match nowhere. Pixels of
+    those colours that lay outside the object in the first frame (a same-coloured goal or object)
+    are left out, and only a window of ``search_px`` around the start counts; the start is the
+    same estimator on the first frame, so a static clip measures zero motion.
+    first_rgb, target_rgb: (H, W, 3) uint8; object_mask: (H, W) bool. None when the object is not
+    visible (or not distinctive) in the first frame, or not found in the target.
+    """
+    mask = np.asarray(object_mask, bool)
+    if mask.sum() < MIN_OBJECT_PIXELS:
+        return None
+    rgb0 = np.asarray(first_rgb, np.float32)
+    H, W = mask.shape
+    own = rgb0[mask]
+    keep = _min_colour_distance(own, rgb0[_dilate(mask, PRESENCE_SLACK_PX) & ~mask]) > OBJECT_COLOUR_TOL
+    palette = own[keep]
+    if not len(palette):
+        return None
+    vs, us = np.nonzero(mask)
+    start = np.array([us[keep].mean(), vs[keep].mean()])
+    matches = lambda rgb: (_min_colour_distance(np.asarray(rgb, np.float32).reshape(-1, 3), palette)  # noqa: E731
+                           .reshape(H, W) < OBJECT_COLOUR_TOL)
+    distractors = matches(rgb0) & ~_dilate(mask, 1)
+    v, u = np.nonzero(matches(target_rgb) & ~distractors)
+    near = (np.abs(u - start[0]) < search_px) & (np.abs(v - start[1]) < search_px)
+    if not near.any():
+        return None
+    return float(u[near].mean() - start[0]), float(v[near].mean() - start[1])
+
+
 def contrast_entry(gt, camera: str, pred_rgb: np.ndarray) -> dict | None:
     """The :func:`believability.instruction_contrast` entry of one predicted clip, or None when the
     episode has no intent (version-1 data), its skill moves no object (hover/reach), or its target
@@ -90,7 +126,7 @@ def contrast_entry(gt, camera: str, pred_rgb: np.ndarray) -> dict | None:
     entry["commanded_px"] = commanded_px(intent, gt.object_poses[target][0, :3], K0, T0)
     ids = [int(i) for i, n in cam.seg_id_to_name.items() if n == target]
     if cam.segmentation is not None and ids:
-        found = track_colour(np.asarray(cam.rgb[0]), np.isin(cam.segmentation[0], ids), np.asarray(pred_rgb[-1]))
+        found = track_object(np.asarray(cam.rgb[0]), np.isin(cam.segmentation[0], ids), np.asarray(pred_rgb[-1]))
         if found is not None and float(np.hypot(*found)) >= MIN_PREDICTED_PX:
             entry["predicted_px"] = (float(found[0]), float(found[1]))
     return entry
@@ -122,6 +158,7 @@ def contrast_by_group(entries: list[tuple[str, dict]]) -> dict:
     """Score counterfactual groups. entries: (group_id, contrast entry) pairs of one method.
 
     Returns ``{"instructions", "right", "share", "groups", "per_skill": {skill: share},
+    "per_task": {env_id: share},
     "per_group": {group_id: [rows]}}``; "keep still" is only judged in a group with an active
     instruction (its right/wrong is relative to them).
     """
@@ -138,11 +175,15 @@ def contrast_by_group(entries: list[tuple[str, dict]]) -> dict:
         per_group[gid] = result.per_instruction
         rows += result.per_instruction
     per_skill: dict[str, list[bool]] = {}
-    for r in rows:
-        per_skill.setdefault(r["skill"] or "?", []).append(r["right"])
+    per_task: dict[str, list[bool]] = {}
+    for gid, group_rows in per_group.items():
+        for r in group_rows:
+            per_skill.setdefault(r["skill"] or "?", []).append(r["right"])
+            per_task.setdefault(gid.split("/")[0], []).append(r["right"])
     right = sum(bool(r["right"]) for r in rows)
     return {"instructions": len(rows), "right": right, "share": right / len(rows) if rows else float("nan"),
             "groups": len(groups), "per_skill": {s: float(np.mean(v)) for s, v in sorted(per_skill.items())},
+            "per_task": {t: float(np.mean(v)) for t, v in sorted(per_task.items())},
             "per_group": per_group, "right_way_cosine": RIGHT_WAY_COSINE, "still_share": STILL_SHARE}
 
 
