@@ -186,6 +186,7 @@ def test_evaluate_scores_several_checkpoints_side_by_side(two_checkpoints, tmp_p
     for label in report["methods"].values():
         assert label in md
     assert "object permanence" in md and "instruction contrast" in md and "✗" in md and "per skill" in md
+    assert "| keep_still | 1 |" in md and "| Synthetic-v0 | 3 |" in md
 
 
 def test_single_checkpoint_keeps_the_report_keys(two_checkpoints):

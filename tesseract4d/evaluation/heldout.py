@@ -323,7 +323,7 @@ def format_markdown(report: dict) -> str:
                      f"within 60° of its commanded image displacement; \"keep still\" when the clip's motion is at most "
                      f"10 % of the group's active instructions'.")
     for by in ("per_skill", "per_task"):
-        table, n_eps = report.get(by), report.get("episodes" + by[3:], {})
+        table, n_eps = report.get(by), report.get("episodes_" + by, {})
         if not table:
             continue
         lines += ["", f"{by.replace('_', ' ')} (moving-region RGB PSNR / object permanence / contrast):", "",
