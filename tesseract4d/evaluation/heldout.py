@@ -275,7 +275,7 @@ def format_markdown(report: dict) -> str:
     the best method per row in bold; then instruction following, the believability measures with
     their goals (✓ met, ✗ not met), and the per-skill / per-task breakdowns."""
     from tesseract4d.evaluation.heldout_believability import (CONTRAST_GOAL, EDGE_SHARPNESS_GOAL, PRESENCE_GOAL,
-                                                              TOKEN_GRID_GOAL)
+                                                              STILL_SHARE, TOKEN_GRID_GOAL)
 
     summary = report["summary"]
     methods = list(report.get("methods", METHOD_LABELS))
@@ -315,13 +315,13 @@ def format_markdown(report: dict) -> str:
                  f"instruction following over the {n} of them whose target object the colour tracker can follow "
                  f"(tracker error on the ground truth: {_fmt(follow[first].get('tracker_px'), '')} px).")
     contrast = report.get("contrast")
-    if contrast:
+    if contrast and contrast[first].get("instructions"):
         gt = contrast.get("ground_truth", {})
         lines.append(f"Instruction contrast over {contrast[first].get('instructions', 0)} instructions in "
                      f"{contrast[first].get('groups', 0)} groups (the ground truth itself scores "
                      f"{_fmt(gt.get('share'), '')}): an instruction is right when the tracked instructed object moves "
-                     f"within 60° of its commanded image displacement; \"keep still\" when the clip's motion is at most "
-                     f"10 % of the group's active instructions'.")
+                     f"with cos > {RIGHT_WAY_COSINE:g} to its commanded image displacement; \"keep still\" when the "
+                     f"clip's motion is at most {STILL_SHARE:.0%} of the group's active instructions'.")
     for by in ("per_skill", "per_task"):
         table, n_eps = report.get(by), report.get("episodes_" + by, {})
         if not table:
