@@ -218,3 +218,30 @@ def test_a_shaded_object_is_tracked_and_found_by_its_own_colours():
     assert objects_present(rgb, seg, [1], rgb).frames_all_present == 1.0
     table_only = np.full_like(rgb, 100)
     assert objects_present(rgb, seg, [1], table_only).frames_all_present == 0.0
+
+
+@pytest.mark.sim
+def test_ground_truth_of_a_simulated_group_is_believed(tmp_path):
+    """On a rendered tabletop group (shaded cubes, the arm occluding them) the ground truth keeps
+    every object and follows every instruction; the static world follows only "keep still"."""
+    from tesseract4d import cli
+
+    out = tmp_path / "groups"
+    assert cli.main(["datagen", "--tasks", "Tesseract4dTabletop-v1", "--instructions-per-scene", "2", "--skills",
+                     "push_left,keep_still", "--episodes", "1", "--seed-start", "100000", "--instruction-split",
+                     "heldout", "--resolution", "64", "--frames", "8", "--out", str(out), "--no-previews",
+                     "--quiet"]) == 0
+    gt_entries, static_entries = [], []
+    for path in df.list_episode_files(out):
+        ep = df.read_episode(path)
+        rgb = ep.cameras["close"].rgb
+        truth = episode_believability(ep, "close", rgb, patch_px=4)
+        still = episode_believability(ep, "close", static(rgb), patch_px=4)
+        assert truth["metrics"]["objects_present"] == 1.0 and len(truth["per_object"]) >= 2
+        assert 0.8 < truth["metrics"]["token_grid_ratio"] < 1.25
+        if ep.intent["skill"] == "keep_still":
+            assert still["metrics"]["objects_present"] == 1.0
+        gt_entries.append((ep.group_id, truth["contrast_entry"]))
+        static_entries.append((ep.group_id, still["contrast_entry"]))
+    assert contrast_by_group(gt_entries)["share"] == 1.0
+    assert contrast_by_group(static_entries)["per_skill"] == {"keep_still": 1.0, "push": 0.0}
