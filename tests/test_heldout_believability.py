@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import shutil
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -245,3 +246,16 @@ def test_ground_truth_of_a_simulated_group_is_believed(tmp_path):
         static_entries.append((ep.group_id, still["contrast_entry"]))
     assert contrast_by_group(gt_entries)["share"] == 1.0
     assert contrast_by_group(static_entries)["per_skill"] == {"keep_still": 1.0, "push": 0.0}
+
+
+def test_checkpoint_option_defaults_to_the_shipped_model_and_repeats():
+    import argparse
+
+    from tesseract4d.cli import evaluate
+    from tesseract4d.model.checkpoint import SHIPPED_CHECKPOINT
+
+    parser = argparse.ArgumentParser()
+    evaluate.add_arguments(parser)
+    assert parser.parse_args(["--heldout", "d"]).checkpoint == SHIPPED_CHECKPOINT
+    assert parser.parse_args(["--heldout", "d", "--checkpoint", "a"]).checkpoint == [Path("a")]
+    assert parser.parse_args(["--heldout", "d", "--checkpoint", "a", "--checkpoint", "b"]).checkpoint == [Path("a"), Path("b")]

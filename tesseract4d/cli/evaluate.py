@@ -33,6 +33,14 @@ from tesseract4d.dataset_format import HELDOUT_SEED_START
 from tesseract4d.model.checkpoint import SHIPPED_CHECKPOINT
 
 
+class _AppendCheckpoint(argparse.Action):
+    """--checkpoint: the shipped model by default (a Path); each use adds one to a list that replaces it."""
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        current = getattr(namespace, self.dest)
+        setattr(namespace, self.dest, (current if isinstance(current, list) else []) + [values])
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     from tesseract4d.precision import add_precision_argument
 
@@ -45,7 +53,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="evaluation range in metres: depth, normal and Chamfer metrics count only pixels whose true "
                              "depth is at most M (default: all pixels; held-out evaluation: the checkpoint's depth range)")
     held = parser.add_argument_group("held-out evaluation of a model (instead of PRED --gt)")
-    held.add_argument("--checkpoint", type=Path, action="append",
+    held.add_argument("--checkpoint", type=Path, action=_AppendCheckpoint, default=SHIPPED_CHECKPOINT,
                       help="model checkpoint folder (default: the shipped tiny model); repeat it to score several "
                            "checkpoints side by side with the static world in one report")
     held.add_argument("--heldout", type=Path,
@@ -83,7 +91,7 @@ def run_heldout(args: argparse.Namespace) -> int:
 
     from tesseract4d.outputs import OutputDir
 
-    checkpoints = args.checkpoint or [SHIPPED_CHECKPOINT]
+    checkpoints = args.checkpoint if isinstance(args.checkpoint, list) else [args.checkpoint]
     output = None if args.out is None else OutputDir(args.out, "evaluate", inputs=[*checkpoints, args.heldout],
                                                      overwrite=args.overwrite)
     cfg = HeldoutConfig(checkpoint=checkpoints[0] if len(checkpoints) == 1 else checkpoints, data=args.heldout, out=None, camera=args.camera,
