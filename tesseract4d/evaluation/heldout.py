@@ -13,7 +13,14 @@ are scored against the simulator's ground truth with ``tesseract4d.evaluation.ep
 
 Every metric is reported over all pixels and over the moving region (ground-truth pixels that
 change over the clip), plus the instruction-following measure of
-:mod:`tesseract4d.evaluation.instruction_following` for the tasks it covers.
+:mod:`tesseract4d.evaluation.instruction_following` for the tasks it covers, and the
+believability measures of :mod:`tesseract4d.evaluation.heldout_believability` (object
+permanence, instruction contrast over counterfactual groups, token grid, edge sharpness, motion);
+means over all episodes, per task and per skill (``skill`` "task" for episodes without intent).
+
+Several checkpoints can be scored in the same run on the same episodes: methods ``<name>`` and
+``<name>_raw`` per checkpoint folder name, side by side with one static world; a single
+checkpoint keeps the method keys ``model`` / ``model_raw``.
 """
 
 from __future__ import annotations
