@@ -259,3 +259,15 @@ def test_checkpoint_option_defaults_to_the_shipped_model_and_repeats():
     assert parser.parse_args(["--heldout", "d"]).checkpoint == SHIPPED_CHECKPOINT
     assert parser.parse_args(["--heldout", "d", "--checkpoint", "a"]).checkpoint == [Path("a")]
     assert parser.parse_args(["--heldout", "d", "--checkpoint", "a", "--checkpoint", "b"]).checkpoint == [Path("a"), Path("b")]
+
+
+def test_direction_breakdown_per_task():
+    from tesseract4d.evaluation.heldout_believability import direction_breakdown
+
+    d = lambda cos, valid=True: {"cosine": cos, "valid": valid}  # noqa: E731
+    rows = [{"task": "PushCube-v1", "skill": "task", "direction": {"m": d(0.9)}},
+            {"task": "PushCube-v1", "skill": "task", "direction": {"m": d(-0.2)}},
+            {"task": "PushCube-v1", "skill": "task", "direction": {"m": d(0.0, valid=False)}},
+            {"task": "Other-v1", "skill": "task", "direction": {}}]
+    out = direction_breakdown(rows, ["m"], "task")
+    assert out == {"PushCube-v1": {"m": {"episodes": 2, "right_way": 0.5, "mean_cosine": pytest.approx(0.35)}}}

@@ -228,7 +228,7 @@ def evaluate_heldout(cfg: HeldoutConfig, progress: bool = True) -> dict:
 def build_report(cfg, rows: list[dict], methods: list[str], labels: dict, scores: dict, contrast_entries: dict,
                  max_depth_m: float, checkpoints: dict, patch_px: dict) -> dict:
     """The report of scored rows: summary, per task, per skill, instruction following, contrast."""
-    from tesseract4d.evaluation.heldout_believability import breakdown, contrast_by_group, counts
+    from tesseract4d.evaluation.heldout_believability import breakdown, contrast_by_group, counts, direction_breakdown
     from tesseract4d.evaluation.instruction_following import summarize
 
     summary = {}
@@ -249,6 +249,8 @@ def build_report(cfg, rows: list[dict], methods: list[str], labels: dict, scores
         "episodes_per_task": counts(rows, "task"), "episodes_per_skill": counts(rows, "skill"),
         "token_grid_ratio_gt": _finite_mean(r["token_grid_ratio_gt"] for r in rows),
         "instruction_following": {m: summarize(scores[m]) for m in methods},
+        "instruction_following_per_task": direction_breakdown(rows, methods, "task"),
+        "instruction_following_per_skill": direction_breakdown(rows, methods, "skill"),
         "contrast": contrast,
         "rows": rows,
     }
@@ -333,14 +335,17 @@ def format_markdown(report: dict) -> str:
         table, n_eps = report.get(by), report.get("episodes_" + by, {})
         if not table:
             continue
-        lines += ["", f"{by.replace('_', ' ')} (moving-region RGB PSNR / object permanence / contrast):", "",
+        follow_by = report.get("instruction_following_" + by, {})
+        lines += ["", f"{by.replace('_', ' ')} (moving-region RGB PSNR / object permanence / contrast / "
+                      f"moved the right way):", "",
                   f"| {by[4:]} | episodes | " + " | ".join(labels[m] for m in methods) + " |",
                   "|" + "---|" * (2 + len(methods))]
         for key, entry in table.items():
             cells = []
             for m in methods:
                 c = (contrast or {}).get(m, {}).get(by, {}).get(key)
+                right_way = follow_by.get(key, {}).get(m, {}).get("right_way")
                 cells.append(f"{_fmt(entry[m].get('rgb_psnr_db_moving'), '')} / {_fmt(entry[m].get('objects_present'), '')}"
-                             f" / {_fmt(c, '')}")
+                             f" / {_fmt(c, '')} / {_fmt(right_way, '')}")
             lines.append(f"| {key} | {n_eps.get(key, '')} | " + " | ".join(cells) + " |")
     return "\n".join(lines)

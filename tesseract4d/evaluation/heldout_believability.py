@@ -224,3 +224,20 @@ def goal_met(key: str, value) -> bool | None:
     if key == "edge_sharpness":
         return value >= EDGE_SHARPNESS_GOAL
     return None
+
+
+def direction_breakdown(rows: list[dict], methods, by: str) -> dict:
+    """Right-way instruction following (``row["direction"][method]``, valid clips only) per value of
+    ``row[by]``: {key: {method: {"episodes", "right_way", "mean_cosine"}}}; keys without a valid clip are left out."""
+    out = {}
+    for key in sorted({r[by] for r in rows}):
+        per_method = {}
+        for m in methods:
+            cos = [r["direction"][m]["cosine"] for r in rows
+                   if r[by] == key and m in r.get("direction", {}) and r["direction"][m]["valid"]]
+            if cos:
+                per_method[m] = {"episodes": len(cos), "right_way": float(np.mean(np.asarray(cos) > RIGHT_WAY_COSINE)),
+                                 "mean_cosine": float(np.mean(cos))}
+        if per_method:
+            out[key] = per_method
+    return out
