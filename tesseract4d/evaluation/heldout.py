@@ -164,10 +164,10 @@ def evaluate_heldout(cfg: HeldoutConfig, progress: bool = True) -> dict:
     patch_px = [token_patch_px(p) for p in pipelines]
     methods = [k for pair in keys for k in pair] + ["static"]
     labels = {"static": METHOD_LABELS["static"]}
-    for (with_c, raw), ckpt in zip(keys, checkpoints):
-        name = "model" if with_c == "model" else with_c
-        labels[with_c] = METHOD_LABELS["model"] if name == "model" else f"{name} + consistency"
-        labels[raw] = METHOD_LABELS["model_raw"] if name == "model" else f"{name}, no consistency"
+    for with_c, raw in keys:
+        single = with_c == "model"
+        labels[with_c] = METHOD_LABELS["model"] if single else f"{with_c} + consistency"
+        labels[raw] = METHOD_LABELS["model_raw"] if single else f"{with_c}, no consistency"
     method_patch = {k: px for (a, b), px in zip(keys, patch_px) for k in (a, b)}
     method_patch["static"] = patch_px[0]
     num_steps = cfg.num_steps or pipelines[0].preset.num_steps
