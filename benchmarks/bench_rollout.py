@@ -9,7 +9,7 @@ use (see the table), and rendering one observation.
   PYTHONPATH=. OMP_WAIT_POLICY=PASSIVE python benchmarks/bench_rollout.py --idm runs/idm/final \
       --checkpoint tesseract4d/checkpoints/tiny --repeats 5
 
-Target (issue 15): a cycle <= 2 s on the 2-core CPU.
+Target: a cycle <= 2 s on the 2-core CPU.
 """
 
 from __future__ import annotations

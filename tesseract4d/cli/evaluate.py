@@ -11,12 +11,16 @@ With --checkpoint and --heldout instead of PRED/--gt, evaluates a model over a h
 predicts every episode from its first frame and instruction and scores, in the same run, the
 model with the reconstruction's consistency step, the model without it, and the static world
 (first frame repeated), over all pixels and the moving region, plus instruction following
-(does the instructed object move the right way). Writes report.json and report.md (the README's
-results table) to --out.
+(does the instructed object move the right way), object permanence, instruction contrast over
+counterfactual groups, token grid and edge sharpness, per skill and per task. Several
+--checkpoint options score several models side by side in the same run. Writes report.json and
+report.md (the README's results table) to --out.
 
 Examples:
   tesseract4d evaluate out/recon --gt data/test/episodes/PickCube-v1/seed_100000.h5 --json out/report.json
   tesseract4d evaluate --checkpoint tesseract4d/checkpoints/tiny --heldout data/heldout --out outputs/heldout_eval
+  tesseract4d evaluate --heldout data/heldout_groups --checkpoint tesseract4d/checkpoints/tiny \
+      --checkpoint runs/v2/checkpoint --out outputs/heldout_compare
 """
 
 from __future__ import annotations
@@ -27,6 +31,14 @@ from pathlib import Path
 
 from tesseract4d.dataset_format import HELDOUT_SEED_START
 from tesseract4d.model.checkpoint import SHIPPED_CHECKPOINT
+
+
+class _AppendCheckpoint(argparse.Action):
+    """--checkpoint: the shipped model by default (a Path); each use adds one to a list that replaces it."""
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        current = getattr(namespace, self.dest)
+        setattr(namespace, self.dest, (current if isinstance(current, list) else []) + [values])
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -41,8 +53,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="evaluation range in metres: depth, normal and Chamfer metrics count only pixels whose true "
                              "depth is at most M (default: all pixels; held-out evaluation: the checkpoint's depth range)")
     held = parser.add_argument_group("held-out evaluation of a model (instead of PRED --gt)")
-    held.add_argument("--checkpoint", type=Path, default=SHIPPED_CHECKPOINT,
-                      help="model checkpoint folder (default: the shipped tiny model)")
+    held.add_argument("--checkpoint", type=Path, action=_AppendCheckpoint, default=SHIPPED_CHECKPOINT,
+                      help="model checkpoint folder (default: the shipped tiny model); repeat it to score several "
+                           "checkpoints side by side with the static world in one report")
     held.add_argument("--heldout", type=Path,
                       help=f"held-out dataset folder (datagen --seed-start {HELDOUT_SEED_START} --instruction-split heldout)")
     held.add_argument("--out", type=Path, help="folder for report.json and report.md")
@@ -78,9 +91,10 @@ def run_heldout(args: argparse.Namespace) -> int:
 
     from tesseract4d.outputs import OutputDir
 
-    output = None if args.out is None else OutputDir(args.out, "evaluate", inputs=[args.checkpoint, args.heldout],
+    checkpoints = args.checkpoint if isinstance(args.checkpoint, list) else [args.checkpoint]
+    output = None if args.out is None else OutputDir(args.out, "evaluate", inputs=[*checkpoints, args.heldout],
                                                      overwrite=args.overwrite)
-    cfg = HeldoutConfig(checkpoint=args.checkpoint, data=args.heldout, out=None, camera=args.camera,
+    cfg = HeldoutConfig(checkpoint=checkpoints[0] if len(checkpoints) == 1 else checkpoints, data=args.heldout, out=None, camera=args.camera,
                         num_steps=args.steps, sample_seed=args.sample_seed, max_episodes=args.max_per_task,
                         max_depth_m=args.max_depth, precision=args.precision)
     report = evaluate_heldout(cfg)

@@ -9,7 +9,7 @@ On held-out frames, over all pixels and over robot/object pixels (from the segme
 * ``normal_mean_deg``: mean angle between decoded (renormalised) and true normals
   (``metrics.normal_metrics``).
 
-Aims (the issue's gate): RGB >= 32 dB; depth <= 5 mm and normals <= 6 deg on robot/object pixels.
+Aims (the project's fidelity gate): RGB >= 32 dB; depth <= 5 mm and normals <= 6 deg on robot/object pixels.
 """
 
 from __future__ import annotations

@@ -101,15 +101,26 @@ class Presence:
     judged_frames: int
 
 
+def _min_colour_distance(colours: np.ndarray, palette: np.ndarray) -> np.ndarray:
+    """For each of ``colours`` (N, 3), the distance to the nearest of ``palette`` (M, 3)."""
+    if len(palette) == 0:
+        return np.full(len(colours), np.inf, np.float32)
+    return np.linalg.norm(colours[:, None, :] - palette[None, :, :], axis=-1).min(axis=1)
+
+
 def objects_present(gt_rgb: np.ndarray, gt_segmentation: np.ndarray, object_ids: list[int],
                     pred_rgb: np.ndarray) -> Presence:
     """Object permanence of a predicted clip against its ground truth.
 
     An object is judged in a frame where the ground truth shows at least ``MIN_OBJECT_PIXELS`` of
-    it; it is present when at least ``MIN_PRESENT_FRACTION`` of that many predicted pixels within
-    ``PRESENCE_SLACK_PX`` of its true silhouette have its colour (its mean first-visible colour in
-    the ground truth, within ``OBJECT_COLOUR_TOL``). Pixels of that colour that belong to other
-    things in the ground truth (a same-coloured goal) do not count.
+    it. Its colours in that frame are the ground truth's colours of its *distinctive* pixels: those
+    farther than ``OBJECT_COLOUR_TOL`` from every colour the ground truth shows around it (within
+    ``PRESENCE_SLACK_PX``), so a shaded cube keeps its lit top and its darker sides while edge pixels
+    blended into the table are left out (an object with no distinctive pixel in a frame is not judged
+    there). It is present when at least ``MIN_PRESENT_FRACTION`` of that many predicted pixels within
+    ``PRESENCE_SLACK_PX`` of its true silhouette are within ``OBJECT_COLOUR_TOL`` of its colours.
+    Since its colours differ from everything around it in the ground truth, a prediction cannot pass
+    by showing the table, the arm or a same-coloured goal where the object should be.
     gt_rgb, pred_rgb: (T, H, W, 3) uint8; gt_segmentation: (T, H, W) ids.
     """
     gt = np.asarray(gt_rgb, np.float32)
@@ -123,22 +134,21 @@ def objects_present(gt_rgb: np.ndarray, gt_segmentation: np.ndarray, object_ids:
     per_object: dict[int, float] = {}
     for oid in object_ids:
         masks = seg == oid  # (T, H, W)
-        visible = masks.reshape(T, -1).sum(axis=1) >= MIN_OBJECT_PIXELS
-        if not visible.any():
-            continue
-        first = int(np.argmax(visible))
-        colour = gt[first][masks[first]].mean(axis=0)
         hits = []
-        for t in np.nonzero(visible)[0]:
+        for t in np.nonzero(masks.reshape(T, -1).sum(axis=1) >= MIN_OBJECT_PIXELS)[0]:
             near = _dilate(masks[t], PRESENCE_SLACK_PX)
-            # Pixels where the ground truth shows something else of the same colour.
-            distractor = (np.linalg.norm(gt[t] - colour, axis=-1) < OBJECT_COLOUR_TOL) & ~_dilate(masks[t], 1)
-            found = (np.linalg.norm(pred[t] - colour, axis=-1) < OBJECT_COLOUR_TOL) & near & ~distractor
-            ok = found.sum() >= MIN_PRESENT_FRACTION * masks[t].sum()
+            around = gt[t][near & ~masks[t]]  # (N, 3) what the ground truth shows next to the object
+            own = gt[t][masks[t]]  # (M, 3)
+            palette = own[_min_colour_distance(own, around) > OBJECT_COLOUR_TOL]
+            if len(palette) == 0:
+                continue
+            found = _min_colour_distance(pred[t][near], palette) < OBJECT_COLOUR_TOL
+            ok = bool(found.sum() >= MIN_PRESENT_FRACTION * len(palette))
             hits.append(ok)
             judged[t] = True
             all_present[t] &= ok
-        per_object[int(oid)] = float(np.mean(hits))
+        if hits:
+            per_object[int(oid)] = float(np.mean(hits))
     n = int(judged.sum())
     return Presence(float(all_present[judged].mean()) if n else float("nan"), per_object, n)
 

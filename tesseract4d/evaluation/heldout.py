@@ -13,7 +13,14 @@ are scored against the simulator's ground truth with ``tesseract4d.evaluation.ep
 
 Every metric is reported over all pixels and over the moving region (ground-truth pixels that
 change over the clip), plus the instruction-following measure of
-:mod:`tesseract4d.evaluation.instruction_following` for the tasks it covers.
+:mod:`tesseract4d.evaluation.instruction_following` for the tasks it covers, and the
+believability measures of :mod:`tesseract4d.evaluation.heldout_believability` (object
+permanence, instruction contrast over counterfactual groups, token grid, edge sharpness, motion);
+means over all episodes, per task and per skill (``skill`` "task" for episodes without intent).
+
+Several checkpoints can be scored in the same run on the same episodes: methods ``<name>`` and
+``<name>_raw`` per checkpoint folder name, side by side with one static world; a single
+checkpoint keeps the method keys ``model`` / ``model_raw``.
 """
 
 from __future__ import annotations
@@ -47,7 +54,7 @@ TABLE_METRICS = (
 
 @dataclass
 class HeldoutConfig:
-    checkpoint: Path
+    checkpoint: Path | list[Path]  # one checkpoint, or several scored side by side
     data: Path
     out: Path | None = None  # where report.json / report.md go; None = print only
     camera: str | None = None  # None = the dataset's first camera
@@ -93,23 +100,81 @@ def _finite_mean(values) -> float:
     return float(v.mean()) if len(v) else float("nan")
 
 
+def token_patch_px(pipeline) -> int:
+    """A token's size in pixels: the backbone's patch size times the codec's spatial compression."""
+    patch = pipeline.preset.backbone.get("patch_size")
+    if patch is None:  # latent presets read the backbone from the pretrained folder
+        for obj in (pipeline.transformer, getattr(pipeline.transformer, "backbone", None)):
+            cfg = getattr(obj, "config", None)
+            if cfg is not None and getattr(cfg, "patch_size", None):
+                patch = cfg.patch_size
+                break
+    spatial = getattr(pipeline.codec, "spatial_compression", None)
+    if spatial is None:
+        vae = getattr(pipeline.codec, "vae", None)
+        spatial = 2 ** (len(vae.config.block_out_channels) - 1) if vae is not None else 1
+    return int(patch or 1) * int(spatial)
+
+
+def method_keys(checkpoints: list[Path]) -> list[tuple[str, str]]:
+    """(method with consistency, method without) per checkpoint: ("model", "model_raw") for one
+    checkpoint (the report keys of a single-checkpoint run), else each folder's name (made unique)."""
+    if len(checkpoints) == 1:
+        return [("model", "model_raw")]
+    keys, seen = [], set()
+    for ckpt in checkpoints:
+        name, i = Path(ckpt).name or "model", 2
+        base = name
+        while name in seen or name in ("static", "ground_truth"):
+            name, i = f"{base}_{i}", i + 1
+        seen.add(name)
+        keys.append((name, f"{name}_raw"))
+    return keys
+
+
+def _checkpoints(cfg: HeldoutConfig) -> list[Path]:
+    ckpts = cfg.checkpoint if isinstance(cfg.checkpoint, (list, tuple)) else [cfg.checkpoint]
+    if not ckpts:
+        raise UserError("held-out evaluation needs at least one --checkpoint")
+    return [Path(c) for c in ckpts]
+
+
 def evaluate_heldout(cfg: HeldoutConfig, progress: bool = True) -> dict:
-    """Run the evaluation; returns the report (also written to cfg.out when given)."""
+    """Run the evaluation; returns the report (also written to cfg.out when given).
+
+    ``cfg.checkpoint`` may be one checkpoint or a list: every checkpoint predicts every episode
+    and all are scored side by side with the static world (methods ``<name>`` / ``<name>_raw``;
+    one checkpoint keeps the keys ``model`` / ``model_raw``).
+    """
     from tqdm import tqdm
 
     from tesseract4d.evaluation.episode import evaluate_episode, json_safe
+    from tesseract4d.evaluation.heldout_believability import episode_believability
     from tesseract4d.evaluation.metrics import moving_region_mask
     from reconstruction.reconstruct import ReconConfig, reconstruct_episode
-    from tesseract4d.evaluation.instruction_following import TARGET_OBJECT, direction_score, summarize
+    from tesseract4d.evaluation.instruction_following import TARGET_OBJECT, direction_score
     from tesseract4d.model.predict import load_pipeline, predict_episode
 
     data = Path(cfg.data)
     df.read_info(data)
     files = select_episodes(data, cfg.max_episodes)
-    pipeline = load_pipeline(cfg.checkpoint, precision=cfg.precision)
-    cfg = dataclasses.replace(cfg, num_steps=cfg.num_steps or pipeline.preset.num_steps)  # resolved, for the report
-    max_depth_m = cfg.max_depth_m if cfg.max_depth_m is not None else float(pipeline.model_space.far_m)
-    rows, scores = [], {m: [] for m in METHODS}
+    checkpoints = _checkpoints(cfg)
+    keys = method_keys(checkpoints)
+    pipelines = [load_pipeline(c, precision=cfg.precision) for c in checkpoints]
+    patch_px = [token_patch_px(p) for p in pipelines]
+    methods = [k for pair in keys for k in pair] + ["static"]
+    labels = {"static": METHOD_LABELS["static"]}
+    for with_c, raw in keys:
+        single = with_c == "model"
+        labels[with_c] = METHOD_LABELS["model"] if single else f"{with_c} + consistency"
+        labels[raw] = METHOD_LABELS["model_raw"] if single else f"{with_c}, no consistency"
+    method_patch = {k: px for (a, b), px in zip(keys, patch_px) for k in (a, b)}
+    method_patch["static"] = patch_px[0]
+    num_steps = cfg.num_steps or pipelines[0].preset.num_steps
+    cfg = dataclasses.replace(cfg, num_steps=num_steps)  # resolved, for the report
+    max_depth_m = cfg.max_depth_m if cfg.max_depth_m is not None else float(pipelines[0].model_space.far_m)
+    rows, scores = [], {m: [] for m in methods}
+    contrast_entries: dict[str, list] = {m: [] for m in methods + ["ground_truth"]}
     bar = tqdm(files, desc="held-out", unit="episode", disable=not progress)
     for path in bar:
         gt = df.read_episode(path)
@@ -120,43 +185,75 @@ def evaluate_heldout(cfg: HeldoutConfig, progress: bool = True) -> dict:
         num_frames = len(gt_cam.rgb)
         first = df.read_episode(path, cameras=[camera], frames=slice(0, 1))
         bar.set_postfix_str(f"{gt.env_id} seed {gt.seed}")
-        pred = predict_episode(pipeline, first, gt.instruction, num_frames=num_frames, seed=cfg.sample_seed,
-                               num_steps=cfg.num_steps)
-        recon = reconstruct_episode(pred, config=ReconConfig())
         moving = moving_region_mask(gt_cam)
-        outputs = {"model": recon, "model_raw": pred, "static": static_world(first, camera, num_frames)}
-        row = {"episode": str(path.relative_to(data)), "task": gt.env_id, "seed": gt.seed,
-               "instruction": gt.instruction, "metrics": {}, "direction": {}}
+        outputs = {}
+        for (with_c, raw), pipeline in zip(keys, pipelines):
+            pred = predict_episode(pipeline, first, gt.instruction, num_frames=num_frames, seed=cfg.sample_seed,
+                                   num_steps=cfg.num_steps or pipeline.preset.num_steps)
+            outputs[with_c] = reconstruct_episode(pred, config=ReconConfig())
+            outputs[raw] = pred
+        outputs["static"] = static_world(first, camera, num_frames)
+        skill = (gt.intent or {}).get("skill") or "task"
+        row = {"episode": str(path.relative_to(data)), "task": gt.env_id, "seed": gt.seed, "group_id": gt.group_id,
+               "skill": skill, "variant": (gt.intent or {}).get("variant"),
+               "instruction": gt.instruction, "metrics": {}, "direction": {}, "objects": {}}
+        gt_believe = episode_believability(gt, camera, gt_cam.rgb, patch_px[0])
+        row["token_grid_ratio_gt"] = gt_believe["metrics"]["token_grid_ratio"]
+        if gt_believe["contrast_entry"] is not None:
+            contrast_entries["ground_truth"].append((gt.group_id, gt_believe["contrast_entry"]))
         for method, output in outputs.items():
-            row["metrics"][method] = evaluate_episode(output, gt, camera=camera, moving_mask=moving, max_depth_m=max_depth_m)["mean"]
+            rgb = output.cameras[camera].rgb if isinstance(output, df.Episode) else output.rgb  # episode or Recon4D
+            metrics = evaluate_episode(output, gt, camera=camera, moving_mask=moving, max_depth_m=max_depth_m)["mean"]
+            believe = episode_believability(gt, camera, rgb, method_patch[method])
+            metrics.update(believe["metrics"])
+            row["metrics"][method] = metrics
+            row["objects"][method] = believe["per_object"]
+            if believe["contrast_entry"] is not None:
+                contrast_entries[method].append((gt.group_id, believe["contrast_entry"]))
             if gt.env_id in TARGET_OBJECT and gt_cam.segmentation is not None:
-                last_rgb = output.rgb[-1] if method == "model" else output.cameras[camera].rgb[-1]
                 s = direction_score(gt.env_id, gt_cam.rgb, gt_cam.segmentation, gt_cam.seg_id_to_name,
-                                    gt.object_poses[TARGET_OBJECT[gt.env_id]], gt_cam.K, gt_cam.T_world_cam, last_rgb)
+                                    gt.object_poses[TARGET_OBJECT[gt.env_id]], gt_cam.K, gt_cam.T_world_cam, rgb[-1])
                 scores[method].append(s)
                 row["direction"][method] = s.to_dict()
         rows.append(row)
-
-    summary = {}
-    for method in METHODS:
-        keys = rows[0]["metrics"][method].keys()
-        summary[method] = {k: _finite_mean(r["metrics"][method][k] for r in rows) for k in keys}
-    tasks = sorted({r["task"] for r in rows})
-    per_task = {t: {m: {k: _finite_mean(r["metrics"][m][k] for r in rows if r["task"] == t)
-                        for k in ("rgb_psnr_db_moving", "depth_abs_rel_moving", "normal_mean_deg_moving", "chamfer_l1_m_moving")}
-                    for m in METHODS} for t in tasks}
-    report = {
-        "format": "tesseract4d-heldout-eval", "format_version": 1,
-        "config": {k: str(v) if isinstance(v, Path) else v for k, v in dataclasses.asdict(cfg).items()},
-        "episodes": len(rows), "tasks": tasks, "methods": METHOD_LABELS, "max_depth_m": max_depth_m,
-        "summary": summary, "per_task": per_task,
-        "instruction_following": {m: summarize(scores[m]) for m in METHODS},
-        "rows": rows,
-    }
+    report = build_report(cfg, rows, methods, labels, scores, contrast_entries, max_depth_m,
+                          checkpoints=dict(zip([k[0] for k in keys], map(str, checkpoints))),
+                          patch_px=dict(zip([k[0] for k in keys], patch_px)))
     report = json_safe(report)
     if cfg.out is not None:
         write_heldout_report(report, cfg.out)
     return report
+
+
+def build_report(cfg, rows: list[dict], methods: list[str], labels: dict, scores: dict, contrast_entries: dict,
+                 max_depth_m: float, checkpoints: dict, patch_px: dict) -> dict:
+    """The report of scored rows: summary, per task, per skill, instruction following, contrast."""
+    from tesseract4d.evaluation.heldout_believability import breakdown, contrast_by_group, counts, direction_breakdown
+    from tesseract4d.evaluation.instruction_following import summarize
+
+    summary = {}
+    for method in methods:
+        keys = rows[0]["metrics"][method].keys()
+        summary[method] = {k: _finite_mean(r["metrics"][method][k] for r in rows) for k in keys}
+    tasks = sorted({r["task"] for r in rows})
+    contrast = {m: contrast_by_group(contrast_entries.get(m, [])) for m in methods + ["ground_truth"]}
+    for m in methods:
+        summary[m]["contrast"] = contrast[m]["share"]
+    config = {k: (str(v) if isinstance(v, Path) else [str(x) for x in v] if isinstance(v, (list, tuple)) else v)
+              for k, v in dataclasses.asdict(cfg).items()}
+    return {
+        "format": "tesseract4d-heldout-eval", "format_version": 2,
+        "config": config, "checkpoints": checkpoints, "token_patch_px": patch_px,
+        "episodes": len(rows), "tasks": tasks, "methods": {m: labels[m] for m in methods}, "max_depth_m": max_depth_m,
+        "summary": summary, "per_task": breakdown(rows, methods, "task"), "per_skill": breakdown(rows, methods, "skill"),
+        "episodes_per_task": counts(rows, "task"), "episodes_per_skill": counts(rows, "skill"),
+        "token_grid_ratio_gt": _finite_mean(r["token_grid_ratio_gt"] for r in rows),
+        "instruction_following": {m: summarize(scores[m]) for m in methods},
+        "instruction_following_per_task": direction_breakdown(rows, methods, "task"),
+        "instruction_following_per_skill": direction_breakdown(rows, methods, "skill"),
+        "contrast": contrast,
+        "rows": rows,
+    }
 
 
 def _fmt(value, key: str) -> str:
@@ -175,28 +272,80 @@ def write_heldout_report(report: dict, out: str | os.PathLike) -> None:
     df.atomic_write_text(out / "report.md", format_markdown(report) + "\n")
 
 
+def _mark(key: str, value) -> str:
+    from tesseract4d.evaluation.heldout_believability import goal_met
+
+    met = goal_met(key, value)
+    return "" if met is None else (" ✓" if met else " ✗")
+
+
 def format_markdown(report: dict) -> str:
     """The results table: each metric over all pixels and over the moving region, per method;
-    the best method per row in bold; then instruction following."""
+    the best method per row in bold; then instruction following, the believability measures with
+    their goals (✓ met, ✗ not met), and the per-skill / per-task breakdowns."""
+    from tesseract4d.evaluation.heldout_believability import (CONTRAST_GOAL, EDGE_SHARPNESS_GOAL, PRESENCE_GOAL,
+                                                              STILL_SHARE, TOKEN_GRID_GOAL)
+
     summary = report["summary"]
-    head = "| metric | region | " + " | ".join(METHOD_LABELS[m] for m in METHODS) + " |"
-    lines = [head, "|" + "---|" * (2 + len(METHODS))]
+    methods = list(report.get("methods", METHOD_LABELS))
+    labels = report.get("methods", METHOD_LABELS)
+    head = "| metric | region | " + " | ".join(labels[m] for m in methods) + " |"
+    lines = [head, "|" + "---|" * (2 + len(methods))]
     for key, label, higher in TABLE_METRICS:
         for region, suffix in (("all", ""), ("moving", "_moving")):
-            vals = [summary[m].get(key + suffix) for m in METHODS]
+            vals = [summary[m].get(key + suffix) for m in methods]
             finite = [v for v in vals if v is not None and math.isfinite(v)]
             best = (max(finite) if higher else min(finite)) if finite else None
             cells = [f"**{_fmt(v, key)}**" if v is not None and v == best else _fmt(v, key) for v in vals]
             lines.append(f"| {label} | {region} | " + " | ".join(cells) + " |")
     follow = report["instruction_following"]
     lines.append(f"| instruction following: moved the right way (cos > {RIGHT_WAY_COSINE:g}) | target object | "
-                 + " | ".join(_fmt(follow[m].get("right_way"), "") for m in METHODS) + " |")
+                 + " | ".join(_fmt(follow[m].get("right_way"), "") for m in methods) + " |")
     lines.append("| instruction following: mean cosine | target object | "
-                 + " | ".join(_fmt(follow[m].get("mean_cosine"), "") for m in METHODS) + " |")
-    n = follow["model"].get("episodes", 0)
+                 + " | ".join(_fmt(follow[m].get("mean_cosine"), "") for m in methods) + " |")
+    believe = (
+        ("objects_present", f"object permanence: frames with every object (goal ≥ {PRESENCE_GOAL:.0%})", "scene objects"),
+        ("contrast", f"instruction contrast: instructions right (goal ≥ {CONTRAST_GOAL:.0%})", "held-out groups"),
+        ("token_grid_ratio", f"token grid ratio (goal {TOKEN_GRID_GOAL[0]:g}–{TOKEN_GRID_GOAL[1]:g}; "
+                             f"ground truth {_fmt(report.get('token_grid_ratio_gt'), '')})", "all"),
+        ("edge_sharpness", f"edge sharpness vs ground truth (goal ≥ {EDGE_SHARPNESS_GOAL:g})", "ground-truth edges"),
+        ("motion", "motion: mean |RGB change| from frame 0", "all"),
+    )
+    for key, label, region in believe:
+        if not any(key in summary[m] for m in methods):
+            continue
+        lines.append(f"| {label} | {region} | "
+                     + " | ".join(_fmt(summary[m].get(key), "") + _mark(key, summary[m].get(key)) for m in methods) + " |")
+    first = methods[0]
+    n = follow[first].get("episodes", 0)
     lines.append("")
     lines.append(f"{report['episodes']} held-out episodes ({', '.join(report['tasks'])}); depth, normal and Chamfer "
                  f"metrics over pixels with true depth ≤ {report['max_depth_m']:g} m (the model's depth range); "
                  f"instruction following over the {n} of them whose target object the colour tracker can follow "
-                 f"(tracker error on the ground truth: {_fmt(follow['model'].get('tracker_px'), '')} px).")
+                 f"(tracker error on the ground truth: {_fmt(follow[first].get('tracker_px'), '')} px).")
+    contrast = report.get("contrast")
+    if contrast and contrast[first].get("instructions"):
+        gt = contrast.get("ground_truth", {})
+        lines.append(f"Instruction contrast over {contrast[first].get('instructions', 0)} instructions in "
+                     f"{contrast[first].get('groups', 0)} groups (the ground truth itself scores "
+                     f"{_fmt(gt.get('share'), '')}): an instruction is right when the tracked instructed object moves "
+                     f"with cos > {RIGHT_WAY_COSINE:g} to its commanded image displacement; \"keep still\" when the "
+                     f"clip's motion is at most {STILL_SHARE:.0%} of the group's active instructions'.")
+    for by in ("per_skill", "per_task"):
+        table, n_eps = report.get(by), report.get("episodes_" + by, {})
+        if not table:
+            continue
+        follow_by = report.get("instruction_following_" + by, {})
+        lines += ["", f"{by.replace('_', ' ')} (moving-region RGB PSNR / object permanence / contrast / "
+                      f"moved the right way):", "",
+                  f"| {by[4:]} | episodes | " + " | ".join(labels[m] for m in methods) + " |",
+                  "|" + "---|" * (2 + len(methods))]
+        for key, entry in table.items():
+            cells = []
+            for m in methods:
+                c = (contrast or {}).get(m, {}).get(by, {}).get(key)
+                right_way = follow_by.get(key, {}).get(m, {}).get("right_way")
+                cells.append(f"{_fmt(entry[m].get('rgb_psnr_db_moving'), '')} / {_fmt(entry[m].get('objects_present'), '')}"
+                             f" / {_fmt(c, '')} / {_fmt(right_way, '')}")
+            lines.append(f"| {key} | {n_eps.get(key, '')} | " + " | ".join(cells) + " |")
     return "\n".join(lines)

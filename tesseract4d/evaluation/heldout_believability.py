@@ -1,0 +1,243 @@
+"""The believability measures of :mod:`tesseract4d.evaluation.believability` on held-out episodes.
+
+Per episode and per method (a predicted clip against the episode's ground truth):
+
+- ``objects_present``: share of frames in which every scene object that the ground truth shows is
+  in the prediction, in its colour, where it should be (goal ≥ ``PRESENCE_GOAL``). Scene objects
+  are the segmentation's ids whose names are not the robot, the table, the ground, the background
+  or a goal marker (:func:`scene_object_ids`).
+- ``token_grid_ratio``: gradient energy across the checkpoint's token boundaries over that inside
+  tokens (≈ 1 for the ground truth; the ground truth's own value is ``token_grid_ratio_gt``).
+- ``edge_sharpness``: the prediction's gradient on the ground truth's strongest edges relative to
+  the ground truth's (1 = as sharp).
+- ``motion``: mean absolute RGB change from the first frame (0-255 units).
+- a contrast entry (:func:`contrast_entry`) when the episode has a structured intent: the
+  commanded world displacement of the instructed object projected into the image with K and
+  T_world_cam, and the displacement :func:`track_object` finds in the prediction's last frame.
+
+:func:`contrast_by_group` scores each counterfactual group (episodes sharing ``group_id``) with
+:func:`believability.instruction_contrast`; :func:`breakdown` averages any per-episode metric per
+skill and per task.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from tesseract4d.evaluation.believability import (MIN_OBJECT_PIXELS, OBJECT_COLOUR_TOL, PRESENCE_SLACK_PX,
+                                                  RIGHT_WAY_COSINE, STILL_SHARE, _dilate, _min_colour_distance,
+                                                  edge_sharpness, instruction_contrast, objects_present, token_grid_ratio)
+from tesseract4d.evaluation.instruction_following import object_pixel_track
+
+PRESENCE_GOAL = 0.95  # issue: every visible object present in at least 95 % of frames
+CONTRAST_GOAL = 0.70  # issue: at least 70 % of a group's instructions right
+TOKEN_GRID_GOAL = (0.8, 1.25)  # ground truth at 64-128 px measures 0.95-1.16; outside this a grid shows
+EDGE_SHARPNESS_GOAL = 0.8  # the prediction keeps at least 80 % of the ground truth's edge contrast
+# Names (prefixes) in a segmentation map that are not scene objects.
+NOT_OBJECTS = ("background", "table", "ground", "panda_", "camera_", "goal")
+# Skills whose intent moves no object (the gripper's goal is what they fix): no contrast entry.
+GRIPPER_ONLY_SKILLS = ("hover", "reach")
+# A tracked displacement shorter than this (pixels) is noise, not motion (as instruction_following).
+MIN_PREDICTED_PX = 1.0
+BELIEVABILITY_METRICS = ("objects_present", "token_grid_ratio", "edge_sharpness", "motion")
+
+
+def scene_object_ids(seg_id_to_name: dict) -> list[int]:
+    """Segmentation ids of the scene's objects (not robot links, table, ground, background, goal)."""
+    return sorted(int(i) for i, n in seg_id_to_name.items() if not str(n).startswith(NOT_OBJECTS))
+
+
+def clip_motion(rgb: np.ndarray) -> float:
+    """Mean absolute change of a (T, H, W, 3) clip from its first frame, over all later frames."""
+    x = np.asarray(rgb, np.float32)
+    if len(x) < 2:
+        return 0.0
+    return float(np.abs(x[1:] - x[:1]).mean())
+
+
+def commanded_px(intent: dict, start_xyz_world: np.ndarray, K: np.ndarray, T_world_cam: np.ndarray) -> tuple[float, float]:
+    """The intent's commanded world displacement of its target, seen in the image: (du, dv) pixels.
+
+    start_xyz_world: (3,) the target's position in the first frame; K (3, 3); T_world_cam (4, 4).
+    """
+    start = np.asarray(start_xyz_world, np.float64)[:3]
+    end = start + np.asarray(intent["commanded_displacement_world_m"], np.float64)
+    poses = np.zeros((2, 7))
+    poses[:, 3] = 1.0  # identity quaternion (wxyz); only the position is projected
+    poses[0, :3], poses[1, :3] = start, end
+    uv = object_pixel_track(poses, K, T_world_cam)  # (2, 2)
+    d = uv[1] - uv[0]
+    return float(d[0]), float(d[1])
+
+
+def track_object(first_rgb: np.ndarray, object_mask: np.ndarray, target_rgb: np.ndarray,
+                 search_px: int = 24) -> tuple[float, float] | None:
+    """Displacement (du, dv) of an object from the ground truth's first frame to ``target_rgb``.
+
+    The colour tracker of :mod:`instruction_following` with the object's *distinctive* colours (as
+    :func:`believability.objects_present`: its first-frame pixels unlike everything around it) in
+    place of its mean colour, which a shaded cube (lit top, dark sides) may match nowhere. Pixels of
+    those colours that lay outside the object in the first frame (a same-coloured goal or object)
+    are left out, and only a window of ``search_px`` around the start counts; the start is the
+    same estimator on the first frame, so a static clip measures zero motion.
+    first_rgb, target_rgb: (H, W, 3) uint8; object_mask: (H, W) bool. None when the object is not
+    visible (or not distinctive) in the first frame, or not found in the target.
+    """
+    mask = np.asarray(object_mask, bool)
+    if mask.sum() < MIN_OBJECT_PIXELS:
+        return None
+    rgb0 = np.asarray(first_rgb, np.float32)
+    H, W = mask.shape
+    own = rgb0[mask]
+    keep = _min_colour_distance(own, rgb0[_dilate(mask, PRESENCE_SLACK_PX) & ~mask]) > OBJECT_COLOUR_TOL
+    palette = own[keep]
+    if not len(palette):
+        return None
+    vs, us = np.nonzero(mask)
+    start = np.array([us[keep].mean(), vs[keep].mean()])
+    matches = lambda rgb: (_min_colour_distance(np.asarray(rgb, np.float32).reshape(-1, 3), palette)  # noqa: E731
+                           .reshape(H, W) < OBJECT_COLOUR_TOL)
+    distractors = matches(rgb0) & ~_dilate(mask, 1)
+    v, u = np.nonzero(matches(target_rgb) & ~distractors)
+    near = (np.abs(u - start[0]) < search_px) & (np.abs(v - start[1]) < search_px)
+    if not near.any():
+        return None
+    return float(u[near].mean() - start[0]), float(v[near].mean() - start[1])
+
+
+def contrast_entry(gt, camera: str, pred_rgb: np.ndarray) -> dict | None:
+    """The :func:`believability.instruction_contrast` entry of one predicted clip, or None when the
+    episode has no intent (version-1 data), its skill moves no object (hover/reach), or its target
+    is not recorded. gt: the ground-truth Episode; pred_rgb: (T, H, W, 3) uint8."""
+    intent = gt.intent
+    if not intent or intent.get("skill") in GRIPPER_ONLY_SKILLS:
+        return None
+    entry = {"instruction": gt.instruction, "skill": intent.get("skill"), "variant": intent.get("variant"),
+             "still": intent.get("skill") == "keep_still", "motion": clip_motion(pred_rgb),
+             "commanded_px": None, "predicted_px": (0.0, 0.0)}
+    if entry["still"]:
+        return entry
+    target = intent.get("target")
+    cam = gt.cameras[camera]
+    if target not in gt.object_poses:
+        return None
+    K, T = np.asarray(cam.K), np.asarray(cam.T_world_cam)
+    K0, T0 = (K[0] if K.ndim == 3 else K), (T[0] if T.ndim == 3 else T)
+    entry["commanded_px"] = commanded_px(intent, gt.object_poses[target][0, :3], K0, T0)
+    ids = [int(i) for i, n in cam.seg_id_to_name.items() if n == target]
+    if cam.segmentation is not None and ids:
+        found = track_object(np.asarray(cam.rgb[0]), np.isin(cam.segmentation[0], ids), np.asarray(pred_rgb[-1]))
+        if found is not None and float(np.hypot(*found)) >= MIN_PREDICTED_PX:
+            entry["predicted_px"] = (float(found[0]), float(found[1]))
+    return entry
+
+
+def episode_believability(gt, camera: str, pred_rgb: np.ndarray, patch_px: int) -> dict:
+    """Every believability measure of one predicted clip (see the module docstring).
+
+    Returns ``{"metrics": {objects_present, token_grid_ratio, edge_sharpness, motion},
+    "per_object": {name: share}, "contrast_entry": dict | None}``. Frames are matched by index.
+    """
+    cam = gt.cameras[camera]
+    gt_rgb = np.asarray(cam.rgb)
+    pred_rgb = np.asarray(pred_rgb)
+    n = min(len(gt_rgb), len(pred_rgb))
+    gt_rgb, pred_rgb = gt_rgb[:n], pred_rgb[:n]
+    metrics = {"objects_present": float("nan"), "token_grid_ratio": token_grid_ratio(pred_rgb, patch_px),
+               "edge_sharpness": edge_sharpness(pred_rgb, gt_rgb), "motion": clip_motion(pred_rgb)}
+    per_object = {}
+    if cam.segmentation is not None:
+        ids = scene_object_ids(cam.seg_id_to_name)
+        presence = objects_present(gt_rgb, np.asarray(cam.segmentation)[:n], ids, pred_rgb)
+        metrics["objects_present"] = presence.frames_all_present
+        per_object = {cam.seg_id_to_name[i]: v for i, v in presence.per_object.items()}
+    return {"metrics": metrics, "per_object": per_object, "contrast_entry": contrast_entry(gt, camera, pred_rgb)}
+
+
+def contrast_by_group(entries: list[tuple[str, dict]]) -> dict:
+    """Score counterfactual groups. entries: (group_id, contrast entry) pairs of one method.
+
+    Returns ``{"instructions", "right", "share", "groups", "per_skill": {skill: share},
+    "per_task": {env_id: share},
+    "per_group": {group_id: [rows]}}``; "keep still" is only judged in a group with an active
+    instruction (its right/wrong is relative to them).
+    """
+    groups: dict[str, list[dict]] = {}
+    for gid, e in entries:
+        groups.setdefault(gid, []).append(e)
+    rows, per_group = [], {}
+    for gid, group in groups.items():
+        result = instruction_contrast(group)
+        for row, e in zip(result.per_instruction, group):
+            row.update(skill=e.get("skill"), variant=e.get("variant"))
+            if not e["still"]:
+                row.update(commanded_px=list(e["commanded_px"]), predicted_px=list(e["predicted_px"]))
+        per_group[gid] = result.per_instruction
+        rows += result.per_instruction
+    per_skill: dict[str, list[bool]] = {}
+    per_task: dict[str, list[bool]] = {}
+    for gid, group_rows in per_group.items():
+        for r in group_rows:
+            per_skill.setdefault(r["skill"] or "?", []).append(r["right"])
+            per_task.setdefault(gid.split("/")[0], []).append(r["right"])
+    right = sum(bool(r["right"]) for r in rows)
+    return {"instructions": len(rows), "right": right, "share": right / len(rows) if rows else float("nan"),
+            "groups": len(groups), "per_skill": {s: float(np.mean(v)) for s, v in sorted(per_skill.items())},
+            "per_task": {t: float(np.mean(v)) for t, v in sorted(per_task.items())},
+            "per_group": per_group, "right_way_cosine": RIGHT_WAY_COSINE, "still_share": STILL_SHARE}
+
+
+def _finite_mean(values) -> float:
+    v = np.asarray([x for x in values if x is not None], np.float64)
+    v = v[np.isfinite(v)]
+    return float(v.mean()) if len(v) else float("nan")
+
+
+def breakdown(rows: list[dict], methods, by: str) -> dict:
+    """Mean of every metric of ``row["metrics"][method]`` per value of ``row[by]`` ("task" or "skill")."""
+    out = {}
+    for key in sorted({r[by] for r in rows}):
+        sel = [r for r in rows if r[by] == key]
+        out[key] = {m: {k: _finite_mean(r["metrics"][m].get(k) for r in sel) for k in sel[0]["metrics"][m]}
+                    for m in methods}
+    return out
+
+
+def counts(rows: list[dict], by: str) -> dict:
+    """Number of episodes per value of ``row[by]``."""
+    out: dict = {}
+    for r in rows:
+        out[r[by]] = out.get(r[by], 0) + 1
+    return dict(sorted(out.items()))
+
+
+def goal_met(key: str, value) -> bool | None:
+    """Whether a summary value meets the project's goal; None when there is none or no value."""
+    if value is None or not np.isfinite(value):
+        return None
+    if key == "objects_present":
+        return value >= PRESENCE_GOAL
+    if key == "contrast":
+        return value >= CONTRAST_GOAL
+    if key == "token_grid_ratio":
+        return TOKEN_GRID_GOAL[0] <= value <= TOKEN_GRID_GOAL[1]
+    if key == "edge_sharpness":
+        return value >= EDGE_SHARPNESS_GOAL
+    return None
+
+
+def direction_breakdown(rows: list[dict], methods, by: str) -> dict:
+    """Right-way instruction following (``row["direction"][method]``, valid clips only) per value of
+    ``row[by]``: {key: {method: {"episodes", "right_way", "mean_cosine"}}}; keys without a valid clip are left out."""
+    out = {}
+    for key in sorted({r[by] for r in rows}):
+        per_method = {}
+        for m in methods:
+            cos = [r["direction"][m]["cosine"] for r in rows
+                   if r[by] == key and m in r.get("direction", {}) and r["direction"][m]["valid"]]
+            if cos:
+                per_method[m] = {"episodes": len(cos), "right_way": float(np.mean(np.asarray(cos) > RIGHT_WAY_COSINE)),
+                                 "mean_cosine": float(np.mean(cos))}
+        if per_method:
+            out[key] = per_method
+    return out
