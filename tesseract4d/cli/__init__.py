@@ -15,6 +15,7 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "datagen": ("tesseract4d.cli.datagen", "generate RGB-D-N episodes from ManiSkill motion planners"),
     "dataset": ("tesseract4d.cli.dataset", "inspect (info) or validate (check) a dataset folder"),
     "train": ("tesseract4d.cli.train", "train the RGB-D-N video diffusion model"),
+    "distill": ("tesseract4d.cli.distill", "distil a checkpoint into a few-step student (one network pass per step)"),
     "predict": ("tesseract4d.cli.predict", "predict the RGB-D-N future from a first frame and an instruction"),
     "reconstruct": ("tesseract4d.cli.reconstruct", "fuse an RGB-D-N video into a consistent 4D point cloud"),
     "evaluate": ("tesseract4d.cli.evaluate", "metrics of a prediction/reconstruction against ground truth"),

@@ -252,8 +252,10 @@ def export_checkpoint(run: str | os.PathLike, to: str | os.PathLike | None = Non
 class Trainer:
     """Owns model, EMA, optimiser, data and the loss; ``train()`` runs until max_steps/max_minutes."""
 
+    command = "train"  # the command that owns the run folder (tesseract4d.outputs)
+
     def __init__(self, config: TrainConfig):
-        self.preset = get_preset(config.preset)
+        self.preset = self._resolve_preset(config)
         self.cfg = config.resolved(self.preset)
         cfg = self.cfg
         if cfg.data is None:
@@ -268,7 +270,7 @@ class Trainer:
                             f"drop --resume to start a new run")
         from tesseract4d.outputs import claim_folder, release_new_folder
 
-        fresh = claim_folder(self.out, "train", inputs=[cfg.data, cfg.pretrained], legacy_marker="train_config.json")
+        fresh = claim_folder(self.out, self.command, inputs=[cfg.data, cfg.pretrained], legacy_marker="train_config.json")
         try:
             self._setup(cfg, existing)
         except BaseException:
@@ -276,11 +278,25 @@ class Trainer:
                 release_new_folder(self.out, ["train_config.json"], remove_folder=fresh)
             raise
 
+    # Hooks a specialised trainer (tesseract4d.model.reflow.ReflowTrainer) overrides.
+    def _resolve_preset(self, config: TrainConfig) -> ModelPreset:
+        return get_preset(config.preset)
+
+    def _build_data(self, cfg: TrainConfig):
+        """The training data source (clips of a dataset folder)."""
+        from tesseract4d.model.clips import ClipDataset
+
+        return ClipDataset(cfg.data, num_frames=self.preset.num_frames, height=self.preset.height,
+                           width=self.preset.width, model_space=self.model_space, camera=cfg.camera,
+                           show_progress=cfg.progress and self.accelerator.is_main_process)
+
+    def _init_weights(self, model: torch.nn.Module) -> None:
+        """Called on a new run's freshly built model, before the EMA copy (default: keep the init)."""
+
     def _setup(self, cfg: "TrainConfig", existing: list[Path]) -> None:
         from accelerate import Accelerator
         from accelerate.utils import ProjectConfiguration
 
-        from tesseract4d.model.clips import ClipDataset
         from tesseract4d.model.build import build_codec, build_text_encoder, build_transformer
 
         self.precision = resolve_precision(cfg.precision, "cuda" if torch.cuda.is_available() else "cpu")
@@ -294,9 +310,7 @@ class Trainer:
         )
         self.device = self.accelerator.device
         self.model_space = ModelSpace(self.preset.near_m, self.preset.far_m)
-        self.data = ClipDataset(cfg.data, num_frames=self.preset.num_frames, height=self.preset.height,
-                                width=self.preset.width, model_space=self.model_space, camera=cfg.camera,
-                                show_progress=cfg.progress and self.accelerator.is_main_process)
+        self.data = self._build_data(cfg)
         self.text_encoder = build_text_encoder(self.preset, cfg.pretrained)
         self.codec = build_codec(self.preset, cfg.pretrained).to(self.device)
         torch.manual_seed(cfg.seed)
@@ -304,6 +318,8 @@ class Trainer:
         if model.backbone.config.text_embed_dim != self.text_encoder.dim:
             raise UserError(f"text encoder gives {self.text_encoder.dim}-d embeddings but the transformer expects "
                             f"{model.backbone.config.text_embed_dim}")
+        if not (cfg.resume and existing):
+            self._init_weights(model)
         self.ema = EMA(model, cfg.ema_decay)
         optimizer = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
         self.model, self.optimizer = self.accelerator.prepare(model, optimizer)
@@ -328,8 +344,6 @@ class Trainer:
         g = self._step_generator(step)
         clips, texts = self.data.sample_batch(cfg.batch_size, g)  # (b, T, 7, H, W)
         b = clips.shape[0]
-        from tesseract4d.model.codec import make_condition
-
         x0 = self.codec.encode(clips.to(self.device), generator=g)  # (b, t', c, h, w)
         first = self.codec.encode(clips[:, :1].to(self.device), generator=g)  # (b, 1, c, h, w)
         text = self.text_encoder.encode(texts)  # (b, L, d)
@@ -337,10 +351,21 @@ class Trainer:
         keep_image = (torch.rand(b, generator=g) >= cfg.image_dropout).float()
         text = (text * keep_text[:, None, None]).to(self.device)
         first = first * keep_image.to(self.device)[:, None, None, None, None]
-        cond = make_condition(first, x0.shape[1], self.preset.condition)
         t = torch.rand(b, generator=g)
         noise = torch.randn(x0.shape, generator=g)
+        return self.denoising_loss(x0, first, text, t, noise)
+
+    def denoising_loss(self, x0: torch.Tensor, first: torch.Tensor, text: torch.Tensor, t: torch.Tensor,
+                       noise: torch.Tensor) -> tuple[torch.Tensor, dict[str, float]]:
+        """The weighted per-modality x0 loss at ``x_t = (1 - t) x0 + t noise``. x0, noise:
+        (b, t', c, h, w) network space; first: (b, 1, c, h, w) encoded first frame (zeros = dropped);
+        text: (b, L, d) embeddings; t: (b,) in [0, 1]."""
+        from tesseract4d.model.codec import make_condition
+
+        cfg = self.cfg
+        x0, first, text = x0.to(self.device), first.to(self.device), text.to(self.device)
         t, noise = t.to(self.device), noise.to(self.device)
+        cond = make_condition(first, x0.shape[1], self.preset.condition)
         tt = t[:, None, None, None, None]
         x_t = (1 - tt) * x0 + tt * noise
         x0_hat = self.model(x_t, cond, text, t).float()
