@@ -69,6 +69,8 @@ def main(argv: list[str] | None = None) -> int:
         c = g.cameras[camera]
         gt_cams.append(df.CameraFrames(rgb=c.rgb[:T], depth_m=c.depth_m[:T], normal_cam=c.normal_cam[:T],
                                        K=c.K[:T], T_world_cam=c.T_world_cam[:T]))
+    for pipe in (teacher, student):  # warm-up (allocations, text encoding)
+        predict_scenes(pipe, firsts[:1], texts[:1], num_steps=1)
     ref, ref_s = run(teacher, teacher.preset.num_steps)
     p = teacher.preset
     rows = [(f"teacher {p.num_steps} steps, guidance {p.text_guidance}/{p.image_guidance}", "-", "-",
@@ -77,7 +79,8 @@ def main(argv: list[str] | None = None) -> int:
     for k in [int(s) for s in args.steps.split(",")]:
         for name, pipe in (("student", student), ("teacher", teacher)):
             pred, s = run(pipe, k)
-            g = "no guidance" if pipe is student else f"guidance {p.text_guidance}"
+            q = pipe.preset
+            g = "no guidance" if q.text_guidance == q.image_guidance == 1.0 else f"guidance {q.text_guidance}/{q.image_guidance}"
             rows.append((f"{name} {k} steps, {g}", *(f"{v:.2f}" for v in scores(pred, ref)),
                          *(f"{v:.2f}" for v in scores(pred, gt_cams)), f"{s:.2f}"))
             strip_rows.append(pred[0].rgb)

@@ -130,10 +130,11 @@ def predict_episodes(
 
 
 # Scenes per pipeline call of predict_scenes when not given. Measured with
-# benchmarks/bench_model.py --throughput on the shipped tiny checkpoint (64x64, 16 frames, 10 steps,
-# guidance), AMD EPYC with AVX512-BF16, bf16, 2 cores under load from other jobs: clips/s for
-# 1/2/4/8 scenes per call = see the commit message; the gain flattens by 4, and 4 keeps the memory of
-# a call small.
+# benchmarks/bench_throughput.py on the shipped tiny checkpoint (64x64, 16 frames, 10 steps with
+# text guidance = 2 network passes per step), bf16, AMD EPYC with AVX512-BF16, 2 cores shared with a
+# training run (not idle): clips/s for 1/2/4/8 scenes per call = 0.29/0.24/0.46/0.23; a second run
+# with more competing jobs gave 0.18/0.21/0.15 (8 not measured). 4 was the fastest in the calmer run;
+# 8 was slower than 1 (its activations no longer fit the caches). Re-measure on another machine.
 DEFAULT_SCENE_BATCH = 4
 
 
