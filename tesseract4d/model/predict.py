@@ -134,7 +134,7 @@ def predict_episodes(
 # text guidance = 2 network passes per step), bf16, AMD EPYC with AVX512-BF16, 2 cores shared with a
 # training run (not idle): clips/s for 1/2/4/8 scenes per call = 0.29/0.24/0.46/0.23; a second run
 # with more competing jobs gave 0.18/0.21/0.15 (8 not measured). 4 was the fastest in the calmer run;
-# 8 was slower than 1 (its activations no longer fit the caches). Re-measure on another machine.
+# 8 was slower per clip than 1. Re-measure on another machine.
 DEFAULT_SCENE_BATCH = 4
 
 
