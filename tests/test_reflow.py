@@ -100,3 +100,16 @@ def test_distill_errors(teacher, tmp_path):
     generate_pairs(_pairs_cfg(ckpt, data, tmp_path / "p", 2), progress=False)
     assert main(["distill", "--teacher", str(ckpt), "--pairs", str(tmp_path / "p"), "--out", str(tmp_path / "p")]) == 2
     assert not (tmp_path / "r").exists()
+
+
+def test_distill_resumes_and_refuses_an_existing_run(teacher, tmp_path):
+    ckpt, data = teacher
+    argv = ["distill", "--teacher", str(ckpt), "--data", str(data), "--pairs", str(tmp_path / "p"), "--num-pairs", "4",
+            "--teacher-steps", "2", "--out", str(tmp_path / "run"), "--batch-size", "2", "--val-every", "0",
+            "--ckpt-every", "0", "--no-progress"]
+    assert main([*argv, "--max-steps", "2"]) == 0
+    assert main([*argv, "--max-steps", "4"]) == 2  # a run is there: --resume or a new --out
+    assert main([*argv, "--max-steps", "4", "--resume"]) == 0  # the pairs are complete: nothing resampled
+    state = json.loads((tmp_path / "run" / "checkpoint-000004" / "trainer_state.json").read_text())
+    assert state["step"] == 4 and state["inference_config"]["distilled_from"]["teacher_steps"] == 2
+    assert json.loads((tmp_path / "run" / ".tesseract4d-output.json").read_text())["command"] == "distill"
