@@ -132,9 +132,10 @@ def predict_episodes(
 # Scenes per pipeline call of predict_scenes when not given. Measured with
 # benchmarks/bench_throughput.py on the shipped tiny checkpoint (64x64, 16 frames, 10 steps with
 # text guidance = 2 network passes per step), bf16, AMD EPYC with AVX512-BF16, 2 cores shared with a
-# training run (not idle): clips/s for 1/2/4/8 scenes per call = 0.29/0.24/0.46/0.23; a second run
-# with more competing jobs gave 0.18/0.21/0.15 (8 not measured). 4 was the fastest in the calmer run;
-# 8 was slower per clip than 1. Re-measure on another machine.
+# training run (not idle). clips/s for 1/2/4/8 scenes per call, calmest run (load average 1.4):
+# 0.571/0.601/0.605/0.523; two busier runs: 0.29/0.24/0.46/0.23 and 0.18/0.21/0.15/-. 2-4 scenes are
+# about 5% faster per clip than 1 here and 8 is slower; 4 was the fastest in two of the runs.
+# Re-measure on another machine.
 DEFAULT_SCENE_BATCH = 4
 
 
