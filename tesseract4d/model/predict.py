@@ -127,24 +127,98 @@ def predict_episodes(
 ) -> list[df.Episode]:
     """``num_samples`` different predictions of the same first frame, sampled as one batch from the
     generator seeded with ``seed`` (same arguments, same episodes)."""
-    if not isinstance(instruction, str) or not instruction.strip():
-        raise UserError("the instruction is empty; say what should happen, e.g. --instruction \"pick up the red cube\"")
+    num_frames, num_steps = _check_sampling(pipeline, num_frames, num_steps, num_samples)
+    scene = _scene(pipeline, first_frame, instruction, camera)
+    return _predict_batch(pipeline, [scene] * num_samples, list(range(num_samples)), num_frames=num_frames,
+                          num_steps=num_steps, text_guidance=text_guidance, image_guidance=image_guidance,
+                          seed=seed, generator=torch.Generator().manual_seed(int(seed)), progress=progress)
+
+
+# Scenes per pipeline call of predict_scenes when not given. Measured with
+# benchmarks/bench_throughput.py on the shipped tiny checkpoint (64x64, 16 frames, 10 steps with
+# text guidance = 2 network passes per step), bf16, AMD EPYC with AVX512-BF16, 2 cores shared with a
+# training run (not idle). clips/s for 1/2/4/8 scenes per call, calmest run (load average 1.4):
+# 0.571/0.601/0.605/0.523; two busier runs: 0.29/0.24/0.46/0.23 and 0.18/0.21/0.15/-. 2-4 scenes are
+# about 5% faster per clip than 1 here and 8 is slower; 4 was the fastest in two of the runs.
+# Re-measure on another machine.
+DEFAULT_SCENE_BATCH = 4
+
+
+def predict_scenes(
+    pipeline: RGBDNPipeline,
+    first_frames: list[df.Episode],
+    instructions: list[str],
+    *,
+    batch_size: int | None = None,
+    num_frames: int | None = None,
+    seed: int = 0,
+    num_steps: int | None = None,
+    text_guidance: float | None = None,
+    image_guidance: float | None = None,
+    camera: str | None = None,
+    progress: Callable[[int, int], None] | None = None,
+) -> list[df.Episode]:
+    """One prediction per scene (``first_frames[i]`` with ``instructions[i]``), ``batch_size`` scenes
+    per network call (default :data:`DEFAULT_SCENE_BATCH`): the throughput path for evaluations.
+
+    Scene i's initial noise comes from a generator seeded with (``seed``, i), so its first clip does
+    not depend on ``batch_size`` or on the other scenes (up to floating-point rounding of batched
+    maths). ``progress(step, total)`` counts denoising steps over all batches.
+    """
+    if len(first_frames) != len(instructions):
+        raise UserError(f"{len(first_frames)} first frames for {len(instructions)} instructions; give one of each per scene")
+    batch_size = DEFAULT_SCENE_BATCH if batch_size is None else int(batch_size)
+    if batch_size < 1:
+        raise UserError(f"--batch-size must be at least 1, got {batch_size}")
+    num_frames, num_steps = _check_sampling(pipeline, num_frames, num_steps, 1)
+    scenes = [_scene(pipeline, f, i, camera) for f, i in zip(first_frames, instructions)]
+    num_batches = -(-len(scenes) // batch_size)
+    out: list[df.Episode] = []
+    for b in range(num_batches):
+        chunk = range(b * batch_size, min(len(scenes), (b + 1) * batch_size))
+        latents = torch.cat([torch.randn(pipeline.latent_shape(1), generator=torch.Generator().manual_seed(
+            int(seed) * 1_000_003 + i)) for i in chunk])
+        step_progress = None
+        if progress is not None:
+            step_progress = (lambda s, t, b=b: progress(b * t + s, num_batches * t))
+        out += _predict_batch(pipeline, [scenes[i] for i in chunk], [0] * len(chunk), num_frames=num_frames,
+                              num_steps=num_steps, text_guidance=text_guidance, image_guidance=image_guidance,
+                              seed=seed, generator=torch.Generator().manual_seed(int(seed) + b), latents=latents,
+                              progress=step_progress)
+    return out
+
+
+def _check_sampling(pipeline: RGBDNPipeline, num_frames, num_steps, num_samples) -> tuple[int, int]:
     num_frames = pipeline.num_frames if num_frames is None else int(num_frames)
     num_steps = pipeline.preset.num_steps if num_steps is None else int(num_steps)
     if num_frames < 1 or num_steps < 1 or num_samples < 1:
         raise UserError("--num-frames, --steps and --num-samples must be at least 1")
+    return num_frames, num_steps
+
+
+def _scene(pipeline: RGBDNPipeline, first_frame: df.Episode, instruction: str, camera: str | None):
+    """(first-frame episode, instruction, camera name, its frames, model-space frame 0 (1, 7, H, W))."""
+    if not isinstance(instruction, str) or not instruction.strip():
+        raise UserError("the instruction is empty; say what should happen, e.g. --instruction \"pick up the red cube\"")
     cam_name, cam = _first_frame_arrays(first_frame, camera)
     h, w = cam.rgb.shape[1:3]
     if (h, w) != pipeline.resolution:
         raise UserError(f"the first frame is {h}x{w} but the model predicts {pipeline.resolution[0]}x{pipeline.resolution[1]}; "
                         f"render/resize the first frame to the model's resolution")
     x = pipeline.model_space.encode(cam.rgb[:1], cam.depth_m[:1], cam.normal_cam[:1])  # (1, 7, H, W)
-    generator = torch.Generator().manual_seed(int(seed))
-    clips = pipeline(x.expand(num_samples, -1, -1, -1), [instruction.strip()] * num_samples, num_frames=num_frames,
-                     num_inference_steps=num_steps, text_guidance=text_guidance, image_guidance=image_guidance,
-                     generator=generator, progress=progress)  # (n, T, 7, H, W)
+    return first_frame, instruction.strip(), cam_name, cam, x
+
+
+def _predict_batch(pipeline: RGBDNPipeline, scenes: list, sample_indices: list[int], *, num_frames: int,
+                   num_steps: int, text_guidance, image_guidance, seed: int, generator: torch.Generator,
+                   latents: torch.Tensor | None = None, progress=None) -> list[df.Episode]:
+    """One pipeline call for the given scenes (from :func:`_scene`), returned as predicted episodes."""
+    x = torch.cat([s[4] for s in scenes])  # (n, 7, H, W)
+    clips = pipeline(x, [s[1] for s in scenes], num_frames=num_frames, num_inference_steps=num_steps,
+                     text_guidance=text_guidance, image_guidance=image_guidance, generator=generator,
+                     progress=progress, latents=latents)  # (n, T, 7, H, W)
     out = []
-    for k in range(num_samples):
+    for k, (first_frame, instruction, cam_name, cam, _) in enumerate(scenes):
         rgb, depth_m, normal_cam = pipeline.model_space.decode(clips[k])
         # Frame 0 is the given first frame, exactly.
         rgb[0], depth_m[0], normal_cam[0] = cam.rgb[0], cam.depth_m[0], cam.normal_cam[0]
@@ -154,11 +228,11 @@ def predict_episodes(
             T_world_cam=np.repeat(np.asarray(cam.T_world_cam[:1], np.float64), num_frames, 0),
         )
         out.append(df.Episode(
-            env_id=first_frame.env_id, seed=first_frame.seed, instruction=instruction.strip(), cameras={cam_name: frames},
+            env_id=first_frame.env_id, seed=first_frame.seed, instruction=instruction, cameras={cam_name: frames},
             frame_steps=np.arange(num_frames, dtype=np.int32), env_kwargs=dict(first_frame.env_kwargs),
             control_mode=first_frame.control_mode, fps=first_frame.fps, source="prediction",
             metadata={"prediction": {
-                "checkpoint_preset": pipeline.preset.name, "sample_seed": int(seed), "sample_index": k,
+                "checkpoint_preset": pipeline.preset.name, "sample_seed": int(seed), "sample_index": sample_indices[k],
                 "num_steps": int(num_steps), "text_guidance": text_guidance, "image_guidance": image_guidance,
                 "depth_range_m": [pipeline.model_space.near_m, pipeline.model_space.far_m],
                 "training": pipeline.config.get("training"),

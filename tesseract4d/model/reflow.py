@@ -30,6 +30,7 @@ from pathlib import Path
 import torch
 
 from tesseract4d.errors import UserError
+from tesseract4d.model.trainer import TrainConfig, Trainer
 
 MANIFEST = "reflow_pairs.json"
 SHARD_PREFIX = "pairs-"
@@ -56,10 +57,10 @@ class PairsConfig:
 
 def weights_digest(checkpoint: str | os.PathLike) -> str:
     """SHA-256 (first 16 hex digits) of a checkpoint's transformer weights: pairs name their teacher."""
-    from tesseract4d.model.pipeline import TRANSFORMER_DIR
+    from tesseract4d.model.checkpoint import TRANSFORMER_DIR, WEIGHTS_FILE
 
     h = hashlib.sha256()
-    with open(Path(checkpoint) / TRANSFORMER_DIR / "diffusion_pytorch_model.safetensors", "rb") as f:
+    with open(Path(checkpoint) / TRANSFORMER_DIR / WEIGHTS_FILE, "rb") as f:
         for block in iter(lambda: f.read(1 << 20), b""):
             h.update(block)
     return h.hexdigest()[:16]
@@ -177,3 +178,129 @@ class ReflowPairs:
         idx = torch.randint(len(self), (batch_size,), generator=generator)
         texts = [self.instructions[i] for i in idx.tolist()]
         return self.first[idx].float(), self.noise[idx], self.x0[idx], texts
+
+
+# --------------------------------------------------------------------------- the student
+
+@dataclass
+class ReflowConfig(TrainConfig):
+    """Options of the student's training (`tesseract4d distill`). ``data`` is the pairs folder;
+    the preset, model space, text encoder and initial weights are the teacher's."""
+
+    teacher: Path | None = None  # the teacher's inference checkpoint folder
+    student_steps: int = 2  # the student's sampler steps (its preset's num_steps)
+    max_steps: int = 1000
+    val_every: int = 100
+    val_clips: int = 4
+
+
+def student_preset(teacher_preset, student_steps: int):
+    """The teacher's preset with the student's sampling defaults: ``student_steps`` Euler steps and no
+    guidance (text = image = 1.0), i.e. one network pass per step."""
+    return dataclasses.replace(teacher_preset, num_steps=int(student_steps), text_guidance=1.0, image_guidance=1.0,
+                               text_dropout=0.0, image_dropout=0.0)
+
+
+class ReflowTrainer(Trainer):
+    """Trains a few-step student on teacher pairs with the trainer's own loss (``denoising_loss``):
+    ``x_t = (1 - t) x0_teacher + t noise`` with the pair's noise, target the teacher's clip, no
+    text or first-frame dropout. Starts from the teacher's weights; validation compares the
+    student's K-step samples with the teacher's outputs of the same noise."""
+
+    cfg: ReflowConfig
+    command = "distill"
+
+    def __init__(self, config: ReflowConfig):
+        from tesseract4d.model.checkpoint import read_inference_config
+        from tesseract4d.outputs import check_not_input
+
+        if config.teacher is None:
+            raise UserError("pass --teacher CKPT (the inference checkpoint to distil)")
+        if config.student_steps < 1:
+            raise UserError(f"--student-steps must be at least 1, got {config.student_steps}")
+        check_not_input(config.out, [config.teacher], "--out")
+        self.teacher_config = read_inference_config(config.teacher)
+        self.teacher_digest = weights_digest(config.teacher)
+        config = dataclasses.replace(config, text_dropout=0.0, image_dropout=0.0,
+                                     pretrained=config.pretrained or self.teacher_config.get("pretrained_dir"))
+        super().__init__(config)
+
+    def _resolve_preset(self, config: TrainConfig):
+        from tesseract4d.model.presets import PRESETS, preset_from_dict
+
+        teacher = preset_from_dict(self.teacher_config["preset"])
+        if teacher.name not in PRESETS:
+            raise UserError(f"{config.teacher} uses preset {teacher.name!r}, unknown to this tesseract4d")
+        return student_preset(teacher, config.student_steps)
+
+    def _build_data(self, cfg: TrainConfig) -> ReflowPairs:
+        pairs = ReflowPairs(cfg.data)
+        made_by = pairs.manifest.get("teacher_digest")
+        if made_by != self.teacher_digest:
+            raise UserError(f"{cfg.data} holds pairs of another teacher (weights {made_by}, --teacher has "
+                            f"{self.teacher_digest}); make pairs of this teacher in a new --pairs folder")
+        p = self.preset
+        if tuple(pairs.first.shape[-2:]) != (p.height, p.width):
+            raise UserError(f"{cfg.data} holds {tuple(pairs.first.shape[-2:])} first frames; the teacher predicts "
+                            f"{(p.height, p.width)}")
+        return pairs
+
+    def _init_weights(self, model: torch.nn.Module) -> None:
+        from safetensors.torch import load_file
+
+        from tesseract4d.model.checkpoint import TRANSFORMER_DIR, WEIGHTS_FILE
+
+        path = Path(self.cfg.teacher) / TRANSFORMER_DIR / WEIGHTS_FILE
+        try:
+            model.load_state_dict(load_file(str(path)))
+        except RuntimeError as e:
+            raise UserError(f"{path} does not match the teacher's preset: {str(e).splitlines()[0]}") from e
+
+    def compute_loss(self, step: int) -> tuple[torch.Tensor, dict[str, float]]:
+        g = self._step_generator(step)
+        first, noise, x0, texts = self.data.sample_batch(self.cfg.batch_size, g)
+        first_enc = self.codec.encode(first[:, None].to(self.device), generator=g)  # (b, 1, c, h, w)
+        text = self.text_encoder.encode(texts)  # (b, L, d)
+        t = torch.rand(x0.shape[0], generator=g)
+        return self.denoising_loss(x0, first_enc, text, t, noise)
+
+    def _inference_config(self) -> dict:
+        m = self.data.manifest
+        cfg = super()._inference_config()
+        cfg["distilled_from"] = {
+            "method": "rectified-flow reflow", "teacher": str(self.cfg.teacher), "teacher_digest": self.teacher_digest,
+            "teacher_steps": m.get("teacher_steps"), "text_guidance": m.get("text_guidance"),
+            "image_guidance": m.get("image_guidance"), "pairs": str(self.cfg.data), "num_pairs": len(self.data),
+            "student_steps": self.preset.num_steps}
+        return cfg
+
+    def validation_indices(self) -> list[int]:
+        """The first ``val_clips`` pairs (the same ones at every validation)."""
+        return list(range(min(self.cfg.val_clips, len(self.data))))
+
+    def validate(self) -> dict[str, float]:
+        """PSNR (model space, all 7 channels) of the student's K-step samples (EMA weights) against the
+        teacher's clips from the same noise."""
+        from tesseract4d.model.pipeline import RGBDNPipeline, make_scheduler
+
+        idx = self.validation_indices()
+        if not idx:
+            return {}
+        pipe = RGBDNPipeline(self.ema.model, make_scheduler(), self.codec, self.text_encoder, self.preset,
+                             self.model_space, camera_name=self.data.camera, bf16=self.precision.bf16)
+        first, noise, x0 = self.data.first[idx].float(), self.data.noise[idx], self.data.x0[idx]
+        texts = [self.data.instructions[i] for i in idx]
+        student = pipe(first, texts, latents=noise, output_type="latent")  # the student preset's steps, no guidance
+        self.ema.model.eval()
+        return {"val/psnr_student_vs_teacher": model_space_psnr(self.codec, student, x0)}
+
+
+def model_space_psnr(codec, a: torch.Tensor, b: torch.Tensor) -> float:
+    """PSNR (dB, peak 1) of two network-space batches decoded to model space ([-1, 1] -> [0, 1], all
+    channels: RGB, depth, normal)."""
+    from tesseract4d.psnr import rgb_psnr
+
+    with torch.no_grad():
+        da = ((codec.decode(a.float()) + 1) / 2).clamp(0, 1)
+        db = ((codec.decode(b.float()) + 1) / 2).clamp(0, 1)
+    return rgb_psnr(da, db)

@@ -275,8 +275,10 @@ def export_checkpoint(run: str | os.PathLike, to: str | os.PathLike | None = Non
 class Trainer:
     """Owns model, EMA, optimiser, data and the loss; ``train()`` runs until max_steps/max_minutes."""
 
+    command = "train"  # the command that owns the run folder (tesseract4d.outputs)
+
     def __init__(self, config: TrainConfig):
-        self.preset = get_preset(config.preset)
+        self.preset = self._resolve_preset(config)
         self.cfg = config.resolved(self.preset)
         cfg = self.cfg
         if cfg.data is None:
@@ -294,13 +296,28 @@ class Trainer:
                             f"drop --resume to start a new run")
         from tesseract4d.outputs import claim_folder, release_new_folder
 
-        fresh = claim_folder(self.out, "train", inputs=[cfg.data, cfg.pretrained], legacy_marker="train_config.json")
+        fresh = claim_folder(self.out, self.command, inputs=[cfg.data, cfg.pretrained], legacy_marker="train_config.json")
         try:
             self._setup(cfg, existing)
         except BaseException:
             if fresh is not None:  # a mistake found while setting up leaves nothing behind
                 release_new_folder(self.out, ["train_config.json"], remove_folder=fresh)
             raise
+
+    # Hooks a specialised trainer (tesseract4d.model.reflow.ReflowTrainer) overrides.
+    def _resolve_preset(self, config: TrainConfig) -> ModelPreset:
+        return get_preset(config.preset)
+
+    def _build_data(self, cfg: TrainConfig):
+        """The training data source: clips of a dataset folder, or latent clips from its cache
+        (``self.codec`` is built before this is called)."""
+        from tesseract4d.model.recipe import load_training_data
+
+        return load_training_data(cfg, self.preset, self.model_space, self.codec,
+                                  progress=cfg.progress and self.accelerator.is_main_process)
+
+    def _init_weights(self, model: torch.nn.Module) -> None:
+        """Called on a new run's freshly built model, before the EMA copy (default: keep the init)."""
 
     def _setup(self, cfg: "TrainConfig", existing: list[Path]) -> None:
         from accelerate import Accelerator
@@ -319,17 +336,16 @@ class Trainer:
         )
         self.device = self.accelerator.device
         self.model_space = ModelSpace(self.preset.near_m, self.preset.far_m)
-        from tesseract4d.model.recipe import load_training_data
-
         self.codec = build_codec(self.preset, cfg.pretrained, autoencoder=cfg.autoencoder).to(self.device)
-        self.data = load_training_data(cfg, self.preset, self.model_space, self.codec,
-                                       progress=cfg.progress and self.accelerator.is_main_process)
+        self.data = self._build_data(cfg)
         self.text_encoder = build_text_encoder(self.preset, cfg.pretrained)
         torch.manual_seed(cfg.seed)
         model = build_transformer(self.preset, self.codec, cfg.pretrained)
         if model.backbone.config.text_embed_dim != self.text_encoder.dim:
             raise UserError(f"text encoder gives {self.text_encoder.dim}-d embeddings but the transformer expects "
                             f"{model.backbone.config.text_embed_dim}")
+        if not (cfg.resume and existing):
+            self._init_weights(model)
         self.ema = EMA(model, cfg.ema_decay)
         optimizer = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
         self.model, self.optimizer = self.accelerator.prepare(model, optimizer)
@@ -352,8 +368,7 @@ class Trainer:
         """The loss of training step ``step`` (its batch and noise depend only on seed and step)."""
         cfg = self.cfg
         g = self._step_generator(step)
-        from tesseract4d.model.codec import make_condition
-        from tesseract4d.model.recipe import augment_condition, cell_weights, recipe_loss
+        from tesseract4d.model.recipe import augment_condition
 
         objects = None
         if getattr(self.data, "encoded", False):  # a latent cache: the encoder never runs in a step
@@ -371,10 +386,23 @@ class Trainer:
         keep_image = (torch.rand(b, generator=g) >= cfg.image_dropout).float()
         text = (text * keep_text[:, None, None]).to(self.device)
         first = first * keep_image.to(self.device)[:, None, None, None, None]
-        cond = make_condition(first, x0.shape[1], self.preset.condition)
         t = torch.rand(b, generator=g)
         noise = torch.randn(x0.shape, generator=g)
+        return self.denoising_loss(x0, first, text, t, noise, objects)
+
+    def denoising_loss(self, x0: torch.Tensor, first: torch.Tensor, text: torch.Tensor, t: torch.Tensor,
+                       noise: torch.Tensor, objects: torch.Tensor | None = None) -> tuple[torch.Tensor, dict[str, float]]:
+        """The weighted per-group loss of the recipe's target at ``x_t = (1 - t) x0 + t noise``. x0,
+        noise: (b, t', c, h, w) network space; first: (b, 1, c, h, w) encoded first frame (zeros =
+        dropped); text: (b, L, d) embeddings; t: (b,) in [0, 1]; objects: (b, t', h, w) robot/object
+        cells of a latent cache, or None."""
+        from tesseract4d.model.codec import make_condition
+        from tesseract4d.model.recipe import cell_weights, recipe_loss
+
+        cfg = self.cfg
+        x0, first, text = x0.to(self.device), first.to(self.device), text.to(self.device)
         t, noise = t.to(self.device), noise.to(self.device)
+        cond = make_condition(first, x0.shape[1], self.preset.condition)
         tt = t[:, None, None, None, None]
         x_t = (1 - tt) * x0 + tt * noise
         out = self.model(x_t, cond, text, t).float()

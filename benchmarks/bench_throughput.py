@@ -1,0 +1,78 @@
+"""Benchmark batched prediction: clips per second for N scenes sampled per pipeline call.
+
+`predict_scenes(pipeline, first_frames, instructions, batch_size=N)` samples N scenes (first frame +
+instruction) in one call of the pipeline; this measures clips/s and seconds per call for N = 1, 2,
+4, 8 on a checkpoint (default: the shipped tiny one) at its preset's steps and guidance, or with
+--steps/--no-guidance (e.g. a distilled student). First frames are synthetic scenes at the
+checkpoint's resolution: speed does not depend on the content. The first line names the CPU model
+and ISA and the precision used.
+
+  .venv/bin/python benchmarks/bench_throughput.py [--checkpoint tesseract4d/checkpoints/tiny] [--batches 1,2,4,8]
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import statistics
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--checkpoint", type=Path, default=ROOT / "tesseract4d" / "checkpoints" / "tiny")
+    parser.add_argument("--batches", default="1,2,4,8", help="scenes per pipeline call (default %(default)s)")
+    parser.add_argument("--repeats", type=int, default=2, help="timed calls per batch size (median)")
+    parser.add_argument("--steps", type=int, help="sampler steps (default: the checkpoint preset's)")
+    parser.add_argument("--precision", default="auto", choices=("auto", "fp32", "bf16"))
+    args = parser.parse_args(argv)
+
+    from tesseract4d import runtime
+
+    runtime.configure()
+    import torch
+
+    sys.path.insert(0, str(ROOT / "tests"))
+    from synthetic_scene import synthetic_episode
+
+    from tesseract4d.model.predict import load_pipeline, predict_scenes
+    from tesseract4d.precision import describe_cpu, resolve_precision
+
+    pipe = load_pipeline(args.checkpoint, precision=args.precision)
+    p = pipe.preset
+    steps = args.steps or p.num_steps
+    passes = 1 + (p.text_guidance != 1.0 or p.image_guidance != 1.0) + (p.image_guidance != 1.0)
+    chosen = resolve_precision(args.precision, "cpu", warn=False)
+    print(f"CPU: {describe_cpu()}; precision {chosen.name}; torch {torch.__version__}, {torch.get_num_threads()} threads, "
+          f"OMP_WAIT_POLICY={os.environ.get('OMP_WAIT_POLICY')}, load average {os.getloadavg()[0]:.1f}")
+    print(f"checkpoint {args.checkpoint}: {p.name} {p.height}x{p.width}, {p.num_frames} frames, {steps} steps x "
+          f"{passes} network pass(es)")
+    batches = [int(b) for b in args.batches.split(",")]
+    scenes = [synthetic_episode(i, frames=1, size=p.height) for i in range(max(batches))]
+    texts = [s.instruction for s in scenes]
+    predict_scenes(pipe, scenes[:1], texts[:1], num_steps=1)  # warm-up
+    rows = []
+    for n in batches:
+        times = []
+        for r in range(args.repeats):
+            t0 = time.perf_counter()
+            predict_scenes(pipe, scenes[:n], texts[:n], batch_size=n, num_steps=steps, seed=r)
+            times.append(time.perf_counter() - t0)
+        s = statistics.median(times)
+        rows.append((str(n), f"{s:.2f}", f"{s / n:.2f}", f"{n / s:.3f}"))
+        print(*rows[-1], sep=" | ", flush=True)
+    header = ("scenes per call", "s per call", "s per clip", "clips/s")
+    widths = [max(len(str(x)) for x in col) for col in zip(header, *rows)]
+    print()
+    print(f"CPU: {describe_cpu()}")
+    for row in (header, tuple("-" * w for w in widths), *rows):
+        print("  ".join(str(x).ljust(w) for x, w in zip(row, widths)))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

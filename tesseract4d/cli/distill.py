@@ -1,0 +1,77 @@
+"""Distil a checkpoint into a few-step student (rectified-flow reflow): one network pass per step.
+
+  tesseract4d distill --teacher checkpoints/tiny --data data/train --pairs runs/pairs --out runs/student
+  tesseract4d distill --pairs-only --teacher checkpoints/tiny --data data/train --pairs runs/pairs
+  tesseract4d distill --teacher checkpoints/tiny --pairs runs/pairs --out runs/student --resume
+
+Two stages, each resumable:
+1. pairs: the teacher samples --num-pairs clips with its full sampler (its preset's steps and
+   guidance, or --teacher-steps) from stored noise, first frames and instructions of --data, into
+   --pairs (shards written whole; a rerun continues at the first missing shard, and refuses a
+   folder made with other settings). Skipped when --data is not given and --pairs is complete.
+2. student: initialised with the teacher's weights, trained on the straight path between each
+   pair's noise and the teacher's clip. RUN/final is an inference checkpoint whose preset samples
+   in --student-steps steps without guidance, and which records the teacher it was distilled from.
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    from tesseract4d.model.reflow import PairsConfig, ReflowConfig
+    from tesseract4d.precision import add_precision_argument
+
+    p, d = PairsConfig(Path(), Path(), Path()), ReflowConfig()
+    parser.add_argument("--teacher", type=Path, required=True, help="the inference checkpoint to distil (e.g. RUN/final)")
+    parser.add_argument("--data", type=Path, help="dataset folder the pairs' first frames and instructions come from")
+    parser.add_argument("--pairs", type=Path, required=True, help="pairs folder (written, or resumed, from --data)")
+    parser.add_argument("--out", type=Path, help="the student's run folder (checkpoints, logs, final/)")
+    parser.add_argument("--pairs-only", action="store_true", help="make the pairs and stop")
+    parser.add_argument("--num-pairs", type=int, default=p.num_pairs, help="teacher clips to sample (default %(default)s)")
+    parser.add_argument("--teacher-steps", type=int, help="the teacher's sampler steps (default: its preset's)")
+    parser.add_argument("--pair-batch-size", type=int, default=p.batch_size,
+                        help="teacher clips per sampler call (default %(default)s)")
+    parser.add_argument("--student-steps", type=int, default=d.student_steps,
+                        help="the student's sampler steps, one network pass each (default %(default)s)")
+    parser.add_argument("--max-steps", type=int, default=d.max_steps,
+                        help="training steps; the cosine learning-rate decay ends here (default %(default)s)")
+    parser.add_argument("--max-minutes", type=float, help="stop with a checkpoint after this many minutes of this invocation")
+    parser.add_argument("--batch-size", type=int, help="pairs per step (default: the teacher preset's)")
+    parser.add_argument("--lr", type=float, help="peak learning rate (default: the teacher preset's)")
+    add_precision_argument(parser)
+    parser.add_argument("--resume", action="store_true", help="continue the student's run from the latest checkpoint in --out")
+    parser.add_argument("--val-every", type=int, default=d.val_every,
+                        help="PSNR of the student against the teacher every K steps, 0 = never (default %(default)s)")
+    parser.add_argument("--ckpt-every", type=int, default=d.ckpt_every, help="checkpoint every K steps (default %(default)s)")
+    parser.add_argument("--seed", type=int, default=0, help="seed of the pairs' noise and of the training (default %(default)s)")
+    parser.add_argument("--camera", help="camera of --data (default: the teacher's)")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bars")
+
+
+def run(args: argparse.Namespace) -> int:
+    from tesseract4d.errors import UserError
+    from tesseract4d.model.reflow import MANIFEST, PairsConfig, ReflowConfig, ReflowTrainer, generate_pairs
+
+    if not args.pairs_only and args.out is None:
+        raise UserError("pass --out RUN (the student's run folder), or --pairs-only to make the pairs only")
+    if args.data is not None:
+        generate_pairs(PairsConfig(
+            teacher=args.teacher, data=args.data, out=args.pairs, num_pairs=args.num_pairs,
+            batch_size=args.pair_batch_size, teacher_steps=args.teacher_steps, seed=args.seed, camera=args.camera,
+            precision=args.precision), progress=not args.no_progress)
+        print(f"pairs: {args.pairs}")
+    elif args.pairs_only or not (args.pairs / MANIFEST).is_file():
+        raise UserError(f"pass --data DIR: the pairs in {args.pairs} are made from a dataset folder")
+    if args.pairs_only:
+        return 0
+    cfg = ReflowConfig(
+        data=args.pairs, out=args.out, teacher=args.teacher, student_steps=args.student_steps,
+        max_steps=args.max_steps, max_minutes=args.max_minutes, batch_size=args.batch_size, lr=args.lr,
+        precision=args.precision, resume=args.resume, val_every=args.val_every, ckpt_every=args.ckpt_every,
+        seed=args.seed, progress=not args.no_progress)
+    final = ReflowTrainer(cfg).train()
+    print(f"student checkpoint: {final} ({args.student_steps} steps, one network pass each)")
+    return 0

@@ -1,0 +1,115 @@
+"""Few-step distillation by reflow: deterministic resumable pairs, the `distill` command, and a
+student that follows its guided multi-step teacher in a few unguided steps."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+import torch
+from model_fixtures import MICRO
+from synthetic_scene import write_synthetic_dataset
+
+from tesseract4d.cli import main
+from tesseract4d.errors import UserError
+from tesseract4d.model.reflow import (
+    PairsConfig, ReflowPairs, generate_pairs, model_space_psnr, weights_digest,
+)
+from tesseract4d.model.trainer import TrainConfig, Trainer
+
+pytestmark = pytest.mark.usefixtures("micro_preset")
+
+TEACHER_STEPS, TEACHER_GUIDANCE, STUDENT_STEPS = 8, 2.0, 2
+
+
+@pytest.fixture(scope="module")
+def teacher(tmp_path_factory) -> tuple[Path, Path]:
+    """A micro teacher trained briefly on the synthetic scenes: (checkpoint, dataset)."""
+    root = tmp_path_factory.mktemp("reflow")
+    data = write_synthetic_dataset(root / "data", episodes=4)
+    cfg = TrainConfig(data=data, out=root / "teacher", preset=MICRO.name, max_steps=150, batch_size=4,
+                      val_every=0, ckpt_every=0, progress=False)
+    return Trainer(cfg).train(), data
+
+
+def _pairs_cfg(teacher, data, out, n):
+    return PairsConfig(teacher=teacher, data=data, out=out, num_pairs=n, shard_size=2, batch_size=2,
+                       teacher_steps=TEACHER_STEPS, text_guidance=TEACHER_GUIDANCE)
+
+
+def test_pairs_are_deterministic_and_resume(teacher, tmp_path):
+    ckpt, data = teacher
+    whole = ReflowPairs(generate_pairs(_pairs_cfg(ckpt, data, tmp_path / "a", 4), progress=False))
+    generate_pairs(_pairs_cfg(ckpt, data, tmp_path / "b", 2), progress=False)  # interrupted after one shard
+    assert len(ReflowPairs(tmp_path / "b")) == 2
+    resumed = ReflowPairs(generate_pairs(_pairs_cfg(ckpt, data, tmp_path / "b", 4), progress=False))
+    assert len(whole) == len(resumed) == 4 and whole.instructions == resumed.instructions
+    for name in ("first", "noise", "x0"):
+        assert torch.equal(getattr(whole, name), getattr(resumed, name)), name
+    assert whole.manifest["teacher_digest"] == weights_digest(ckpt)
+    with pytest.raises(UserError, match="other settings"):
+        generate_pairs(PairsConfig(teacher=ckpt, data=data, out=tmp_path / "a", num_pairs=4, shard_size=2,
+                                   teacher_steps=3), progress=False)
+
+
+def test_distill_student_follows_teacher_in_few_steps(teacher, tmp_path, capsys):
+    """The distill command's student loads as a pipeline whose preset samples in STUDENT_STEPS
+    unguided steps, and its samples from new noise are closer to the guided TEACHER_STEPS-step
+    teacher than the teacher's own STUDENT_STEPS-step samples."""
+    from tesseract4d.model.predict import load_pipeline
+
+    ckpt, data = teacher
+    pairs, run = tmp_path / "pairs", tmp_path / "student"
+    generate_pairs(PairsConfig(teacher=ckpt, data=data, out=pairs, num_pairs=32, shard_size=16, batch_size=16,
+                               teacher_steps=TEACHER_STEPS, text_guidance=TEACHER_GUIDANCE), progress=False)
+    argv = ["distill", "--teacher", str(ckpt), "--pairs", str(pairs), "--out", str(run), "--student-steps",
+            str(STUDENT_STEPS), "--max-steps", "150", "--batch-size", "4", "--lr", "1e-3", "--val-every", "150",
+            "--ckpt-every", "0", "--no-progress"]
+    assert main(argv) == 0
+    student = load_pipeline(run / "final")
+    p = student.preset
+    assert (p.num_steps, p.text_guidance, p.image_guidance) == (STUDENT_STEPS, 1.0, 1.0)
+    src = student.config["distilled_from"]
+    assert src["teacher_digest"] == weights_digest(ckpt) and src["teacher_steps"] == TEACHER_STEPS
+    assert src["text_guidance"] == TEACHER_GUIDANCE
+    assert json.loads((run / "train_config.json").read_text())["teacher"] == str(ckpt)
+
+    # New noise (not a training pair), the pairs' first frames and instructions.
+    teacher_pipe = load_pipeline(ckpt)
+    pairs_data = ReflowPairs(pairs)
+    first, texts = pairs_data.first[:8].float(), pairs_data.instructions[:8]
+    noise = torch.randn(teacher_pipe.latent_shape(8), generator=torch.Generator().manual_seed(123))
+    target = teacher_pipe(first, texts, num_inference_steps=TEACHER_STEPS, text_guidance=TEACHER_GUIDANCE,
+                          latents=noise, output_type="latent")
+    few = teacher_pipe(first, texts, num_inference_steps=STUDENT_STEPS, text_guidance=TEACHER_GUIDANCE,
+                       latents=noise, output_type="latent")
+    distilled = student(first, texts, latents=noise, output_type="latent")  # its preset: 2 steps, 1 pass each
+    psnr_student = model_space_psnr(student.codec, distilled, target)
+    psnr_teacher_few = model_space_psnr(student.codec, few, target)
+    print(f"student {STUDENT_STEPS} steps: {psnr_student:.2f} dB, teacher {STUDENT_STEPS} steps: "
+          f"{psnr_teacher_few:.2f} dB (vs teacher {TEACHER_STEPS} guided steps)")
+    assert psnr_student > psnr_teacher_few + 1.0 and psnr_student > 25.0, (psnr_student, psnr_teacher_few)
+
+
+def test_distill_errors(teacher, tmp_path):
+    ckpt, data = teacher
+    assert main(["distill", "--teacher", str(ckpt), "--pairs", str(tmp_path / "none"), "--out", str(tmp_path / "r")]) == 2
+    assert main(["distill", "--teacher", str(ckpt), "--pairs", str(tmp_path / "p"), "--pairs-only"]) == 2
+    # The pairs folder is never the run folder.
+    generate_pairs(_pairs_cfg(ckpt, data, tmp_path / "p", 2), progress=False)
+    assert main(["distill", "--teacher", str(ckpt), "--pairs", str(tmp_path / "p"), "--out", str(tmp_path / "p")]) == 2
+    assert not (tmp_path / "r").exists()
+
+
+def test_distill_resumes_and_refuses_an_existing_run(teacher, tmp_path):
+    ckpt, data = teacher
+    argv = ["distill", "--teacher", str(ckpt), "--data", str(data), "--pairs", str(tmp_path / "p"), "--num-pairs", "4",
+            "--teacher-steps", "2", "--out", str(tmp_path / "run"), "--batch-size", "2", "--val-every", "0",
+            "--ckpt-every", "0", "--no-progress"]
+    assert main([*argv, "--max-steps", "2"]) == 0
+    assert main([*argv, "--max-steps", "4"]) == 2  # a run is there: --resume or a new --out
+    assert main([*argv, "--max-steps", "4", "--resume"]) == 0  # the pairs are complete: nothing resampled
+    state = json.loads((tmp_path / "run" / "checkpoint-000004" / "trainer_state.json").read_text())
+    assert state["step"] == 4 and state["inference_config"]["distilled_from"]["teacher_steps"] == 2
+    assert json.loads((tmp_path / "run" / ".tesseract4d-output.json").read_text())["command"] == "distill"
