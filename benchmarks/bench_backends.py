@@ -15,24 +15,14 @@ ONNX Runtime and OpenVINO are not dependencies of tesseract4d; install them to r
 from __future__ import annotations
 
 import argparse
-import statistics
 import sys
 import tempfile
 import time
 from pathlib import Path
+from measure import median_seconds
 
 SHIPPED = Path(__file__).resolve().parent.parent / "tesseract4d" / "checkpoints" / "tiny"
 STEPS_PER_CLIP = 10
-
-
-def _median_seconds(fn, repeats: int) -> float:
-    fn()  # warm-up
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t0)
-    return statistics.median(times)
 
 
 def _inputs(pipe, batch: int):
@@ -84,14 +74,14 @@ def main(argv: list[str] | None = None) -> int:
         print(f"  measured {backend}: {seconds * 1000:.1f} ms/pass, max |diff| {diff:.2e} {note}", flush=True)
 
     with torch.no_grad():
-        add("eager fp32", _median_seconds(lambda: model(*inputs), args.repeats), reference)
+        add("eager fp32", median_seconds(lambda: model(*inputs), args.repeats, warmup=True), reference)
         auto = resolve_precision("auto", "cpu", warn=False)
         if auto.bf16:
             def bf16_pass():
                 with torch.autocast("cpu", dtype=torch.bfloat16):
                     return model(*inputs).float()
 
-            add("eager bf16 autocast", _median_seconds(bf16_pass, args.repeats), bf16_pass().numpy())
+            add("eager bf16 autocast", median_seconds(bf16_pass, args.repeats, warmup=True), bf16_pass().numpy())
         else:
             rows.append(("eager bf16 autocast", float("nan"), float("nan"), "skipped: no native bf16 on this CPU"))
 
@@ -110,7 +100,7 @@ def main(argv: list[str] | None = None) -> int:
             opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
             sess = ort.InferenceSession(str(onnx_path), opts, providers=["CPUExecutionProvider"])
             run = lambda: sess.run(None, feeds)[0]  # noqa: E731
-            add(f"ONNX Runtime {ort.__version__}", _median_seconds(run, args.repeats), run(),
+            add(f"ONNX Runtime {ort.__version__}", median_seconds(run, args.repeats, warmup=True), run(),
                 f"(export {export_s:.0f} s)")
         except ImportError:
             rows.append(("ONNX Runtime", float("nan"), float("nan"), "not installed"))
@@ -126,7 +116,7 @@ def main(argv: list[str] | None = None) -> int:
                     "PERFORMANCE_HINT": "LATENCY"})
                 request = compiled.create_infer_request()
                 run = lambda: request.infer(feeds)[compiled.output(0)]  # noqa: E731
-                add(f"OpenVINO {ov.__version__.split('-')[0]} {hint}", _median_seconds(run, args.repeats), np.asarray(run()))
+                add(f"OpenVINO {ov.__version__.split('-')[0]} {hint}", median_seconds(run, args.repeats, warmup=True), np.asarray(run()))
         except ImportError:
             rows.append(("OpenVINO", float("nan"), float("nan"), "not installed"))
 

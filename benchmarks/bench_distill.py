@@ -20,6 +20,7 @@ import argparse
 import sys
 import time
 from pathlib import Path
+from measure import print_table
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -86,10 +87,8 @@ def main(argv: list[str] | None = None) -> int:
             strip_rows.append(pred[0].rgb)
             print(*rows[-1], sep=" | ", flush=True)
     header = ("sampler", "PSNR vs teacher", "moving", "PSNR vs GT", "moving", "s/clip")
-    widths = [max(len(str(x)) for x in col) for col in zip(header, *rows)]
     print(f"\nCPU: {describe_cpu()}; {len(firsts)} held-out scenes from {args.data}; student {args.student}")
-    for row in (header, tuple("-" * w for w in widths), *rows):
-        print("  ".join(str(x).ljust(w) for x, w in zip(row, widths)))
+    print_table(header, rows)
     if args.strip is not None:
         import imageio.v3 as iio
 

@@ -16,22 +16,12 @@ from __future__ import annotations
 
 import argparse
 import os
-import statistics
 import sys
 import tempfile
-import time
 from pathlib import Path
 
 from bench_model import _peak_rss_mb, _reset_peak_rss, bench_sampling, bench_training
-
-
-def _median_time(fn, repeats: int) -> float:
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t0)
-    return statistics.median(times)
+from measure import median_seconds, print_table
 
 
 def bench_autoencoder_codec(ae_dir: Path, bf16: bool, repeats: int) -> dict:
@@ -44,9 +34,9 @@ def bench_autoencoder_codec(ae_dir: Path, bf16: bool, repeats: int) -> dict:
     with torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
         z = model.encode(x)
         _reset_peak_rss()
-        enc = _median_time(lambda: model.encode(x), repeats)
+        enc = median_seconds(lambda: model.encode(x), repeats)
         with torch.no_grad():
-            dec = _median_time(lambda: model.decode(z), repeats)
+            dec = median_seconds(lambda: model.decode(z), repeats)
     return {"encode_s": enc, "decode_s": dec, "peak_mb": _peak_rss_mb()}
 
 
@@ -58,7 +48,7 @@ def bench_autoencoder_training(data: Path, preset: str, bf16: bool, steps: int) 
                                                             precision="bf16" if bf16 else "fp32", progress=False))
         trainer.train_step()
         _reset_peak_rss()
-        s = _median_time(trainer.train_step, steps)
+        s = median_seconds(trainer.train_step, steps)
         return {"s_per_step": s, "peak_mb": _peak_rss_mb()}
 
 
@@ -72,7 +62,7 @@ def bench_latent_training(data: Path, ae_dir: Path, bf16: bool, steps: int, batc
                                       progress=False))
         trainer.train_step()
         _reset_peak_rss()
-        s = _median_time(trainer.train_step, steps)
+        s = median_seconds(trainer.train_step, steps)
         return {"s_per_step": s, "peak_mb": _peak_rss_mb()}
 
 
@@ -92,7 +82,7 @@ def bench_latent_sampling(ae_dir: Path, bf16: bool, steps: int, repeats: int) ->
     first = torch.rand(1, 7, preset.height, preset.width) * 2 - 1
     pipe(first, ["pick up the red cube"], num_inference_steps=1)
     _reset_peak_rss()
-    s = _median_time(lambda: pipe(first, ["pick up the red cube"], num_inference_steps=steps,
+    s = median_seconds(lambda: pipe(first, ["pick up the red cube"], num_inference_steps=steps,
                                   text_guidance=preset.text_guidance, generator=torch.Generator().manual_seed(0)), repeats)
     return {"s_per_clip": s, "peak_mb": _peak_rss_mb()}
 
@@ -156,10 +146,8 @@ def main(argv: list[str] | None = None) -> int:
                 r = bench_sampling("tiny", bf16, 10, True, args.repeats)
                 add("tiny", p, "sample 10 steps, guidance 1.5", f"{r['s_per_clip']:.2f} s/clip", f"{r['peak_mb']:.0f}")
     header = ("model", "precision", "what", "speed", "peak RSS MB")
-    widths = [max(len(str(x)) for x in col) for col in zip(header, *rows)]
     print()
-    for row in (header, tuple("-" * w for w in widths), *rows):
-        print("  ".join(str(x).ljust(w) for x, w in zip(row, widths)))
+    print_table(header, rows)
     return 0
 
 

@@ -22,6 +22,7 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+from measure import print_table
 
 
 def _reset_peak_rss() -> None:
@@ -122,11 +123,9 @@ def main(argv: list[str] | None = None) -> int:
                                  f"{r['s_per_clip']:.2f} s/clip ({preset.num_frames} frames)", f"{r['peak_mb']:.0f}"))
                     print(*rows[-1], sep=" | ", flush=True)
     header = ("preset", "precision", "what", "speed", "peak RSS MB")
-    widths = [max(len(str(x)) for x in col) for col in zip(header, *rows)]
     print()
     print(f"CPU: {describe_cpu()}")
-    for row in (header, tuple("-" * w for w in widths), *rows):
-        print("  ".join(str(x).ljust(w) for x, w in zip(row, widths)))
+    print_table(header, rows)
     return 0
 
 

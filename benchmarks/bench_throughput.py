@@ -18,6 +18,7 @@ import statistics
 import sys
 import time
 from pathlib import Path
+from measure import print_table
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -66,11 +67,9 @@ def main(argv: list[str] | None = None) -> int:
         rows.append((str(n), f"{s:.2f}", f"{s / n:.2f}", f"{n / s:.3f}"))
         print(*rows[-1], sep=" | ", flush=True)
     header = ("scenes per call", "s per call", "s per clip", "clips/s")
-    widths = [max(len(str(x)) for x in col) for col in zip(header, *rows)]
     print()
     print(f"CPU: {describe_cpu()}")
-    for row in (header, tuple("-" * w for w in widths), *rows):
-        print("  ".join(str(x).ljust(w) for x, w in zip(row, widths)))
+    print_table(header, rows)
     return 0
 
 

@@ -146,10 +146,12 @@ def test_latent_cache_reused_when_valid_rebuilt_when_autoencoder_changes(tmp_pat
     save_autoencoder(RGBDNAutoencoder(get_autoencoder_preset("ae-test")), tmp_path / "ae_b")
     with pytest.raises(UserError, match="encode-latents"):
         open_latent_cache(cache.folder, tmp_path / "ae_b")
+    (cache.folder / "notes.txt").write_text("the user's own notes")  # a rebuild replaces only the cache's files
     rebuilt, built = ensure_latent_cache(data, tmp_path / "ae_b")
     assert built and rebuilt.autoencoder_hash == autoencoder_hash(tmp_path / "ae_b")
     assert not torch.equal(rebuilt.episodes[0].latents, lat)
-    assert not list(cache.folder.parent.glob(".*tmp"))
+    assert (cache.folder / "notes.txt").read_text() == "the user's own notes"
+    assert not list(cache.folder.parent.glob(".*tmp*"))
     clips = LatentClipDataset(rebuilt, num_frames=4)
     batch, texts, objects = clips.sample_batch(3, torch.Generator().manual_seed(0), with_objects=True)
     assert tuple(batch.shape) == (3, 4, 4, 4, 4) and len(texts) == 3 and tuple(objects.shape) == (3, 4, 4, 4)
@@ -162,3 +164,24 @@ def test_latent_cache_rejects_other_resolution(tmp_path):
     save_autoencoder(RGBDNAutoencoder(get_autoencoder_preset("ae-test")), tmp_path / "ae")
     with pytest.raises(UserError, match="--resolution 32"):
         ensure_latent_cache(data, tmp_path / "ae")
+
+
+def test_trainer_never_takes_over_a_folder_it_did_not_write(tmp_path):
+    from tesseract4d.model.autoencoder_trainer import AutoencoderTrainer
+
+    data = write_segmented_dataset(tmp_path / "data", episodes=1)
+    # A diffusion training run: checkpoint-XXXXXX folders, but not this trainer's.
+    other = tmp_path / "other_run"
+    (other / "checkpoint-000002").mkdir(parents=True)
+    (other / "checkpoint-000002" / "state.json").write_text("{}")
+    (other / "notes.txt").write_text("the user's own notes")
+    before = sorted((p.relative_to(other).as_posix(), p.read_bytes() if p.is_file() else b"") for p in other.rglob("*"))
+    with pytest.raises(UserError, match="--resume"):
+        AutoencoderTrainer(_train_cfg(data, other, max_steps=1, resume=True))
+    with pytest.raises(UserError, match="not empty"):
+        AutoencoderTrainer(_train_cfg(data, other, max_steps=1))
+    assert sorted((p.relative_to(other).as_posix(), p.read_bytes() if p.is_file() else b"")
+                  for p in other.rglob("*")) == before
+    # A new folder is claimed (marked as this trainer's) only once the inputs have loaded.
+    AutoencoderTrainer(_train_cfg(data, tmp_path / "new", max_steps=1))
+    assert (tmp_path / "new" / ".tesseract4d-output.json").is_file()

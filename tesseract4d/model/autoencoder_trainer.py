@@ -259,14 +259,20 @@ class AutoencoderTrainer:
                                            betas=(0.9, 0.99))
         self.frames = FrameSet.load(cfg.data, height=ae_cfg.height, width=ae_cfg.width,
                                     model_space=self.model.model_space, camera=cfg.camera, progress=cfg.progress)
+        from tesseract4d.outputs import claim_folder
+
+        # Claimed once the inputs have loaded, so a mistake leaves nothing behind; the checkpoints
+        # and export this trainer replaces then live only in a folder that is its own.
+        claim_folder(self.out, "train-autoencoder", inputs=[cfg.data, cfg.heldout], legacy_marker=CONFIG_FILE)
         self.step = 0
         self.stop_requested = False
 
     def _check_run_folder(self) -> None:
         cfg_path = self.out / CONFIG_FILE
         if self.cfg.resume:
-            if not list_checkpoints(self.out):
-                raise UserError(f"--resume: {self.out} holds no checkpoint; start without --resume")
+            if not list_checkpoints(self.out) or not cfg_path.is_file():
+                raise UserError(f"--resume: {self.out} holds no autoencoder checkpoint (and {CONFIG_FILE}); "
+                                f"start without --resume")
             saved = json.loads(cfg_path.read_text())
             if saved.get("preset") != self.cfg.preset:
                 raise UserError(f"--resume: {self.out} trains preset {saved.get('preset')!r}, not {self.cfg.preset!r}; "

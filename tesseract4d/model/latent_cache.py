@@ -18,6 +18,7 @@ from __future__ import annotations
 import json
 import os
 import shutil
+import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -160,12 +161,19 @@ def ensure_latent_cache(dataset: str | os.PathLike, autoencoder_dir: str | os.Pa
              and meta["camera"] == camera and meta["dataset_fingerprint"] == dataset_fingerprint(dataset))
     if valid:
         return open_latent_cache(folder), False
-    tmp = folder.with_name(f".{folder.name}.tmp")
-    shutil.rmtree(tmp, ignore_errors=True)
-    _build(dataset, autoencoder_dir, camera, tmp, progress)
-    if folder.exists():
-        shutil.rmtree(folder)  # a cache this module wrote (checked above)
-    os.replace(tmp, folder)
+    # Build in a fresh temporary sibling of our own, then move its two files into place: the cache
+    # file last, so an interruption leaves an invalid (rebuilt next time) cache, never a mixed one;
+    # anything else in the folder is left alone.
+    folder.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(dir=folder.parent, prefix=f".{folder.name}.tmp-"))
+    try:
+        _build(dataset, autoencoder_dir, camera, tmp / "cache", progress)
+        folder.mkdir(exist_ok=True)
+        (folder / CACHE_FILE).unlink(missing_ok=True)
+        os.replace(tmp / "cache" / LATENTS_FILE, folder / LATENTS_FILE)
+        os.replace(tmp / "cache" / CACHE_FILE, folder / CACHE_FILE)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)  # the temporary folder made above, nothing else
     return open_latent_cache(folder), True
 
 

@@ -173,10 +173,11 @@ def predict_scenes(
     num_frames, num_steps = _check_sampling(pipeline, num_frames, num_steps, 1)
     scenes = [_scene(pipeline, f, i, camera) for f, i in zip(first_frames, instructions)]
     num_batches = -(-len(scenes) // batch_size)
+    noise_shape = pipeline.latent_shape(1)  # (1, t', c, h, w); asks the codec once, not per scene
     out: list[df.Episode] = []
     for b in range(num_batches):
         chunk = range(b * batch_size, min(len(scenes), (b + 1) * batch_size))
-        latents = torch.cat([torch.randn(pipeline.latent_shape(1), generator=torch.Generator().manual_seed(
+        latents = torch.cat([torch.randn(noise_shape, generator=torch.Generator().manual_seed(
             int(seed) * 1_000_003 + i)) for i in chunk])
         step_progress = None
         if progress is not None:
