@@ -109,6 +109,26 @@ def test_train_cli_and_export(dataset, tmp_path, capsys):
     assert "holds no checkpoint" in capsys.readouterr().err
 
 
+def test_several_datasets_train_as_one_set(dataset, tmp_path):
+    from synthetic_scene import synthetic_episode
+
+    from tesseract4d import dataset_format as df
+
+    other = tmp_path / "other"
+    df.init_dataset(other, df.DatasetInfo(height=32, width=32, cameras=["close"]))
+    for seed in (10, 11, 12):
+        df.write_episode(other, synthetic_episode(seed, 8, 32))
+    trainer = Trainer(_config([dataset, other], tmp_path / "run"))
+    ids = {s.episode_id for s in trainer.data.sources}
+    assert len(ids) == 4 + 3
+    assert any("000010" in i for i in ids) and any("000000" in i for i in ids)
+    assert trainer.train_step()["loss"] > 0
+    saved = json.loads((tmp_path / "run" / "train_config.json").read_text())
+    assert saved["data"] == [str(dataset), str(other)]
+    with pytest.raises(UserError, match="in two of the training datasets"):
+        Trainer(_config([dataset, dataset], tmp_path / "twice"))
+
+
 def test_overfit_one_clip(tmp_path):
     """300 steps on one clip: the loss falls and a sample reproduces the clip far better than the
     static world (first frame repeated) and noise."""

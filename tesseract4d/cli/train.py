@@ -1,6 +1,7 @@
 """Train the RGB-D-N video diffusion model on a dataset folder, or export a run's EMA weights.
 
   tesseract4d train --data data/ae128 --autoencoder runs/ae/autoencoder --out runs/latent   # latent-128 (default)
+  tesseract4d train --data data/skills data/tasks --autoencoder runs/ae/autoencoder --out runs/v2   # two datasets
   tesseract4d train --preset tiny --data data/train --out runs/tiny --max-minutes 60
   tesseract4d train --out runs/tiny --resume --data data/train      # continue exactly where it stopped
   tesseract4d train --export runs/tiny --to checkpoints/tiny        # inference folder (EMA weights)
@@ -23,7 +24,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
     d = TrainConfig()
     parser.add_argument("--preset", default=d.preset, choices=list(PRESETS), help="model preset (default %(default)s)")
-    parser.add_argument("--data", type=Path, help="dataset folder written by `tesseract4d datagen`")
+    parser.add_argument("--data", type=Path, nargs="+",
+                        help="dataset folder(s) written by `tesseract4d datagen`; several folders (same resolution "
+                             "and camera) train as one set")
     parser.add_argument("--out", type=Path, help="run folder (checkpoints, logs, validation videos, final/)")
     parser.add_argument("--pretrained", type=Path, help="local CogVideoX-5B-I2V folder (cogvideox-5b preset)")
     parser.add_argument("--autoencoder", type=Path,

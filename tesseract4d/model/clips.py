@@ -92,6 +92,25 @@ class ClipDataset:
         return spread_over_tasks([s.episode_id for s in self.sources], count)
 
 
+def merge_clip_datasets(datasets: list):
+    """One clip dataset over the episodes of several (``ClipDataset`` or latent ``LatentClipDataset``
+    of the same kind, camera and clip length); a single dataset is returned as it is."""
+    first = datasets[0]
+    for other in datasets[1:]:
+        if type(other) is not type(first) or other.num_frames != first.num_frames:
+            raise UserError("the training datasets must be of one kind and clip length")
+        if other.camera != first.camera:
+            raise UserError(f"the training datasets use cameras {first.camera!r} and {other.camera!r}; pass --camera "
+                            f"NAME to pick one that every dataset has")
+        ids = {s.episode_id for s in first.sources}
+        clash = next((s.episode_id for s in other.sources if s.episode_id in ids), None)
+        if clash is not None:
+            raise UserError(f"episode {clash} is in two of the training datasets; pass each dataset folder once")
+        first.sources = first.sources + other.sources
+        first.skipped += other.skipped
+    return first
+
+
 def spread_over_tasks(episode_ids: list[str], count: int) -> list[int]:
     """Indices of up to ``count`` episodes (ids ``TASK/...``), taking the tasks in turn."""
     by_task: dict[str, list[int]] = {}

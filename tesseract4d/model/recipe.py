@@ -40,19 +40,27 @@ def check_recipe(cfg, preset: ModelPreset) -> None:
 
 
 def load_training_data(cfg, preset: ModelPreset, model_space, codec, progress: bool = False):
-    """The preset's clip dataset: model-space pixel clips, or latent clips from the (re)built cache."""
+    """The preset's clip dataset over every folder of ``cfg.data``: model-space pixel clips, or latent
+    clips from each folder's (re)built cache."""
+    from tesseract4d.model.clips import merge_clip_datasets
+
+    return merge_clip_datasets([_load_folder(folder, cfg, preset, model_space, codec, progress)
+                                for folder in cfg.data_folders])
+
+
+def _load_folder(folder, cfg, preset: ModelPreset, model_space, codec, progress: bool):
     from tesseract4d import dataset_format as df
 
     if preset.space != AUTOENCODER:
         from tesseract4d.model.clips import ClipDataset
 
-        return ClipDataset(cfg.data, num_frames=preset.num_frames, height=preset.height, width=preset.width,
+        return ClipDataset(folder, num_frames=preset.num_frames, height=preset.height, width=preset.width,
                            model_space=model_space, camera=cfg.camera, show_progress=progress)
     from tesseract4d.model.latent_cache import LatentClipDataset, ensure_latent_cache
 
-    info = df.read_info(cfg.data)
+    info = df.read_info(folder)
     if (info.height, info.width) != (preset.height, preset.width):
-        raise UserError(f"{cfg.data} holds {info.height}x{info.width} episodes but preset {preset.name!r} trains on "
+        raise UserError(f"{folder} holds {info.height}x{info.width} episodes but preset {preset.name!r} trains on "
                         f"{preset.height}x{preset.width}; generate data with `tesseract4d datagen --resolution "
                         f"{preset.height} --out DIR` or pick a matching preset")
     ae_cfg = codec.autoencoder.config
@@ -60,7 +68,7 @@ def load_training_data(cfg, preset: ModelPreset, model_space, codec, progress: b
         raise UserError(f"the autoencoder {cfg.autoencoder} works at {ae_cfg.height}x{ae_cfg.width}, preset "
                         f"{preset.name!r} at {preset.height}x{preset.width}; train a matching one with "
                         f"`tesseract4d train-autoencoder`")
-    cache, built = ensure_latent_cache(cfg.data, cfg.autoencoder, camera=cfg.camera, progress=progress)
+    cache, built = ensure_latent_cache(folder, cfg.autoencoder, camera=cfg.camera, progress=progress)
     if progress:
         print(f"{'built' if built else 'reused'} latent cache {cache.folder} (autoencoder {cache.autoencoder_hash})")
     return LatentClipDataset(cache, num_frames=preset.num_frames)

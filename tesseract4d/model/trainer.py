@@ -56,7 +56,7 @@ VALIDATION_STEPS = 10
 class TrainConfig:
     """Options of `tesseract4d train`; unset (None) training values take the preset's defaults."""
 
-    data: Path | None = None
+    data: Path | list[Path] | None = None  # one dataset folder or several (trained as one set)
     out: Path = Path("runs/tiny")
     preset: str = "latent-128"
     pretrained: Path | None = None
@@ -96,8 +96,22 @@ class TrainConfig:
                 setattr(out, name, getattr(preset, name))
         return out
 
+    @property
+    def data_folders(self) -> list[Path]:
+        """The dataset folder(s) as a list."""
+        if self.data is None:
+            return []
+        return [Path(d) for d in self.data] if isinstance(self.data, (list, tuple)) else [Path(self.data)]
+
     def to_dict(self) -> dict:
-        return {k: (str(v) if isinstance(v, Path) else v) for k, v in dataclasses.asdict(self).items()}
+        def plain(v):
+            if isinstance(v, Path):
+                return str(v)
+            if isinstance(v, (list, tuple)):
+                return [plain(x) for x in v]
+            return v
+
+        return {k: plain(v) for k, v in dataclasses.asdict(self).items()}
 
     def validate(self) -> None:
         """One-line UserErrors for numeric options that would train into NaN or not train at all
@@ -281,7 +295,7 @@ class Trainer:
         self.preset = self._resolve_preset(config)
         self.cfg = config.resolved(self.preset)
         cfg = self.cfg
-        if cfg.data is None:
+        if not cfg.data_folders:
             raise UserError("pass --data DIR (a dataset folder written by `tesseract4d datagen`)")
         cfg.validate()
         from tesseract4d.model.recipe import check_recipe
@@ -296,7 +310,8 @@ class Trainer:
                             f"drop --resume to start a new run")
         from tesseract4d.outputs import claim_folder, release_new_folder
 
-        fresh = claim_folder(self.out, self.command, inputs=[cfg.data, cfg.pretrained], legacy_marker="train_config.json")
+        fresh = claim_folder(self.out, self.command, inputs=[*cfg.data_folders, cfg.pretrained],
+                             legacy_marker="train_config.json")
         try:
             self._setup(cfg, existing)
         except BaseException:
@@ -441,7 +456,7 @@ class Trainer:
     def _inference_config(self) -> dict:
         return inference_config(
             self.preset, self.model_space, self.text_encoder, camera=self.data.camera, pretrained=self.cfg.pretrained,
-            training={"steps": self.step, "minutes": round(self.elapsed_s / 60, 2), "data": str(self.cfg.data),
+            training={"steps": self.step, "minutes": round(self.elapsed_s / 60, 2), "data": [str(d) for d in self.cfg.data_folders],
                       "episodes": len(self.data), "batch_size": self.cfg.batch_size, "lr": self.cfg.lr,
                       "precision": self.precision.name, "ema_decay": self.cfg.ema_decay, "last_loss": self.last_loss,
                       "loss_weights": self.cfg.loss_weights, "seed": self.cfg.seed,
