@@ -137,6 +137,36 @@ def test_checkpoint_save_load_identical_samples_and_autoencoder_checks(tmp_path)
         load_pipeline(broken)
 
 
+def test_half_export_is_half_the_size_and_samples_like_the_float32_export(tmp_path):
+    from safetensors import safe_open
+
+    from tesseract4d import cli
+    from tesseract4d.model.predict import load_pipeline
+    from tesseract4d.model.trainer import Trainer
+
+    data = write_segmented_dataset(tmp_path / "data", episodes=2)
+    ae = _autoencoder(tmp_path / "ae", data=data)
+    run = tmp_path / "run"
+    full = Trainer(_config(data, run, ae, max_steps=4)).train()
+    assert cli.main(["train", "--export", str(run), "--to", str(tmp_path / "half"), "--half"]) == 0
+    half = tmp_path / "half"
+    for rel in ("transformer/diffusion_pytorch_model.safetensors", "autoencoder/model.safetensors"):
+        with safe_open(str(half / rel), "pt") as f:
+            assert {f.get_tensor(k).dtype for k in f.keys()} == {torch.float16}, rel
+        assert (half / rel).stat().st_size < 0.6 * (full / rel).stat().st_size, rel
+    cfg = json.loads((half / "tesseract4d_config.json").read_text())
+    assert cfg["weights_dtype"] == "float16"
+    assert cfg["autoencoder"]["trained_with_hash"] == json.loads((full / "tesseract4d_config.json").read_text())["autoencoder"]["hash"]
+    first = torch.rand(1, 7, 32, 32) * 2 - 1
+    a, b = (load_pipeline(c)(first, ["push the square to the right"], generator=torch.Generator().manual_seed(3))
+            for c in (full, half))
+    assert a.dtype == b.dtype == torch.float32
+    diff = (a - b).abs().flatten()  # model space is [-1, 1]; a few pixels at the no-depth cut-off or
+    # a near-zero normal may flip, so bound the mean and the 99th percentile
+    assert diff.mean() < 0.01 and diff.quantile(0.99) < 0.05, (float(diff.mean()), float(diff.quantile(0.99)))
+    assert cli.main(["train", "--half", "--out", str(tmp_path / "x"), "--data", str(data)]) == 2
+
+
 def test_velocity_prediction_trains_and_samples(tmp_path):
     from tesseract4d.model.predict import load_pipeline
     from tesseract4d.model.trainer import Trainer

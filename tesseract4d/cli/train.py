@@ -5,6 +5,7 @@
   tesseract4d train --preset tiny --data data/train --out runs/tiny --max-minutes 60
   tesseract4d train --out runs/tiny --resume --data data/train      # continue exactly where it stopped
   tesseract4d train --export runs/tiny --to checkpoints/tiny        # inference folder (EMA weights)
+  tesseract4d train --export runs/v2 --to checkpoints/v2 --half     # the same in float16 (half the size)
 
 Every run ends (max steps, --max-minutes, Ctrl-C or SIGTERM) with a checkpoint and an export of
 the EMA weights to RUN/final. Scale out with `accelerate launch -m tesseract4d.cli train ...`.
@@ -60,6 +61,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--to", type=Path, help="with --export: the inference folder to write (default RUN/final)")
     parser.add_argument("--overwrite", action="store_true",
                         help="with --export: write into a folder holding other files (only the export's files are replaced)")
+    parser.add_argument("--half", action="store_true",
+                        help="with --export: store the weights (and a latent model's autoencoder) in float16, half the size")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -67,11 +70,11 @@ def run(args: argparse.Namespace) -> int:
     from tesseract4d.model.trainer import TrainConfig, Trainer, export_checkpoint
 
     if args.export is not None:
-        folder = export_checkpoint(args.export, args.to, overwrite=args.overwrite)
+        folder = export_checkpoint(args.export, args.to, overwrite=args.overwrite, half=args.half)
         print(f"exported {folder}")
         return 0
-    if args.to is not None or args.overwrite:
-        raise UserError("--to and --overwrite go with --export RUN")
+    if args.to is not None or args.overwrite or args.half:
+        raise UserError("--to, --overwrite and --half go with --export RUN")
     if args.out is None:
         raise UserError("pass --out RUN (the run folder)")
     try:

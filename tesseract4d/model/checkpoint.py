@@ -119,7 +119,7 @@ def load_transformer(checkpoint: str | os.PathLike, preset, modality_channels: d
     except (SafetensorError, OSError) as e:
         raise UserError(f"{folder / WEIGHTS_FILE} is corrupt or truncated ({e}); re-export the checkpoint") from e
     try:
-        model = RGBDNTransformer.from_pretrained(folder)
+        model = RGBDNTransformer.from_pretrained(folder).float()  # weights may be stored in float16
     except (RuntimeError, ValueError, OSError, TypeError) as e:
         raise UserError(f"{folder}: weights do not match the config of preset {preset.name!r} "
                         f"({str(e).splitlines()[0]} ...); re-export the checkpoint") from e

@@ -258,10 +258,12 @@ def inference_config(preset: ModelPreset, model_space: ModelSpace, text_encoder,
     }
 
 
-def export_checkpoint(run: str | os.PathLike, to: str | os.PathLike | None = None, overwrite: bool = False) -> Path:
+def export_checkpoint(run: str | os.PathLike, to: str | os.PathLike | None = None, overwrite: bool = False,
+                      half: bool = False) -> Path:
     """Write the latest checkpoint's EMA weights of RUN as a self-contained inference folder
     (``TO/transformer/`` + ``TO/tesseract4d_config.json``); default ``RUN/final``. Only the
-    export's own files in TO are ever replaced (tesseract4d.outputs)."""
+    export's own files in TO are ever replaced (tesseract4d.outputs). ``half`` stores the weights
+    (and a latent checkpoint's autoencoder) in float16, half the size; they load as float32."""
     from tesseract4d.outputs import OutputDir
 
     run = Path(run)
@@ -275,12 +277,34 @@ def export_checkpoint(run: str | os.PathLike, to: str | os.PathLike | None = Non
     with OutputDir(to, "export", inputs=[ckpt], overwrite=overwrite, flag="--to", legacy_files=legacy) as tmp:
         shutil.copytree(ckpt / EMA_DIR, tmp / TRANSFORMER_DIR)
         state = json.loads((ckpt / STATE_FILE).read_text())
-        if "autoencoder" in state["inference_config"]:
+        config = dict(state["inference_config"])
+        if half:
+            _to_half(tmp / TRANSFORMER_DIR / WEIGHTS_FILE)
+        if "autoencoder" in config:
+            from tesseract4d.model.autoencoder import WEIGHTS_FILE as AE_WEIGHTS
+            from tesseract4d.model.autoencoder import autoencoder_hash
             from tesseract4d.model.latent_checkpoint import copy_autoencoder
 
-            copy_autoencoder(state["inference_config"]["autoencoder"], tmp)
-        write_inference_files(tmp, {**state["inference_config"], **format_header()})
+            ae_dir = copy_autoencoder(config["autoencoder"], tmp)
+            if half:  # the half autoencoder is another file: record its identity
+                _to_half(ae_dir / AE_WEIGHTS)
+                config["autoencoder"] = {**config["autoencoder"], "hash": autoencoder_hash(ae_dir),
+                                         "trained_with_hash": config["autoencoder"]["hash"]}
+        config["weights_dtype"] = "float16" if half else "float32"
+        write_inference_files(tmp, {**config, **format_header()})
     return to
+
+
+def _to_half(weights: Path) -> None:
+    """Rewrite a safetensors file with its float32 tensors as float16 (other dtypes kept)."""
+    from safetensors import safe_open
+    from safetensors.torch import save_file
+
+    with safe_open(str(weights), "pt") as f:
+        metadata = f.metadata()
+        tensors = {k: f.get_tensor(k) for k in f.keys()}
+    tensors = {k: v.half() if v.dtype == torch.float32 else v for k, v in tensors.items()}
+    save_file(tensors, str(weights), metadata=metadata)
 
 
 # --------------------------------------------------------------------------- trainer
