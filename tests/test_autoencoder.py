@@ -97,6 +97,22 @@ def test_trainer_resume_is_exact_and_gate_is_stored(tmp_path):
         AutoencoderTrainer(_train_cfg(data, tmp_path / "split", max_steps=4))
 
 
+def test_train_autoencoder_command_writes_the_gate_and_a_reconstruction_sheet(tmp_path):
+    import imageio.v3 as iio
+
+    from tesseract4d import cli
+
+    data = write_segmented_dataset(tmp_path / "data", episodes=2)
+    out = tmp_path / "run"
+    assert cli.main(["train-autoencoder", "--data", str(data), "--heldout", str(data), "--out", str(out),
+                     "--preset", "ae-test", "--max-steps", "2", "--batch-size", "2", "--precision", "fp32",
+                     "--heldout-frames", "8", "--quiet"]) == 0
+    assert json.loads((out / "autoencoder" / "fidelity.json").read_text())["step"] == 2
+    sheet = iio.imread(out / "reconstructions.png")
+    assert sheet.shape == (4 * 2 * 32, 3 * 32, 3)  # 4 frames x (truth, reconstruction), RGB | depth | normals
+    assert sheet.std() > 0
+
+
 def test_wrong_resolution_is_a_user_error(tmp_path):
     from tesseract4d.model.autoencoder_trainer import AutoencoderTrainer
 

@@ -74,7 +74,7 @@ def format_fidelity(d: dict) -> str:
 def reconstruction_sheet(model: RGBDNAutoencoder, frames: FrameSet, indices: list[int]) -> np.ndarray:
     """An image (uint8 (rows * 2 * H, 3 * W, 3)): per frame, the truth (upper row) and its reconstruction
     (lower row) as RGB | depth | normals, coloured like every preview."""
-    from tesseract4d.previews import depth_to_color, normal_to_color
+    from tesseract4d.colors import colorize_depth, colorize_normals
 
     ms = model.model_space
     x = frames.frames[indices].float()  # (n, 7, H, W)
@@ -84,6 +84,6 @@ def reconstruction_sheet(model: RGBDNAutoencoder, frames: FrameSet, indices: lis
     rows = []
     for i in range(len(indices)):
         for rgb, depth, normal in (gt, pr):
-            rows.append(np.concatenate([rgb[i], depth_to_color(depth[i:i + 1], near, far)[0], normal_to_color(normal[i])],
+            rows.append(np.concatenate([rgb[i], colorize_depth(depth[i], near, far), colorize_normals(normal[i])],
                                        axis=1))
     return np.concatenate(rows, axis=0)
