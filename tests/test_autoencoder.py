@@ -113,6 +113,33 @@ def test_train_autoencoder_command_writes_the_gate_and_a_reconstruction_sheet(tm
     assert sheet.std() > 0
 
 
+def test_fine_tune_starts_from_an_exported_autoencoder_on_several_datasets(tmp_path):
+    from synthetic_scene import synthetic_episode
+
+    from tesseract4d.model.autoencoder_trainer import AutoencoderTrainer
+
+    data = write_segmented_dataset(tmp_path / "data")
+    base = AutoencoderTrainer(_train_cfg(data, tmp_path / "base", max_steps=3))
+    base.train()
+    other = tmp_path / "other"
+    df.init_dataset(other, df.DatasetInfo(height=32, width=32, cameras=["close"]))
+    ep = synthetic_episode(7, 8, 32)
+    ep.cameras["close"].segmentation = np.where(np.isclose(ep.cameras["close"].depth_m, 0.5), 18, 17).astype(np.int32)
+    ep.cameras["close"].seg_id_to_name = {0: "background", 17: "ground", 18: "cube"}
+    df.write_episode(other, ep)
+    ft = AutoencoderTrainer(_train_cfg([data, other], tmp_path / "ft", max_steps=1, frame_stride=2,
+                                       init=tmp_path / "base" / "autoencoder"))
+    assert len(ft.frames) == (3 * 8 + 8) // 2
+    exported = load_autoencoder(tmp_path / "base" / "autoencoder")
+    for k, v in exported.state_dict().items():
+        assert torch.equal(ft.model.state_dict()[k], v), k
+    ft.train()
+    saved = json.loads((tmp_path / "ft" / "ae_train_config.json").read_text())
+    assert saved["data"] == [str(data), str(other)] and saved["init"].endswith("autoencoder")
+    with pytest.raises(UserError, match="--frame-stride"):
+        AutoencoderTrainer(_train_cfg(data, tmp_path / "bad", frame_stride=0))
+
+
 def test_wrong_resolution_is_a_user_error(tmp_path):
     from tesseract4d.model.autoencoder_trainer import AutoencoderTrainer
 

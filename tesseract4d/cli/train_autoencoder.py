@@ -13,6 +13,8 @@ Example:
       --seed-start 100000 --instruction-split heldout --out data/ae128_heldout
   tesseract4d train-autoencoder --data data/ae128 --heldout data/ae128_heldout --out runs/ae
   tesseract4d train-autoencoder --data data/ae128 --heldout data/ae128_heldout --out runs/ae --resume
+  tesseract4d train-autoencoder --init runs/ae/autoencoder --data data/ae128 data/skills128 --frame-stride 4 \\
+      --lr 1.5e-4 --warmup-steps 50 --max-steps 1500 --heldout data/skills128_heldout --out runs/ae_ft   # fine-tune
 """
 
 from __future__ import annotations
@@ -27,7 +29,13 @@ from tesseract4d.precision import add_precision_argument
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     d = AutoencoderTrainConfig()
-    parser.add_argument("--data", type=Path, required=True, help="training dataset folder (tesseract4d datagen)")
+    parser.add_argument("--data", type=Path, nargs="+", required=True,
+                        help="training dataset folder(s) (tesseract4d datagen), trained as one set")
+    parser.add_argument("--init", type=Path, default=None,
+                        help="start from this exported autoencoder (RUN/autoencoder) instead of random weights: "
+                             "fine-tune it on new scenes; the latent model must then be trained on the new one")
+    parser.add_argument("--frame-stride", type=int, default=d.frame_stride,
+                        help="train on every k-th frame of each episode (less memory; default %(default)s)")
     parser.add_argument("--heldout", type=Path, default=None,
                         help="held-out dataset folder for the fidelity gate (recommended; e.g. seeds >= 100000)")
     parser.add_argument("--out", type=Path, required=True, help="run folder (new, or an existing one with --resume)")
@@ -38,6 +46,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--max-minutes", type=float, default=None, help="stop with a checkpoint after this many minutes")
     parser.add_argument("--batch-size", type=int, default=d.batch_size, help="frames per step (default %(default)s)")
     parser.add_argument("--lr", type=float, default=d.lr, help="peak learning rate (default %(default)s)")
+    parser.add_argument("--warmup-steps", type=int, default=d.warmup_steps, help="linear warm-up steps (default %(default)s)")
     parser.add_argument("--object-weight", type=float, default=d.object_weight,
                         help="loss weight of robot/object pixels relative to scenery (default %(default)s)")
     parser.add_argument("--depth-weight", type=float, default=d.depth_weight, help="default %(default)s")
@@ -63,6 +72,7 @@ def run(args: argparse.Namespace) -> int:
 
     cfg = AutoencoderTrainConfig(
         data=args.data, heldout=args.heldout, out=args.out, preset=args.preset, camera=args.camera,
+        init=args.init, frame_stride=args.frame_stride, warmup_steps=args.warmup_steps,
         max_steps=args.max_steps, max_minutes=args.max_minutes, batch_size=args.batch_size, lr=args.lr,
         object_weight=args.object_weight, depth_weight=args.depth_weight, normal_weight=args.normal_weight,
         kl_weight=args.kl_weight, precision=args.precision, ckpt_minutes=args.ckpt_minutes,

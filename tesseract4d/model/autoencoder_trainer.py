@@ -63,9 +63,11 @@ LATENT_STATS_FRAMES = 256
 class AutoencoderTrainConfig:
     """Options of `tesseract4d train-autoencoder`."""
 
-    data: Path | None = None
+    data: Path | list[Path] | None = None  # one dataset folder or several (trained as one set)
     heldout: Path | None = None
     out: Path = Path("runs/autoencoder")
+    init: Path | None = None  # start from this exported autoencoder (fine-tuning) instead of random weights
+    frame_stride: int = 1  # train on every k-th frame of each episode
     preset: str = "ae-f8c32"
     camera: str | None = None
     max_steps: int = 20000  # also the length of the cosine decay
@@ -92,8 +94,19 @@ class AutoencoderTrainConfig:
     resume: bool = False
     progress: bool = True
 
+    @property
+    def data_folders(self) -> list[Path]:
+        if self.data is None:
+            return []
+        return [Path(d) for d in self.data] if isinstance(self.data, (list, tuple)) else [Path(self.data)]
+
     def to_dict(self) -> dict:
-        return {k: (str(v) if isinstance(v, Path) else v) for k, v in dataclasses.asdict(self).items()}
+        def plain(v):
+            if isinstance(v, Path):
+                return str(v)
+            return [plain(x) for x in v] if isinstance(v, (list, tuple)) else v
+
+        return {k: plain(v) for k, v in dataclasses.asdict(self).items()}
 
 
 def lr_at(step: int, cfg: AutoencoderTrainConfig) -> float:
@@ -159,6 +172,13 @@ class FrameSet:
             keep = torch.linspace(0, len(out) - 1, max_frames).round().long()
             out = cls(out.frames[keep], out.masks[keep], [out.episode_ids[i] for i in keep.tolist()])
         return out
+
+    @classmethod
+    def concat(cls, sets: list["FrameSet"]) -> "FrameSet":
+        if len(sets) == 1:
+            return sets[0]
+        return cls(torch.cat([s.frames for s in sets]), torch.cat([s.masks for s in sets]),
+                   [i for s in sets for i in s.episode_ids])
 
     def batch(self, batch_size: int, generator: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
         """(b, 7, H, W) float32 frames and (b, H, W) masks at random indices."""
@@ -239,8 +259,10 @@ class AutoencoderTrainer:
 
     def __init__(self, cfg: AutoencoderTrainConfig, fidelity_fn: Callable[[RGBDNAutoencoder], dict] | None = None,
                  format_fn: Callable[[dict], str] | None = None):
-        if cfg.data is None:
+        if not cfg.data_folders:
             raise UserError("--data is required: a dataset folder written by `tesseract4d datagen --resolution 128`")
+        if cfg.frame_stride < 1:
+            raise UserError(f"--frame-stride must be at least 1, got {cfg.frame_stride}")
         self.cfg = cfg
         self.fidelity_fn = fidelity_fn
         self.format_fn = format_fn or (lambda d: json.dumps(d))
@@ -254,18 +276,38 @@ class AutoencoderTrainer:
         ae_cfg: AutoencoderConfig = get_autoencoder_preset(cfg.preset)
         torch.manual_seed(cfg.seed)
         self.model = RGBDNAutoencoder(ae_cfg)
+        if cfg.init is not None and not cfg.resume:
+            self._load_init(cfg.init)
         self.ema = EMA(self.model, cfg.ema_decay)
         self.optimizer = torch.optim.AdamW(self.model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay,
                                            betas=(0.9, 0.99))
-        self.frames = FrameSet.load(cfg.data, height=ae_cfg.height, width=ae_cfg.width,
-                                    model_space=self.model.model_space, camera=cfg.camera, progress=cfg.progress)
+        self.frames = FrameSet.concat([
+            FrameSet.load(folder, height=ae_cfg.height, width=ae_cfg.width, model_space=self.model.model_space,
+                          camera=cfg.camera, frame_stride=cfg.frame_stride, progress=cfg.progress)
+            for folder in cfg.data_folders])
         from tesseract4d.outputs import claim_folder
 
         # Claimed once the inputs have loaded, so a mistake leaves nothing behind; the checkpoints
         # and export this trainer replaces then live only in a folder that is its own.
-        claim_folder(self.out, "train-autoencoder", inputs=[cfg.data, cfg.heldout], legacy_marker=CONFIG_FILE)
+        claim_folder(self.out, "train-autoencoder", inputs=[*cfg.data_folders, cfg.heldout, cfg.init],
+                     legacy_marker=CONFIG_FILE)
         self.step = 0
         self.stop_requested = False
+
+    def _load_init(self, folder: Path) -> None:
+        """Start from an exported autoencoder of the same preset (fine-tuning, e.g. on new scenes)."""
+        from safetensors.torch import load_file
+
+        from tesseract4d.model.autoencoder import WEIGHTS_FILE, read_autoencoder_config
+
+        saved = read_autoencoder_config(folder)
+        mine = self.model.config
+        if (saved.height, saved.width, saved.latent_shape) != (mine.height, mine.width, mine.latent_shape):
+            raise UserError(f"--init {folder} is a {saved.height}x{saved.width} autoencoder with latents "
+                            f"{tuple(saved.latent_shape)}, not preset {self.cfg.preset!r} "
+                            f"({mine.height}x{mine.width}, {tuple(mine.latent_shape)}); pass the matching --preset")
+        state = load_file(str(Path(folder) / WEIGHTS_FILE))
+        self.model.load_state_dict({k: v.float() for k, v in state.items()})
 
     def _check_run_folder(self) -> None:
         cfg_path = self.out / CONFIG_FILE
