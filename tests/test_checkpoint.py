@@ -10,14 +10,14 @@ import torch
 
 from tesseract4d.errors import UserError
 from tesseract4d.model import checkpoint as ck
-from tesseract4d.model.checkpoint import SHIPPED_CHECKPOINT
+from tesseract4d.model.checkpoint import TINY_CHECKPOINT
 from tesseract4d.model.presets import preset_from_dict
 
 
 @pytest.fixture
-def shipped_copy(tmp_path):
-    """The shipped checkpoint copied into tmp_path (its files may then be edited)."""
-    return shutil.copytree(SHIPPED_CHECKPOINT, tmp_path / "tiny")
+def tiny_copy(tmp_path):
+    """The tiny checkpoint copied into tmp_path (its files may then be edited)."""
+    return shutil.copytree(TINY_CHECKPOINT, tmp_path / "tiny")
 
 
 def _edit_config(folder, **changes):
@@ -25,47 +25,47 @@ def _edit_config(folder, **changes):
     path.write_text(json.dumps({**json.loads(path.read_text()), **changes}))
 
 
-def test_shipped_checkpoint_is_the_current_version_with_its_scheduler():
-    cfg = ck.read_inference_config(SHIPPED_CHECKPOINT)
+def test_tiny_checkpoint_is_the_current_version_with_its_scheduler():
+    cfg = ck.read_inference_config(TINY_CHECKPOINT)
     assert cfg["format"] == ck.FORMAT and cfg["version"] == ck.FORMAT_VERSION
-    scheduler = ck.load_scheduler(SHIPPED_CHECKPOINT, cfg)
-    assert (SHIPPED_CHECKPOINT / ck.SCHEDULER_DIR / ck.SCHEDULER_CONFIG_FILE).is_file()
+    scheduler = ck.load_scheduler(TINY_CHECKPOINT, cfg)
+    assert (TINY_CHECKPOINT / ck.SCHEDULER_DIR / ck.SCHEDULER_CONFIG_FILE).is_file()
     assert scheduler.config.num_train_timesteps == 1000 and scheduler.config.shift == 1.0
 
 
 def test_transformer_loads_with_from_pretrained_and_holds_the_saved_weights():
     from safetensors.torch import load_file
 
-    cfg = ck.read_inference_config(SHIPPED_CHECKPOINT)
+    cfg = ck.read_inference_config(TINY_CHECKPOINT)
     preset = preset_from_dict(cfg["preset"])
-    model = ck.load_transformer(SHIPPED_CHECKPOINT, preset, {"rgb": 3, "depth": 1, "normal": 3})
-    saved = load_file(str(SHIPPED_CHECKPOINT / ck.TRANSFORMER_DIR / ck.WEIGHTS_FILE))
+    model = ck.load_transformer(TINY_CHECKPOINT, preset, {"rgb": 3, "depth": 1, "normal": 3})
+    saved = load_file(str(TINY_CHECKPOINT / ck.TRANSFORMER_DIR / ck.WEIGHTS_FILE))
     loaded = model.state_dict()
     assert saved.keys() == loaded.keys() and all(torch.equal(saved[k], loaded[k]) for k in saved)
     assert not model.training
     with pytest.raises(UserError, match="modality channels"):
-        ck.load_transformer(SHIPPED_CHECKPOINT, preset, {"rgb": 4, "depth": 4, "normal": 4})
+        ck.load_transformer(TINY_CHECKPOINT, preset, {"rgb": 4, "depth": 4, "normal": 4})
 
 
-def test_a_newer_version_or_another_format_fails_with_the_fix(shipped_copy):
-    _edit_config(shipped_copy, version=ck.FORMAT_VERSION + 1)
+def test_a_newer_version_or_another_format_fails_with_the_fix(tiny_copy):
+    _edit_config(tiny_copy, version=ck.FORMAT_VERSION + 1)
     with pytest.raises(UserError, match=f"version {ck.FORMAT_VERSION + 1}.*update tesseract4d"):
-        ck.read_inference_config(shipped_copy)
-    _edit_config(shipped_copy, format="something-else", version=ck.FORMAT_VERSION)
+        ck.read_inference_config(tiny_copy)
+    _edit_config(tiny_copy, format="something-else", version=ck.FORMAT_VERSION)
     with pytest.raises(UserError, match=f"not a {ck.FORMAT} config"):
-        ck.read_inference_config(shipped_copy)
-    (shipped_copy / ck.INFERENCE_CONFIG_FILE).write_text("{")
+        ck.read_inference_config(tiny_copy)
+    (tiny_copy / ck.INFERENCE_CONFIG_FILE).write_text("{")
     with pytest.raises(UserError, match="corrupt"):
-        ck.read_inference_config(shipped_copy)
+        ck.read_inference_config(tiny_copy)
 
 
-def test_version_1_without_a_scheduler_samples_with_the_training_sampler(shipped_copy):
+def test_version_1_without_a_scheduler_samples_with_the_training_sampler(tiny_copy):
     from tesseract4d.model.pipeline import make_scheduler
 
-    shutil.rmtree(shipped_copy / ck.SCHEDULER_DIR)
-    _edit_config(shipped_copy, version=1)
-    cfg = ck.read_inference_config(shipped_copy)
-    assert dict(ck.load_scheduler(shipped_copy, cfg).config) == dict(make_scheduler().config)
-    _edit_config(shipped_copy, version=2)
+    shutil.rmtree(tiny_copy / ck.SCHEDULER_DIR)
+    _edit_config(tiny_copy, version=1)
+    cfg = ck.read_inference_config(tiny_copy)
+    assert dict(ck.load_scheduler(tiny_copy, cfg).config) == dict(make_scheduler().config)
+    _edit_config(tiny_copy, version=2)
     with pytest.raises(UserError, match="scheduler_config.json is missing"):
-        ck.load_scheduler(shipped_copy, ck.read_inference_config(shipped_copy))
+        ck.load_scheduler(tiny_copy, ck.read_inference_config(tiny_copy))

@@ -10,6 +10,7 @@ import pytest
 
 from tesseract4d.cli import main
 from tesseract4d.errors import UserError
+from tesseract4d.model.checkpoint import TINY_CHECKPOINT
 from tesseract4d.policy.idm import IDMConfig, check_compatible, chunk_indices, encode_target, expand_chunk
 from tesseract4d.policy.rollout_eval import summarize, wilson_interval
 
@@ -73,9 +74,8 @@ def test_action_space_and_camera_mismatch_name_both_sides():
 def test_world_model_checkpoint_of_another_resolution_is_refused():
     from tesseract4d.model.predict import load_pipeline
     from tesseract4d.policy.loop import LoopConfig, WorldModelFuture
-    from tesseract4d.runtime import PROJECT_ROOT
 
-    pipe = load_pipeline(PROJECT_ROOT / "tesseract4d" / "checkpoints" / "tiny")
+    pipe = load_pipeline(TINY_CHECKPOINT)
     with pytest.raises(UserError, match=r"camera 'close' at 64x64 but the rollout renders camera 'close' at 128x128"):
         WorldModelFuture(pipe, LoopConfig(resolution=(128, 128)))
     with pytest.raises(UserError, match=r"camera 'close'.*camera 'side'"):

@@ -31,6 +31,8 @@ SCHEDULER_CONFIG_FILE = "scheduler_config.json"  # diffusers' name for a schedul
 # The checkpoint shipped with the package: the default of `predict`, `demo`, `evaluate --heldout`
 # and the viewer's Generate panel.
 SHIPPED_CHECKPOINT = Path(__file__).resolve().parent.parent / "checkpoints" / "tiny"
+# The first shipped model (pixel space, 64x64), kept for comparison and for the pixel-space tests.
+TINY_CHECKPOINT = Path(__file__).resolve().parent.parent / "checkpoints" / "tiny"
 
 
 def format_header() -> dict:
