@@ -6,6 +6,9 @@ order drawn from the seed, trying the feasible target objects of a variant until
 and moving on to the next variant when none does. Only successful futures are rendered. The
 first frames of the K episodes are compared bit for bit (RGB, depth, normals, segmentation);
 a difference is a determinism bug and raises.
+
+``commanded_future`` gives the words and intent a group would give one skill in a scene without
+running it (the demo's instructions come from it).
 """
 
 from __future__ import annotations
@@ -16,8 +19,9 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from datagen import skills as sk
-from datagen.simulate import EpisodeSimulator, frame_indices
+from datagen.simulate import INSTRUCTION_STREAM, EpisodeSimulator, frame_indices
 from tesseract4d.dataset_format import Episode
+from tesseract4d.errors import UserError
 
 PLANNER = "datagen.skills on mani_skill.examples.motionplanning.panda PandaArmMotionPlanningSolver"
 
@@ -116,16 +120,8 @@ def _try(sim: EpisodeSimulator, seed: int, variant: sk.SkillVariant, target, oth
     scene_colors = dict(base.object_colors) if env_id == sk.TABLETOP_ID else None
 
     def language(appearance_colors: dict) -> tuple[str, dict]:
-        from datagen.skill_language import describe, make_skill_instruction, skill_attributes
-
         colors = scene_colors if scene_colors is not None else sk.object_colors(env_id, base, appearance_colors)
-        shapes = {o.name: o.shape for o in sk.SCENES[env_id]}
-        descriptions = {n: describe(shapes[n], colors.get(n, "")) for n in present}
-        attrs = skill_attributes(intent, descriptions)
-        idx = list(sk.VARIANTS).index(variant.name)
-        text = make_skill_instruction(variant.skill, attrs, np.random.default_rng([int(seed), 31337, idx]),
-                                      split=sim.config.instruction_split)
-        return text, dict(attrs, object_colors=colors)
+        return skill_instruction(env_id, variant, intent, colors, seed, sim.config.instruction_split)
 
     t1 = time.perf_counter()
     episode = sim._render(seed, [states[i] for i in keep], keep, actions, success=True, language=language,
@@ -134,6 +130,49 @@ def _try(sim: EpisodeSimulator, seed: int, variant: sk.SkillVariant, target, oth
     episode.metadata.update({"num_sim_steps": len(actions), "plan_seconds": round(plan_s, 3), "planner": PLANNER,
                              "group_size": k})
     return episode
+
+
+def skill_instruction(env_id: str, variant: sk.SkillVariant, intent: dict, colors: dict[str, str], seed: int,
+                      split: str) -> tuple[str, dict]:
+    """The instruction of one future of a group and the attributes it was written from.
+
+    intent: from ``skills.commanded_intent``; colors: object name -> colour name. The paraphrase
+    of ``split`` is drawn from the stream (seed, INSTRUCTION_STREAM, variant index), so a scene's
+    future under a variant always gets the same words.
+    """
+    from datagen.skill_language import describe, make_skill_instruction, skill_attributes
+
+    shapes = {o.name: o.shape for o in sk.SCENES[env_id]}
+    descriptions = {n: describe(shapes[n], colors.get(n, "")) for n in intent["objects_present"]}
+    attrs = skill_attributes(intent, descriptions)
+    idx = list(sk.VARIANTS).index(variant.name)
+    text = make_skill_instruction(variant.skill, attrs, np.random.default_rng([int(seed), INSTRUCTION_STREAM, idx]),
+                                  split=split)
+    return text, dict(attrs, object_colors=colors)
+
+
+def commanded_future(sim: EpisodeSimulator, seed: int, spec: str) -> tuple[str, dict]:
+    """The instruction and structured intent that a group gives skill ``spec`` (``VARIANT`` or
+    ``VARIANT@OBJECT``, see ``skills.parse_skill_list``) in the scene of ``seed``, without running
+    it: nothing is planned or rendered. The target is the first feasible object of the scene
+    (``skills.candidates``, in the scene's object order) unless ``spec`` pins one.
+
+    Raises UserError when the variant has no feasible target in this scene.
+    """
+    env_id, env = sim.env_id, sim.env
+    base = env.unwrapped
+    name, _, pinned = spec.partition("@")
+    variant = sk.VARIANTS[name]
+    env.reset(seed=seed)
+    cands = sk.candidates(env_id, base, variant, pinned or None)
+    if not cands:
+        feasible = [v for v in sk.available_variants(env_id, None) if sk.candidates(env_id, base, sk.VARIANTS[v])]
+        raise UserError(f"skill {spec!r} has no feasible target in {env_id} seed {seed}; choose one of "
+                        f"{', '.join(feasible)} or another seed")
+    target, other = cands[0]
+    intent = sk.commanded_intent(env_id, base, variant, target, other)
+    text, _ = skill_instruction(env_id, variant, intent, sk.object_colors(env_id, base), seed, sim.config.instruction_split)
+    return text, intent
 
 
 def _assert_same_first_frame(a: Episode, b: Episode) -> None:

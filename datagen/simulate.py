@@ -307,6 +307,16 @@ class EpisodeSimulator:
         )
 
 
+def first_frame_simulator(env_id: str, *, height: int = 64, width: int = 64, camera: str = "close",
+                          instruction_split: str = "heldout") -> EpisodeSimulator:
+    """A simulator that renders one frame per episode (no planning) with camera preset ``camera``
+    (see cameras.PRESETS) or "all"; instructions from the ``instruction_split`` paraphrases.
+    Close it when done."""
+    cameras = list(PRESETS) if camera == "all" else [camera]
+    return EpisodeSimulator(env_id, SimConfig(height=height, width=width, cameras=cameras, frames=1,
+                                              instruction_split=instruction_split))
+
+
 def render_first_frame(
     env_id: str, seed: int, *, height: int = 64, width: int = 64, camera: str = "close",
     instruction_split: str = "heldout",
@@ -314,11 +324,9 @@ def render_first_frame(
     """Reset ``env_id`` with ``seed`` and render its first frame as a one-frame Episode.
 
     camera: a preset name (see cameras.PRESETS) or "all". The instruction is generated for this
-    scene from the ``instruction_split`` paraphrases. Used by `tesseract4d predict` and the demo.
+    scene from the ``instruction_split`` paraphrases. Used by `tesseract4d predict`.
     """
-    cameras = list(PRESETS) if camera == "all" else [camera]
-    sim = EpisodeSimulator(env_id, SimConfig(height=height, width=width, cameras=cameras, frames=1,
-                                             instruction_split=instruction_split))
+    sim = first_frame_simulator(env_id, height=height, width=width, camera=camera, instruction_split=instruction_split)
     try:
         return sim.first_frame(seed)
     finally:

@@ -1,5 +1,6 @@
 """Batched prediction of many scenes (predict_scenes): one prediction per scene, independent of
-the batch size, each episode carrying its own scene."""
+the batch size, each episode carrying its own scene; and of one scene under several instructions
+from the same noise (predict_counterfactuals)."""
 
 from __future__ import annotations
 
@@ -9,7 +10,7 @@ from model_fixtures import MICRO
 from synthetic_scene import synthetic_episode, write_synthetic_dataset
 
 from tesseract4d.errors import UserError
-from tesseract4d.model.predict import load_pipeline, predict_scenes
+from tesseract4d.model.predict import load_pipeline, predict_counterfactuals, predict_episode, predict_scenes
 
 
 @pytest.fixture(scope="module")
@@ -56,3 +57,20 @@ def test_bad_scene_inputs(pipe):
         predict_scenes(pipe, [scene], [" "])
     with pytest.raises(UserError, match="32x32"):
         predict_scenes(pipe, [synthetic_episode(0, frames=1, size=48)], ["push"])
+
+
+def test_counterfactuals_share_the_noise_and_differ_by_the_words(pipe):
+    scene = synthetic_episode(5, frames=1)
+    texts = ["push the square to the left", "push the square to the right"]
+    pair = predict_counterfactuals(pipe, scene, texts, seed=7, num_steps=3)
+    assert [e.instruction for e in pair] == texts and all(e.seed == scene.seed for e in pair)
+    a, b = (e.cameras["close"] for e in pair)
+    assert np.array_equal(a.rgb[0], b.rgb[0])  # the same first frame
+    assert not np.array_equal(a.rgb[1:], b.rgb[1:])  # different words, different futures
+    # Each future is what the instruction alone gives with that seed (batched rounding aside).
+    for text, batched in zip(texts, (a, b)):
+        alone = predict_episode(pipe, scene, text, seed=7, num_steps=3).cameras["close"]
+        assert np.abs(alone.rgb.astype(int) - batched.rgb.astype(int)).max() <= 1
+        assert np.allclose(alone.depth_m, batched.depth_m, atol=1e-4)
+    with pytest.raises(UserError, match="at least one"):
+        predict_counterfactuals(pipe, scene, [])

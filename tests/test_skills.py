@@ -238,6 +238,19 @@ def test_instructions_name_colour_and_direction(group):
 
 
 @pytest.mark.sim
+def test_commanded_future_gives_the_words_of_the_group(sim_and_group):
+    # What the demo asks for without running a skill is what a group writes for that future.
+    from datagen.counterfactual import commanded_future
+
+    sim, group = sim_and_group
+    for e in group.episodes:
+        spec = e.intent["variant"] + (f"@{e.intent['target']}" if e.intent["target"] else "")
+        text, intent = commanded_future(sim, GROUP_SEED, spec)
+        assert text == e.instruction and intent["target"] == e.intent["target"], spec
+        assert intent["commanded_displacement_world_m"] == e.intent["commanded_displacement_world_m"]
+
+
+@pytest.mark.sim
 def test_recorded_actions_re_simulate_every_future(sim_and_group):
     sim, group = sim_and_group
     env = sim.env

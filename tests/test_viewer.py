@@ -212,14 +212,31 @@ def test_compare_mode_layout_and_metrics():
     pred = recon_from_episode(analytic_episode(num_frames=3, height=32, width=32, seed=1))
     gt = recon_from_episode(analytic_episode(num_frames=3, height=32, width=32, seed=0))
     with ViewerApp(pred, compare=gt, port=0) as app:
-        assert np.linalg.norm(app.gt_layer.offset) > 1.0  # side by side
-        assert (app.layer._label_node.text, app.gt_layer._label_node.text) == ("prediction", "ground truth")
+        assert np.linalg.norm(app.right_layer.offset) > 1.0  # side by side
+        assert (app.layer._label_node.text, app.right_layer._label_node.text) == ("prediction", "ground truth")
         assert "psnr_rgb_db" in app.metrics_md.content and "Frame 0" in app.metrics_md.content
         app.frame_slider.value = 2
         assert "Frame 2" in app.metrics_md.content
         app.layout_dropdown.value = COMPARE_LAYOUTS[2]
-        assert not app.layer._root.visible and app.gt_layer._root.visible
-        assert np.allclose(app.gt_layer.offset, 0.0)
+        assert not app.layer._root.visible and app.right_layer._root.visible
+        assert np.allclose(app.right_layer.offset, 0.0)
+
+
+def test_compare_mode_labels_a_counterfactual_pair():
+    # Two futures of one scene, labelled with their instructions; one slider drives both.
+    from viewer.app import COMPARE_LAYOUTS, ViewerApp
+
+    push = recon_from_episode(analytic_episode(num_frames=4, height=32, width=32, seed=1))
+    still = recon_from_episode(analytic_episode(num_frames=4, height=32, width=32, seed=1, instruction="keep still"))
+    with ViewerApp(push, compare=still, labels=("push the box to the right", "keep still"), port=0) as app:
+        assert (app.layer._label_node.text, app.right_layer._label_node.text) == ("push the box to the right", "keep still")
+        assert np.linalg.norm(app.right_layer.offset) > 1.0
+        app.frame_slider.value = 3
+        assert app.frame == 3 and app.layer._current == app.right_layer._current == 3
+        app.layout_dropdown.value = COMPARE_LAYOUTS[1]
+        assert app.layer._root.visible and not app.right_layer._root.visible
+    with pytest.raises(ValueError, match="two"):
+        ViewerApp(push, compare=still, labels=("only one",), port=0)
 
 
 def test_model_generator_reports_a_missing_checkpoint(tmp_path):

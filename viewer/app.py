@@ -1,4 +1,5 @@
-"""The browser viewer: a viser server showing one 4D source (plus an optional ground truth).
+"""The browser viewer: a viser server showing one 4D source, or two side by side (a prediction and
+its ground truth, or two futures of one scene under two instructions).
 
 Usage from Python (non-blocking)::
 
@@ -9,7 +10,7 @@ Usage from Python (non-blocking)::
 
 GUI panels: Playback (frame slider, play, fps, loop), Display (colour mode, point size,
 per-frame vs fused static points, frustums), Frame images (RGB, depth, normal of the current
-frame), Compare (layout and per-frame metrics, with a ground truth) and Generate (instruction,
+frame), Compare (layout and per-frame metrics, with a second source) and Generate (instruction,
 seed, steps -> predict + reconstruct, shown when done).
 """
 
@@ -35,7 +36,9 @@ Generator = Callable[[str, int, int, Callable[[float, str], None]], Recon4D]
 PANEL_IMAGE_MAX_SIDE = 256
 MAX_FPS = 30
 PANEL_REFRESH_WHILE_PLAYING_S = 0.5
-COMPARE_LAYOUTS = ("Side by side", "Prediction only", "Ground truth only")
+COMPARE_LAYOUTS = ("Side by side", "Left only", "Right only")
+# Compare mode's names of its two layers unless told otherwise.
+COMPARE_LABELS = ("prediction", "ground truth")
 # Range of the Generate panel's sampler steps.
 MIN_STEPS, MAX_STEPS = 1, 1000
 
@@ -66,17 +69,27 @@ def _panel_image(image: np.ndarray) -> np.ndarray:
 
 
 class ViewerApp:
-    """A viser app for one source (and optionally its ground truth). Thread-safe GUI + playback."""
+    """A viser app for one source, or two side by side in compare mode. Thread-safe GUI + playback.
+
+    compare: the second source, shown to the right of ``source`` (a ground truth, or another
+    future of the same scene); one frame slider drives both. labels: the names drawn above the
+    left and right layers (default :data:`COMPARE_LABELS`), e.g. the two instructions of a
+    counterfactual pair. The Compare panel's metrics compare the left layer with the right one.
+    """
 
     def __init__(self, source: Recon4D, *, host: str = "127.0.0.1", port: int = 8080,
                  max_points: int = DEFAULT_MAX_POINTS, compare: Recon4D | None = None,
+                 labels: tuple[str, str] = COMPARE_LABELS,
                  metrics: list[dict] | None = None, generate: Generator | None = None,
                  generate_unavailable_reason: str = "Start the viewer with --checkpoint CKPT to generate.",
                  generate_steps: int | None = None, title: str = "tesseract4d"):
         self.host, self.port, self.max_points, self.title = host, int(port), int(max_points), title
-        self.layer = SceneLayer(source, "prediction" if compare is not None else "scene", max_points,
-                                label="prediction" if compare is not None else None)
-        self.gt_layer = SceneLayer(compare, "ground_truth", max_points, label="ground truth") if compare is not None else None
+        if len(labels) != 2:
+            raise ValueError(f"labels names the left and right layers: give two, got {len(labels)}")
+        self.labels = (str(labels[0]), str(labels[1]))
+        self.layer = SceneLayer(source, "left" if compare is not None else "scene", max_points,
+                                label=self.labels[0] if compare is not None else None)
+        self.right_layer = SceneLayer(compare, "right", max_points, label=self.labels[1]) if compare is not None else None
         self._metrics = metrics
         self._generate = generate
         self._generate_unavailable_reason = generate_unavailable_reason
@@ -161,21 +174,21 @@ class ViewerApp:
 
     @property
     def num_frames(self) -> int:
-        return max(self.layer.recon.num_frames, self.gt_layer.recon.num_frames if self.gt_layer else 0)
+        return max(self.layer.recon.num_frames, self.right_layer.recon.num_frames if self.right_layer else 0)
 
     def _layers(self) -> list[SceneLayer]:
-        return [self.layer] + ([self.gt_layer] if self.gt_layer is not None else [])
+        return [self.layer] + ([self.right_layer] if self.right_layer is not None else [])
 
     def _build_scene(self) -> None:
         server = self.server
         configure_rendering(server)
-        if self.gt_layer is not None:
-            # Ground truth to the right of the prediction (as seen from the first camera).
+        if self.right_layer is not None:
+            # The second source to the right of the first (as seen from the first camera).
             right = self.layer.recon.T_world_cam[0, :3, 0]
-            self.gt_layer.set_offset(right * 2.2 * max(self.layer.radius, self.gt_layer.radius))
+            self.right_layer.set_offset(right * 2.2 * max(self.layer.radius, self.right_layer.radius))
         for layer in self._layers():
             layer.build(server)
-        offset = self.gt_layer.offset if self.gt_layer is not None else np.zeros(3)
+        offset = self.right_layer.offset if self.right_layer is not None else np.zeros(3)
         view = initial_view(self.layer.recon, self.layer.centre + offset / 2, extra_distance=0.4 * float(np.linalg.norm(offset)))
         server.scene.set_up_direction(view["up_axis"])
         cam = server.initial_camera
@@ -226,16 +239,16 @@ class ViewerApp:
     def _build_compare(self, gui) -> None:
         self.layout_dropdown = None
         self.metrics_md = None
-        if self.gt_layer is None:
+        if self.right_layer is None:
             return
         with gui.add_folder("Compare"):
             self.layout_dropdown = gui.add_dropdown("Layout", COMPARE_LAYOUTS, initial_value=COMPARE_LAYOUTS[0])
-            gui.add_markdown("Left: prediction. Right: ground truth.")
+            gui.add_markdown(f"Left: {self.labels[0]}. Right: {self.labels[1]}. Metrics: left against right.")
             self.metrics_md = gui.add_markdown("")
         if self._metrics is None:
             from viewer.compare import image_metrics
 
-            self._metrics = image_metrics(self.layer.recon, self.gt_layer.recon)
+            self._metrics = image_metrics(self.layer.recon, self.right_layer.recon)
         self.layout_dropdown.on_update(lambda _: self._apply_layout())
 
     def _build_generate(self, gui) -> None:
@@ -337,15 +350,15 @@ class ViewerApp:
             self._apply_layout()
 
     def _apply_layout(self) -> None:
-        if self.gt_layer is None or self.layout_dropdown is None:
+        if self.right_layer is None or self.layout_dropdown is None:
             return
         layout = self.layout_dropdown.value
         with self._lock, self.server.atomic():
             side = layout == COMPARE_LAYOUTS[0]
             right = self.layer.recon.T_world_cam[0, :3, 0]
-            self.gt_layer.set_offset(right * 2.2 * max(self.layer.radius, self.gt_layer.radius) if side else np.zeros(3))
+            self.right_layer.set_offset(right * 2.2 * max(self.layer.radius, self.right_layer.radius) if side else np.zeros(3))
             self.layer.set_visible(layout != COMPARE_LAYOUTS[2])
-            self.gt_layer.set_visible(layout != COMPARE_LAYOUTS[1])
+            self.right_layer.set_visible(layout != COMPARE_LAYOUTS[1])
 
     # ------------------------------------------------------------------ playback
 
@@ -376,10 +389,10 @@ class ViewerApp:
         with self._lock:
             self.layer.remove()
             self.layer = SceneLayer(recon, self.layer.name, self.max_points, label=self.layer.label)
-            if self.gt_layer is not None:
+            if self.right_layer is not None:
                 from viewer.compare import image_metrics
 
-                self._metrics = image_metrics(self.layer.recon, self.gt_layer.recon)
+                self._metrics = image_metrics(self.layer.recon, self.right_layer.recon)
             T = self.num_frames
             self.frame_slider.max = max(T - 1, 1)
             self.frame_slider.disabled = self.play_checkbox.disabled = T < 2

@@ -24,7 +24,7 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "train-idm": ("tesseract4d.cli.train_idm", "train the inverse dynamics model (or its behaviour-cloning twin)"),
     "rollout": ("tesseract4d.cli.rollout", "closed-loop rollouts in ManiSkill with success rates per arm"),
     "view": ("tesseract4d.cli.view", "open a reconstruction, episode or prediction in the browser viewer"),
-    "demo": ("tesseract4d.cli.demo", "one command: render a scene, predict, reconstruct, view"),
+    "demo": ("tesseract4d.cli.demo", "one command: render a scene, predict two futures from two instructions, reconstruct, view"),
 }
 
 

@@ -1,10 +1,21 @@
-"""The one-command demo: render a held-out ManiSkill scene, predict its RGB-D-N future from an
-instruction with the shipped checkpoint, reconstruct the 4D point cloud, write MP4/PLY/HTML and
-serve the viewer.
+"""The one-command demo: render a held-out scene, predict two futures of it from two instructions
+with the shipped checkpoint (a counterfactual pair: the same first frame, different words),
+reconstruct both as 4D point clouds, write MP4/PLY/HTML and serve the viewer with the two futures
+side by side.
 
-Outputs under --out: first_frame/ (the rendered scene, dataset format), prediction/ (the
-predicted clip, dataset format, with MP4 previews), reconstruction/ (Recon4D: NPZ, PLY per frame,
-background mesh), scene.html (standalone recording, opens from disk), demo_config.json.
+The default scene is the project's multi-object tabletop (``Tesseract4dTabletop-v1``) at the first
+held-out seed. Its instructions are the held-out paraphrases a counterfactual group gives two
+skills (``datagen.counterfactual.commanded_future``): ``--skill`` (default ``push_left``: push
+the first object of the scene, cubes before the cylinder, that has room to go left) and ``--contrast-skill`` (default ``keep_still``). A plain
+ManiSkill task (``--task PickCube-v1``) keeps its own held-out task instruction; its contrast is
+``keep_still`` where the skill library knows the scene (PickCube, PushCube, PullCube,
+StackCube) and none elsewhere unless ``--contrast-instruction`` gives one.
+
+Outputs under --out: first_frame/ (the rendered scene, dataset format), prediction/ (the main
+future, dataset format, with MP4 previews), reconstruction/ (Recon4D: NPZ, PLY per frame,
+background mesh), scene.html (standalone recording, opens from disk), instruction.txt; the
+contrast future under contrast/ with the same names; side_by_side.mp4 (both futures, each under
+its instruction); demo_config.json (the resolved config, both instructions included).
 """
 
 from __future__ import annotations
@@ -15,22 +26,33 @@ import json
 from dataclasses import dataclass
 from pathlib import Path
 
+from datagen.tabletop import ENV_ID as TABLETOP_ID
 from tesseract4d.dataset_format import HELDOUT_SEED_START
 from tesseract4d.errors import UserError
 from tesseract4d.model.checkpoint import SHIPPED_CHECKPOINT
 
+# The skills whose futures the demo contrasts by default (datagen.skills.VARIANTS).
+DEFAULT_SKILL = "push_left"  # in scenes without a task of their own (the tabletop)
+DEFAULT_CONTRAST_SKILL = "keep_still"
+CONTRAST_DIR = "contrast"
+SIDE_BY_SIDE = "side_by_side.mp4"
+
 
 @dataclass
 class DemoConfig:
-    task: str = "PickCube-v1"
+    task: str = TABLETOP_ID
     seed: int = HELDOUT_SEED_START
-    instruction: str | None = None
+    instruction: str | None = None  # None: from `skill`, or the task's own held-out instruction
+    skill: str | None = None  # None: DEFAULT_SKILL in the tabletop, the task's instruction elsewhere
+    contrast_instruction: str | None = None  # None: from `contrast_skill`
+    contrast_skill: str | None = DEFAULT_CONTRAST_SKILL
+    contrast: bool = True  # False: one future only
     checkpoint: Path = SHIPPED_CHECKPOINT
     out: Path = Path("demo_out")
     num_frames: int | None = None  # None: one clip of the checkpoint's preset
     steps: int | None = None  # None: the checkpoint preset's
     sample_seed: int = 0
-    camera: str = "close"
+    camera: str | None = None  # None: the checkpoint's camera preset
     host: str = "127.0.0.1"
     port: int = 8080
     headless: bool = False
@@ -42,17 +64,31 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     from tesseract4d.precision import add_precision_argument
 
     d = DemoConfig()
-    parser.add_argument("--task", default=d.task, help="ManiSkill task id (default %(default)s)")
+    parser.add_argument("--task", default=d.task,
+                        help="scene: the project's tabletop or a ManiSkill task id such as PickCube-v1 (default %(default)s)")
     parser.add_argument("--seed", type=int, default=d.seed,
                         help=f"scene seed; seeds >= {HELDOUT_SEED_START} are never used in training (default %(default)s)")
     parser.add_argument("--instruction", default=None,
-                        help="instruction text (default: a held-out paraphrase generated for the scene)")
+                        help="the main instruction (default: the held-out paraphrase of --skill in the tabletop, "
+                             "the task's own held-out instruction in a ManiSkill task)")
+    parser.add_argument("--skill", metavar="VARIANT[@OBJECT]",
+                        help=f"skill whose instruction is the main one when --instruction is not given (default "
+                             f"{DEFAULT_SKILL} in the tabletop, none in a ManiSkill task); see datagen --skills")
+    parser.add_argument("--contrast-instruction", metavar="TEXT",
+                        help="the second instruction, predicted from the same first frame and noise (default: the "
+                             "held-out paraphrase of --contrast-skill where the skill library knows the scene: the "
+                             "tabletop, PickCube, PushCube, PullCube, StackCube; no contrast in other tasks)")
+    parser.add_argument("--contrast-skill", default=d.contrast_skill, metavar="VARIANT[@OBJECT]",
+                        help="skill whose instruction is the contrast when --contrast-instruction is not given "
+                             "(default %(default)s)")
+    parser.add_argument("--no-contrast", action="store_true", help="predict one future only (the main instruction)")
     parser.add_argument("--checkpoint", type=Path, default=d.checkpoint, help="model checkpoint folder (default: the shipped tiny model)")
     parser.add_argument("--out", type=Path, default=d.out, help="output folder (default %(default)s)")
     parser.add_argument("--num-frames", type=int, help="frames to predict (default: one clip, the checkpoint preset's length)")
     parser.add_argument("--steps", type=int, help="sampler steps (default: the checkpoint preset's)")
-    parser.add_argument("--sample-seed", type=int, default=d.sample_seed, help="diffusion noise seed (default %(default)s)")
-    parser.add_argument("--camera", default=d.camera, help="camera preset to render the first frame from (default %(default)s)")
+    parser.add_argument("--sample-seed", type=int, default=d.sample_seed,
+                        help="diffusion noise seed, shared by both futures (default %(default)s)")
+    parser.add_argument("--camera", help="camera preset to render the first frame from (default: the checkpoint's)")
     parser.add_argument("--host", default=d.host, help="viewer host (default %(default)s)")
     parser.add_argument("--port", type=int, default=d.port, help="viewer port (default %(default)s)")
     parser.add_argument("--headless", action="store_true", help="write the outputs and exit without serving the viewer")
@@ -63,27 +99,37 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     cfg = DemoConfig(
-        task=args.task, seed=args.seed, instruction=args.instruction, checkpoint=args.checkpoint, out=args.out,
-        num_frames=args.num_frames, steps=args.steps, sample_seed=args.sample_seed, camera=args.camera,
-        host=args.host, port=args.port, headless=args.headless, precision=args.precision, overwrite=args.overwrite,
+        task=args.task, seed=args.seed, instruction=args.instruction, skill=args.skill,
+        contrast_instruction=args.contrast_instruction, contrast_skill=args.contrast_skill, contrast=not args.no_contrast,
+        checkpoint=args.checkpoint, out=args.out, num_frames=args.num_frames, steps=args.steps,
+        sample_seed=args.sample_seed, camera=args.camera, host=args.host, port=args.port, headless=args.headless,
+        precision=args.precision, overwrite=args.overwrite,
     )
     outputs = run_demo(cfg)
-    print(f"instruction: {outputs['instruction'].read_text().strip()}")
+    instruction = outputs["instruction"].read_text().strip()
+    print(f"instruction: {instruction}")
+    contrast = outputs.get("contrast instruction")
+    if contrast is not None:
+        print(f"contrast:    {contrast.read_text().strip()}")
     for name, path in outputs.items():
-        print(f"  {name:<16} {path}")
+        print(f"  {name:<24} {path}")
     if cfg.headless:
         return 0
     from viewer.app import ViewerApp, serve_forever
 
-    serve_forever(ViewerApp.from_path(outputs["reconstruction"], host=cfg.host, port=cfg.port, checkpoint=cfg.checkpoint))
+    pair = {} if contrast is None else {"compare": outputs["contrast reconstruction"],
+                                        "labels": (instruction, contrast.read_text().strip())}
+    serve_forever(ViewerApp.from_path(outputs["reconstruction"], host=cfg.host, port=cfg.port, checkpoint=cfg.checkpoint,
+                                      precision=cfg.precision, **pair))
     return 0
 
 
 def run_demo(cfg: DemoConfig) -> dict[str, Path]:
-    """Render → predict → reconstruct → export into a staging folder moved to cfg.out at the end.
-    Returns the paths written."""
+    """Render → predict (one or two futures) → reconstruct → export into a staging folder moved to
+    cfg.out at the end. Returns the paths written."""
     from tesseract4d.outputs import OutputDir
 
+    _check_config(cfg)
     if not Path(cfg.checkpoint).is_dir():
         raise UserError(f"checkpoint {cfg.checkpoint} not found; pass --checkpoint DIR (a folder written by `tesseract4d train --export`).")
     final = Path(cfg.out)
@@ -92,50 +138,113 @@ def run_demo(cfg: DemoConfig) -> dict[str, Path]:
     return {name: final / path.relative_to(stage) for name, path in written.items()}
 
 
+def _check_config(cfg: DemoConfig) -> None:
+    """Refuse contradicting options before anything is loaded or rendered."""
+    from datagen import skills as sk
+
+    if not cfg.contrast and cfg.contrast_instruction is not None:
+        raise UserError("--no-contrast and --contrast-instruction contradict each other; drop one")
+    if cfg.instruction is not None and cfg.skill is not None:
+        raise UserError("--instruction and --skill both set the main instruction; drop one")
+    for flag, text in (("--instruction", cfg.instruction), ("--contrast-instruction", cfg.contrast_instruction)):
+        if text is not None and not text.strip():
+            raise UserError(f"{flag} is empty; say what should happen, e.g. {flag} \"push the red cube to the left\"")
+    if cfg.skill is not None:
+        sk.parse_skill_list(cfg.skill, [cfg.task])
+    if cfg.contrast and cfg.contrast_instruction is None and cfg.task in sk.SCENES:
+        sk.parse_skill_list(cfg.contrast_skill, [cfg.task])
+
+
+def resolve_instructions(cfg: DemoConfig, sim, first) -> tuple[str, str | None, dict]:
+    """(main instruction, contrast instruction or None, the skills they came from) for the scene
+    of ``cfg.seed`` rendered as ``first`` by ``sim`` (see the module docstring for the defaults)."""
+    from datagen import skills as sk
+    from datagen.counterfactual import commanded_future
+    from datagen.tasks import get_task
+
+    skills: dict[str, str | None] = {"skill": None, "contrast_skill": None}
+    if cfg.instruction is not None:
+        main = cfg.instruction.strip()
+    elif cfg.skill is not None or get_task(cfg.task).skills_only:
+        skills["skill"] = cfg.skill or DEFAULT_SKILL
+        main = commanded_future(sim, cfg.seed, skills["skill"])[0]
+    else:
+        main = first.instruction
+    contrast = None
+    if cfg.contrast_instruction is not None:
+        contrast = cfg.contrast_instruction.strip()
+    elif cfg.contrast and cfg.task in sk.SCENES:
+        skills["contrast_skill"] = cfg.contrast_skill
+        contrast = commanded_future(sim, cfg.seed, cfg.contrast_skill)[0]
+    if contrast is not None and contrast == main:
+        raise UserError(f"the contrast instruction is the main one ({main!r}); pass another --contrast-instruction "
+                        f"or --contrast-skill, or --no-contrast")
+    return main, contrast, skills
+
+
 def _run_demo_stages(cfg: DemoConfig, out: Path) -> dict[str, Path]:
     from tqdm import tqdm
 
-    from datagen.simulate import render_first_frame
+    from datagen.simulate import first_frame_simulator
     from reconstruction.reconstruct import ReconConfig, reconstruct_episode
     from tesseract4d import dataset_format as df
-    from tesseract4d.model.predict import instruction_budget_note, load_pipeline, predict_episode, write_prediction
+    from tesseract4d.model.predict import instruction_budget_note, load_pipeline, predict_counterfactuals, write_prediction
+    from tesseract4d.previews import write_side_by_side
     from viewer.export import export_html
 
     stages = tqdm(total=4, desc="demo", unit="stage")
 
     stages.set_postfix_str(f"render {cfg.task} seed {cfg.seed}")
     pipeline = load_pipeline(cfg.checkpoint, precision=cfg.precision)
-    # The resolved config: frames and steps the checkpoint's preset gives when not set.
-    cfg = dataclasses.replace(cfg, num_frames=cfg.num_frames or pipeline.num_frames, steps=cfg.steps or pipeline.preset.num_steps)
-    (out / "demo_config.json").write_text(json.dumps(dataclasses.asdict(cfg), indent=2, default=str))
     height, width = pipeline.resolution
-    first = render_first_frame(cfg.task, cfg.seed, height=height, width=width, camera=cfg.camera)
-    instruction = cfg.instruction if cfg.instruction is not None else first.instruction
-    if note := instruction_budget_note(pipeline, instruction.strip()):
-        stages.write(note)
+    camera = cfg.camera or pipeline.camera_name or "close"
+    sim = first_frame_simulator(cfg.task, height=height, width=width, camera=camera)
+    try:
+        first = sim.first_frame(cfg.seed)
+        main, contrast, skills = resolve_instructions(cfg, sim, first)
+    finally:
+        sim.close()
+    if contrast is None and cfg.contrast:
+        stages.write(f"note: one future only: the skill library does not know {cfg.task}'s scene; pass "
+                     f"--contrast-instruction TEXT for a second one")
+    instructions = [main] + ([contrast] if contrast is not None else [])
+    # The resolved config: instructions, camera, frames and steps as used.
+    cfg = dataclasses.replace(cfg, instruction=main, contrast_instruction=contrast, contrast=contrast is not None,
+                              camera=camera, num_frames=cfg.num_frames or pipeline.num_frames,
+                              steps=cfg.steps or pipeline.preset.num_steps, **skills)
+    (out / "demo_config.json").write_text(json.dumps(dataclasses.asdict(cfg), indent=2, default=str))
+    for text in instructions:
+        if note := instruction_budget_note(pipeline, text):
+            stages.write(note)
     first_path = df.write_episode_dataset(out / "first_frame", first)
     stages.update()
 
-    stages.set_postfix_str(f"predict: {instruction!r}")
-    pred = predict_episode(pipeline, first, instruction, num_frames=cfg.num_frames, seed=cfg.sample_seed, num_steps=cfg.steps)
-    pred_dir = write_prediction(pred, out / "prediction")
+    stages.set_postfix_str("predict: " + " | ".join(repr(t) for t in instructions))
+    preds = predict_counterfactuals(pipeline, first, instructions, num_frames=cfg.num_frames, seed=cfg.sample_seed,
+                                    num_steps=cfg.steps)
+    # (folder, predicted episode, instruction, output-name prefix) per future
+    futures = [(out, preds[0], main, "")] + ([(out / CONTRAST_DIR, preds[1], contrast, "contrast ")] if contrast is not None else [])
+    written = {"first frame": first_path}
+    for folder, pred, text, prefix in futures:
+        written[prefix + "prediction"] = write_prediction(pred, folder / "prediction")
     stages.update()
 
     stages.set_postfix_str("reconstruct")
-    recon = reconstruct_episode(pred, config=ReconConfig())
-    recon.metadata.update({"instruction": instruction, "task": cfg.task, "seed": cfg.seed})
-    recon_dir = recon.save(out / "reconstruction")
+    recons = []
+    for folder, pred, text, prefix in futures:
+        recon = reconstruct_episode(pred, config=ReconConfig())
+        recon.metadata.update({"instruction": text, "task": cfg.task, "seed": cfg.seed})
+        written[prefix + "reconstruction"] = recon.save(folder / "reconstruction")
+        recons.append(recon)
     stages.update()
 
-    stages.set_postfix_str("export html")
-    html = export_html(recon, out / "scene.html")
+    stages.set_postfix_str("export html and mp4")
+    for (folder, pred, text, prefix), recon in zip(futures, recons):
+        written[prefix + "html"] = export_html(recon, folder / "scene.html")
+        (folder / "instruction.txt").write_text(text + "\n")
+        written[prefix + "instruction"] = folder / "instruction.txt"
+    if contrast is not None:
+        written["side by side"] = write_side_by_side(out / SIDE_BY_SIDE, preds, instructions)
     stages.update()
     stages.close()
-    (out / "instruction.txt").write_text(instruction + "\n")
-    return {
-        "first frame": first_path,
-        "prediction": pred_dir,
-        "reconstruction": recon_dir,
-        "html": html,
-        "instruction": out / "instruction.txt",
-    }
+    return written

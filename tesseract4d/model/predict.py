@@ -134,6 +134,38 @@ def predict_episodes(
                           seed=seed, generator=torch.Generator().manual_seed(int(seed)), progress=progress)
 
 
+def predict_counterfactuals(
+    pipeline: RGBDNPipeline,
+    first_frame: df.Episode,
+    instructions: list[str],
+    *,
+    num_frames: int | None = None,
+    seed: int = 0,
+    num_steps: int | None = None,
+    text_guidance: float | None = None,
+    image_guidance: float | None = None,
+    camera: str | None = None,
+    progress: Callable[[int, int], None] | None = None,
+) -> list[df.Episode]:
+    """One future of the same first frame per instruction, sampled as one batch from the same
+    initial noise, so the futures differ only by their words (a counterfactual group).
+
+    The shared noise is what :func:`predict_episode` draws for ``seed`` with the pixel and latent
+    presets, so there future i is the prediction of ``instructions[i]`` alone with that seed (up
+    to floating-point rounding of batched maths). Frames beyond one clip continue with noise
+    drawn per future.
+    """
+    if not instructions:
+        raise UserError("no instructions to predict; give at least one")
+    num_frames, num_steps = _check_sampling(pipeline, num_frames, num_steps, 1)
+    scenes = [_scene(pipeline, first_frame, text, camera) for text in instructions]
+    noise = torch.randn(pipeline.latent_shape(1), generator=torch.Generator().manual_seed(int(seed)))  # (1, t', c, h, w)
+    return _predict_batch(pipeline, scenes, [0] * len(scenes), num_frames=num_frames, num_steps=num_steps,
+                          text_guidance=text_guidance, image_guidance=image_guidance, seed=seed,
+                          generator=torch.Generator().manual_seed(int(seed)),
+                          latents=noise.expand(len(scenes), *noise.shape[1:]), progress=progress)
+
+
 # Scenes per pipeline call of predict_scenes when not given. Measured with
 # benchmarks/bench_throughput.py on the shipped tiny checkpoint (64x64, 16 frames, 10 steps with
 # text guidance = 2 network passes per step), bf16, AMD EPYC with AVX512-BF16, 2 cores shared with a
