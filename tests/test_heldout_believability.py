@@ -249,9 +249,8 @@ def test_checkpoints_of_two_resolutions_are_scored_on_one_heldout_set(two_checkp
     assert cli.main(["evaluate", "--heldout", str(heldout64), "--checkpoint", str(a), "--checkpoint", str(v2),
                      "--out", str(out), "--steps", "2", "--precision", "fp32"]) == 0
     report = json.loads((out / "report.json").read_text())
-    assert report["resolutions"] == {
-        a.name: {"model": [SIZE, SIZE], "data": [2 * SIZE, 2 * SIZE], "resized": "upsampled", "token_px_in_data": 8},
-        "v2": {"model": [2 * SIZE, 2 * SIZE], "data": [2 * SIZE, 2 * SIZE], "resized": None, "token_px_in_data": 4}}
+    assert report["resolutions"] == {a.name: {"model": [SIZE, SIZE], "data": [2 * SIZE, 2 * SIZE], "resized": "upsampled"},
+                                     "v2": {"model": [2 * SIZE, 2 * SIZE], "data": [2 * SIZE, 2 * SIZE], "resized": None}}
     assert report["methods"][a.name] == f"{a.name} (32×32, upsampled to 64×64) + consistency"
     assert report["methods"]["v2"] == "v2 + consistency"
     for m in report["methods"]:
@@ -268,10 +267,32 @@ def test_a_model_above_the_data_resolution_is_downsampled(two_checkpoints, check
     report = evaluate_heldout(HeldoutConfig(checkpoint=v2, data=heldout32, num_steps=2, precision="fp32"),
                               progress=False)
     assert report["resolutions"]["model"]["resized"] == "downsampled"
-    assert report["resolutions"]["model"]["token_px_in_data"] == 2
     assert report["methods"]["model_raw"] == "model (64×64, downsampled to 32×32), no consistency"
     for m in report["methods"]:
         _finite(report, m)
+
+
+def test_a_prediction_comes_back_at_the_data_resolution_from_the_data_first_frame(two_checkpoints, checkpoint_64):
+    """The 32x32 model on a 64x64 first frame: the prediction is 64x64 with the data's K and its
+    frame 0 is the data's first frame; the RGB as the model made it (for the token grid) is 32x32."""
+    from tesseract4d.evaluation.heldout import predict_at_data_resolution
+    from tesseract4d.model.predict import load_pipeline
+
+    a, _, _ = two_checkpoints
+    _, heldout64 = checkpoint_64
+    path = df.list_episode_files(heldout64)[0]
+    first = df.read_episode(path, cameras=["close"], frames=slice(0, 1))
+    [(pred, model_rgb)] = predict_at_data_resolution(load_pipeline(a, precision="fp32"), [first], ["push"], ["close"],
+                                                     [FRAMES], seed=0, num_steps=2, batch_size=None)
+    cam, cam0 = pred.cameras["close"], first.cameras["close"]
+    assert cam.rgb.shape == (FRAMES, 2 * SIZE, 2 * SIZE, 3) and model_rgb.shape == (FRAMES, SIZE, SIZE, 3)
+    assert cam.depth_m.shape == (FRAMES, 2 * SIZE, 2 * SIZE) and cam.normal_cam.shape == (FRAMES, 2 * SIZE, 2 * SIZE, 3)
+    np.testing.assert_allclose(cam.K, np.repeat(cam0.K[:1], FRAMES, 0))
+    assert np.array_equal(cam.rgb[0], cam0.rgb[0]) and np.array_equal(cam.depth_m[0], cam0.depth_m[0])
+    length = np.linalg.norm(cam.normal_cam, axis=-1)
+    assert np.all((np.abs(length - 1) < 1e-3) | (length == 0))
+    assert pred.metadata["prediction"]["resized"] == {"model_resolution": [SIZE, SIZE],
+                                                      "data_resolution": [2 * SIZE, 2 * SIZE]}
 
 
 def test_same_resolution_is_predicted_as_one_scene_at_a_time_and_batching_changes_nothing(two_checkpoints):
