@@ -28,8 +28,8 @@ resolution and the prediction back to the data's with :func:`tesseract4d.resize.
 (K along with them), its frame 0 is the data's first frame again (as a prediction's frame 0 is the
 given first frame), and then it is reconstructed and scored like any other, against the untouched
 ground truth. Only the token grid is measured on the prediction as the model made it, at its own
-resolution and token size: bilinear upsampling alone lifts the ratio of a grid-free clip to about
-1.4 at tokens of twice the size. The static world and the ground truth are measured at the data's
+resolution and token size: bilinear upsampling alone lifts the ratio of a grid-free clip to
+1.3-1.5 at tokens of twice the size. The static world and the ground truth are measured at the data's
 resolution with the first checkpoint's token size in data pixels. The report states each
 checkpoint's resolution and whether it was resized (``resolutions``, and the labels).
 
@@ -266,10 +266,9 @@ def evaluate_heldout(cfg: HeldoutConfig, progress: bool = True) -> dict:
     labels = {"static": METHOD_LABELS["static"]}
     resolutions = {}
     for (with_c, raw), pipeline, s in zip(keys, pipelines, factors):
-        base = "model" if with_c == "model" else with_c
         note = resolution_note(pipeline.resolution, data_hw)
-        labels[with_c] = f"{base}{note} + consistency"
-        labels[raw] = f"{base}{note}, no consistency"
+        labels[with_c] = f"{with_c}{note} + consistency"  # "model + consistency" for a single checkpoint
+        labels[raw] = f"{with_c}{note}, no consistency"
         resolutions[with_c] = {"model": list(pipeline.resolution), "data": list(data_hw),
                                "resized": None if s == 1 else ("upsampled" if s < 1 else "downsampled")}
     # Token grids: each model's at its own resolution and token size; the static world's and the
