@@ -4,6 +4,7 @@ side by side."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import shutil
 from pathlib import Path
@@ -26,10 +27,11 @@ GROUP = (
 )
 
 
-def group_episode(k: int, seed: int = 100000) -> df.Episode:
+def group_episode(k: int, seed: int = 100000, scale: int = 1) -> df.Episode:
     """Episode k of a synthetic group: two 8-px squares on a grey plane 1 m in front of the camera
     (T_world_cam = identity, so world metres map to f pixels); the instructed one moves
-    ``commanded * f`` pixels over the clip, the other stays; a grey robot block stays too."""
+    ``commanded * f`` pixels over the clip, the other stays; a grey robot block stays too.
+    ``scale``: the same scene seen by a camera of ``scale`` times the resolution (and focal length)."""
     instruction, skill, target, cmd = GROUP[k]
     K = np.array([[F_PX, 0, SIZE / 2], [0, F_PX, SIZE / 2], [0, 0, 1]])
     v, u = np.mgrid[0:SIZE, 0:SIZE]
@@ -45,10 +47,13 @@ def group_episode(k: int, seed: int = 100000) -> df.Episode:
             uu, vv = int(round(u0 + shift[0])), int(round(v0 + shift[1]))
             rgb[t, vv:vv + 8, uu:uu + 8], seg[t, vv:vv + 8, uu:uu + 8] = colour, oid
             poses[name][t] = [(uu + 3.5 - SIZE / 2) / F_PX, (vv + 3.5 - SIZE / 2) / F_PX, 1.0, 1, 0, 0, 0]
-    cam = df.CameraFrames(rgb=rgb, depth_m=np.ones((FRAMES, SIZE, SIZE), np.float32),
-                          normal_cam=np.broadcast_to(np.float32([0, 0, -1]), (FRAMES, SIZE, SIZE, 3)).copy(),
+    up = lambda a: np.repeat(np.repeat(a, scale, axis=1), scale, axis=2)  # noqa: E731  (T, H, W, ...) -> (T, sH, sW, ...)
+    K[:2] *= scale  # pixel centres at half-integers: no offset
+    n = SIZE * scale
+    cam = df.CameraFrames(rgb=up(rgb), depth_m=np.ones((FRAMES, n, n), np.float32),
+                          normal_cam=np.broadcast_to(np.float32([0, 0, -1]), (FRAMES, n, n, 3)).copy(),
                           K=np.repeat(K[None], FRAMES, 0), T_world_cam=np.repeat(np.eye(4)[None], FRAMES, 0),
-                          segmentation=seg, seg_id_to_name=dict(SEG))
+                          segmentation=up(seg), seg_id_to_name=dict(SEG))
     intent = {"skill": skill, "variant": skill if skill == "keep_still" else f"{skill}_{k}", "target": target,
               "other": None, "commanded_displacement_world_m": list(cmd), "gripper_goal_world_m": None}
     return df.Episode(env_id="Synthetic-v0", seed=seed, instruction=instruction, cameras={"close": cam},
@@ -198,6 +203,151 @@ def test_single_checkpoint_keeps_the_report_keys(two_checkpoints):
     assert list(report["methods"]) == ["model", "model_raw", "static"]
     assert {"model", "model_raw", "static"} <= set(report["summary"]) and "model" in report["instruction_following"]
     assert "model + consistency" in format_markdown(report)
+
+
+@pytest.fixture(scope="module")
+def checkpoint_64(micro_preset, tmp_path_factory):
+    """A micro checkpoint at 64x64 (twice the group episodes' 32x32) and the groups seen at 64x64."""
+    from model_fixtures import MICRO
+    from synthetic_scene import write_synthetic_dataset
+
+    from tesseract4d.model.presets import PRESETS
+    from tesseract4d.model.trainer import Trainer, TrainConfig
+
+    preset = dataclasses.replace(MICRO, name="micro-64", height=2 * SIZE, width=2 * SIZE,
+                                 backbone=dict(MICRO.backbone, sample_width=2 * SIZE, sample_height=2 * SIZE))
+    root = tmp_path_factory.mktemp("believe64")
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setitem(PRESETS, preset.name, preset)
+        data = write_synthetic_dataset(root / "train", episodes=2, size=2 * SIZE)
+        run = Trainer(TrainConfig(data=data, out=root / "run", preset=preset.name, max_steps=2, val_every=0,
+                                  ckpt_every=0, progress=False)).train()
+        ckpt = root / "v2"
+        shutil.copytree(run, ckpt)
+        heldout = root / "heldout64"
+        df.init_dataset(heldout, df.DatasetInfo(height=2 * SIZE, width=2 * SIZE, cameras=["close"]))
+        for k in range(len(GROUP)):
+            df.write_episode(heldout, group_episode(k, scale=2))
+        yield ckpt, heldout
+
+
+def _finite(report: dict, method: str) -> None:
+    summary = report["summary"][method]
+    for key in ("rgb_psnr_db", "rgb_psnr_db_moving", "depth_abs_rel", "normal_mean_deg", "chamfer_l1_m",
+                "chamfer_l1_m_moving", "objects_present", "token_grid_ratio", "edge_sharpness", "contrast"):
+        assert summary[key] is not None and np.isfinite(summary[key]), (method, key, summary[key])
+
+
+def test_checkpoints_of_two_resolutions_are_scored_on_one_heldout_set(two_checkpoints, checkpoint_64, tmp_path):
+    """A 32x32 model beside a 64x64 one on 64x64 data: the 32x32 prediction is upsampled, every metric
+    is taken at 64x64 against the untouched ground truth, and the report says so."""
+    from tesseract4d import cli
+
+    a, _, _ = two_checkpoints
+    v2, heldout64 = checkpoint_64
+    out = tmp_path / "eval"
+    assert cli.main(["evaluate", "--heldout", str(heldout64), "--checkpoint", str(a), "--checkpoint", str(v2),
+                     "--out", str(out), "--steps", "2", "--precision", "fp32"]) == 0
+    report = json.loads((out / "report.json").read_text())
+    assert report["resolutions"] == {a.name: {"model": [SIZE, SIZE], "data": [2 * SIZE, 2 * SIZE], "resized": "upsampled"},
+                                     "v2": {"model": [2 * SIZE, 2 * SIZE], "data": [2 * SIZE, 2 * SIZE], "resized": None}}
+    assert report["methods"][a.name] == f"{a.name} (32×32, upsampled to 64×64) + consistency"
+    assert report["methods"]["v2"] == "v2 + consistency"
+    for m in report["methods"]:
+        _finite(report, m)
+    md = (out / "report.md").read_text()
+    assert f"{a.name} (32×32, upsampled to 64×64), no consistency" in md and "Resolutions: " in md
+
+
+def test_a_model_above_the_data_resolution_is_downsampled(two_checkpoints, checkpoint_64):
+    from tesseract4d.evaluation.heldout import HeldoutConfig, evaluate_heldout
+
+    _, _, heldout32 = two_checkpoints
+    v2, _ = checkpoint_64
+    report = evaluate_heldout(HeldoutConfig(checkpoint=v2, data=heldout32, num_steps=2, precision="fp32"),
+                              progress=False)
+    assert report["resolutions"]["model"]["resized"] == "downsampled"
+    assert report["methods"]["model_raw"] == "model (64×64, downsampled to 32×32), no consistency"
+    for m in report["methods"]:
+        _finite(report, m)
+
+
+def test_a_prediction_comes_back_at_the_data_resolution_from_the_data_first_frame(two_checkpoints, checkpoint_64):
+    """The 32x32 model on a 64x64 first frame: the prediction is 64x64 with the data's K and its
+    frame 0 is the data's first frame; the RGB as the model made it (for the token grid) is 32x32."""
+    from tesseract4d.evaluation.heldout import predict_at_data_resolution
+    from tesseract4d.model.predict import load_pipeline
+
+    a, _, _ = two_checkpoints
+    _, heldout64 = checkpoint_64
+    path = df.list_episode_files(heldout64)[0]
+    first = df.read_episode(path, cameras=["close"], frames=slice(0, 1))
+    [(pred, model_rgb)] = predict_at_data_resolution(load_pipeline(a, precision="fp32"), [first], ["push"], ["close"],
+                                                     [FRAMES], seed=0, num_steps=2, batch_size=None)
+    cam, cam0 = pred.cameras["close"], first.cameras["close"]
+    assert cam.rgb.shape == (FRAMES, 2 * SIZE, 2 * SIZE, 3) and model_rgb.shape == (FRAMES, SIZE, SIZE, 3)
+    assert cam.depth_m.shape == (FRAMES, 2 * SIZE, 2 * SIZE) and cam.normal_cam.shape == (FRAMES, 2 * SIZE, 2 * SIZE, 3)
+    np.testing.assert_allclose(cam.K, np.repeat(cam0.K[:1], FRAMES, 0))
+    assert np.array_equal(cam.rgb[0], cam0.rgb[0]) and np.array_equal(cam.depth_m[0], cam0.depth_m[0])
+    length = np.linalg.norm(cam.normal_cam, axis=-1)
+    assert np.all((np.abs(length - 1) < 1e-3) | (length == 0))
+    assert pred.metadata["prediction"]["resized"] == {"model_resolution": [SIZE, SIZE],
+                                                      "data_resolution": [2 * SIZE, 2 * SIZE]}
+
+
+def test_same_resolution_is_predicted_as_one_scene_at_a_time_and_batching_changes_nothing(two_checkpoints):
+    """At the data's resolution nothing is resized: with one scene per call the raw model scores
+    exactly what predict_episode's prediction scores (what the evaluation did one episode at a
+    time); several scenes per call give the same numbers up to the rounding of batched fp32 maths."""
+    from tesseract4d.evaluation.episode import evaluate_episode
+    from tesseract4d.evaluation.heldout import HeldoutConfig, evaluate_heldout, select_episodes
+    from tesseract4d.evaluation.metrics import moving_region_mask
+    from tesseract4d.model.predict import load_pipeline, predict_episode
+
+    a, _, heldout = two_checkpoints
+    cfg = HeldoutConfig(checkpoint=a, data=heldout, num_steps=2, precision="fp32", sample_seed=3)
+    one = evaluate_heldout(dataclasses.replace(cfg, batch_size=1), progress=False)
+    batched = evaluate_heldout(dataclasses.replace(cfg, batch_size=2), progress=False)
+    assert one["resolutions"]["model"]["resized"] is None and one["methods"]["model"] == "model + consistency"
+    pipe = load_pipeline(a, precision="fp32")
+    for path, row in zip(select_episodes(heldout, None), one["rows"]):
+        gt = df.read_episode(path)
+        first = df.read_episode(path, cameras=["close"], frames=slice(0, 1))
+        pred = predict_episode(pipe, first, gt.instruction, num_frames=FRAMES, seed=3, num_steps=2)
+        alone = evaluate_episode(pred, gt, camera="close", moving_mask=moving_region_mask(gt.cameras["close"]),
+                                 max_depth_m=one["max_depth_m"])["mean"]
+        for key, value in alone.items():
+            assert row["metrics"]["model_raw"][key] == value or (np.isnan(value) and row["metrics"]["model_raw"][key] is None), key
+    for r1, r2 in zip(one["rows"], batched["rows"]):
+        for method, metrics in r1["metrics"].items():
+            for key, value in metrics.items():
+                other = r2["metrics"][method][key]
+                assert (value is None and other is None) or value == pytest.approx(other, rel=1e-4, abs=1e-6), (method, key)
+
+
+def test_a_resolution_evaluation_cannot_resize_to_is_a_one_line_error(two_checkpoints, tmp_path):
+    from synthetic_scene import write_synthetic_dataset
+
+    from tesseract4d.errors import UserError
+    from tesseract4d.evaluation.heldout import HeldoutConfig, evaluate_heldout
+
+    a, _, _ = two_checkpoints
+    data = write_synthetic_dataset(tmp_path / "heldout48", episodes=1, size=48)
+    with pytest.raises(UserError, match=r"predicts 32x32 frames but .* holds 48x48") as err:
+        evaluate_heldout(HeldoutConfig(checkpoint=a, data=data, num_steps=2), progress=False)
+    assert "\n" not in str(err.value) and "--resolution 32" in str(err.value)
+
+
+def test_token_size_in_data_pixels_and_resolution_notes():
+    from fractions import Fraction
+
+    from tesseract4d.evaluation.heldout import resolution_note, token_px_in_data
+
+    assert token_px_in_data(4, Fraction(1, 2)) == 8 and token_px_in_data(8, Fraction(2)) == 4
+    assert token_px_in_data(4, Fraction(4)) is None and token_px_in_data(4, Fraction(2)) == 2
+    assert resolution_note((64, 64), (64, 64)) == ""
+    assert resolution_note((64, 64), (128, 128)) == " (64×64, upsampled to 128×128)"
+    assert resolution_note((128, 128), (64, 64)) == " (128×128, downsampled to 64×64)"
 
 
 def test_a_shaded_object_is_tracked_and_found_by_its_own_colours():

@@ -47,6 +47,22 @@ def test_scenes_do_not_depend_on_batch_size(pipe):
     assert all(np.array_equal(x.cameras["close"].depth_m, y.cameras["close"].depth_m) for x, y in zip(batched, again))
 
 
+def test_a_noise_seed_draws_what_predict_episode_draws(pipe):
+    """The held-out evaluation batches scenes with noise_seeds=[seed] * n: each scene is then
+    predicted exactly as predict_episode predicts it alone (one scene per call: bit for bit)."""
+    from tesseract4d.model.predict import predict_episode
+
+    scenes = [synthetic_episode(s, frames=1, direction=1 if s % 2 else -1) for s in range(2)]
+    texts = [e.instruction for e in scenes]
+    batched = predict_scenes(pipe, scenes, texts, batch_size=1, seed=5, num_steps=2, noise_seeds=[5, 5])
+    for scene, text, pred in zip(scenes, texts, batched):
+        alone = predict_episode(pipe, scene, text, seed=5, num_steps=2)
+        assert np.array_equal(alone.cameras["close"].rgb, pred.cameras["close"].rgb)
+        assert np.array_equal(alone.cameras["close"].depth_m, pred.cameras["close"].depth_m)
+    with pytest.raises(UserError, match="one per scene"):
+        predict_scenes(pipe, scenes, texts, noise_seeds=[5])
+
+
 def test_bad_scene_inputs(pipe):
     scene = synthetic_episode(0, frames=1)
     with pytest.raises(UserError, match="one of each"):

@@ -13,8 +13,10 @@ model with the reconstruction's consistency step, the model without it, and the 
 (first frame repeated), over all pixels and the moving region, plus instruction following
 (does the instructed object move the right way), object permanence, instruction contrast over
 counterfactual groups, token grid and edge sharpness, per skill and per task. Several
---checkpoint options score several models side by side in the same run. Writes report.json and
-report.md (the README's results table) to --out.
+--checkpoint options score several models side by side in the same run, also when their
+resolutions differ from the data's by a whole factor (the first frame is resized to each model's
+resolution and its prediction back; every metric is taken at the data's resolution). Writes
+report.json and report.md (the README's results table) to --out.
 
 Examples:
   tesseract4d evaluate out/recon --gt data/test/episodes/PickCube-v1/seed_100000.h5 --json out/report.json
@@ -62,6 +64,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     held.add_argument("--steps", type=int, help="sampler steps (default: the checkpoint preset's)")
     held.add_argument("--sample-seed", type=int, default=0, help="diffusion noise seed (default %(default)s)")
     held.add_argument("--max-per-task", type=int, help="episodes per task at most (default: all)")
+    held.add_argument("--batch-size", type=int, metavar="N",
+                      help="scenes per network call (default: predict_scenes' DEFAULT_SCENE_BATCH); each scene gets "
+                           "the noise it gets alone, so results do not depend on it beyond float rounding")
     add_precision_argument(held)
     parser.add_argument("--overwrite", action="store_true",
                         help="replace a --json file / write into an --out folder that this command did not write")
@@ -96,7 +101,7 @@ def run_heldout(args: argparse.Namespace) -> int:
                                                      overwrite=args.overwrite)
     cfg = HeldoutConfig(checkpoint=checkpoints[0] if len(checkpoints) == 1 else checkpoints, data=args.heldout, out=None, camera=args.camera,
                         num_steps=args.steps, sample_seed=args.sample_seed, max_episodes=args.max_per_task,
-                        max_depth_m=args.max_depth, precision=args.precision)
+                        max_depth_m=args.max_depth, precision=args.precision, batch_size=args.batch_size)
     report = evaluate_heldout(cfg)
     if output is not None:
         with output as stage:

@@ -21,6 +21,21 @@ means over all episodes, per task and per skill (``skill`` "task" for episodes w
 Several checkpoints can be scored in the same run on the same episodes: methods ``<name>`` and
 ``<name>_raw`` per checkpoint folder name, side by side with one static world; a single
 checkpoint keeps the method keys ``model`` / ``model_raw``.
+
+Checkpoints may predict at another resolution than the data's (the 64×64 ``tiny`` beside a
+128×128 latent model), by a whole factor on both axes: the first frame is resized to the model's
+resolution and the prediction back to the data's with :func:`tesseract4d.resize.resize_rgbdn`
+(K along with them), its frame 0 is the data's first frame again (as a prediction's frame 0 is the
+given first frame), and then it is reconstructed and scored like any other, against the untouched
+ground truth. Only the token grid is measured on the prediction as the model made it, at its own
+resolution and token size: bilinear upsampling alone lifts the ratio of a grid-free clip to
+1.3-1.5 at tokens of twice the size. The static world and the ground truth are measured at the data's
+resolution with the first checkpoint's token size in data pixels. The report states each
+checkpoint's resolution and whether it was resized (``resolutions``, and the labels).
+
+Scenes are predicted several per network call (:func:`tesseract4d.model.predict.predict_scenes`,
+``batch_size``), each from the noise that predicting it alone with ``sample_seed`` draws, so the
+numbers do not depend on the batch size (up to the rounding of batched maths).
 """
 
 from __future__ import annotations
@@ -30,6 +45,7 @@ import json
 import math
 import os
 from dataclasses import dataclass
+from fractions import Fraction
 from pathlib import Path
 
 import numpy as np
@@ -37,6 +53,7 @@ import numpy as np
 from tesseract4d import dataset_format as df
 from tesseract4d.errors import UserError
 from tesseract4d.evaluation.instruction_following import RIGHT_WAY_COSINE
+from tesseract4d.resize import resize_factor, resize_rgbdn
 
 METHODS = ("model", "model_raw", "static")
 METHOD_LABELS = {"model": "model + consistency", "model_raw": "model, no consistency", "static": "static world"}
@@ -65,6 +82,7 @@ class HeldoutConfig:
     # plane), so that no method is scored on the distant floor the model does not represent.
     max_depth_m: float | None = None
     precision: str = "auto"  # auto|fp32|bf16 (tesseract4d/precision.py)
+    batch_size: int | None = None  # scenes per network call; None = predict.DEFAULT_SCENE_BATCH
 
 
 def static_world(first: df.Episode, camera: str, num_frames: int) -> df.Episode:
@@ -139,12 +157,89 @@ def _checkpoints(cfg: HeldoutConfig) -> list[Path]:
     return [Path(c) for c in ckpts]
 
 
+def data_to_model_factor(checkpoint: Path, model_hw: tuple[int, int], data: Path, data_hw: tuple[int, int]) -> Fraction:
+    """The scale from the data's resolution to the model's (1: none); a one-line UserError with the
+    fix when evaluation cannot resize between them (not a whole factor, the same on both axes)."""
+    s = resize_factor(data_hw, model_hw)
+    if s is None:
+        (h, w), (H, W) = model_hw, data_hw
+        hint = f" (`tesseract4d datagen ... --resolution {h}` or {2 * h})" if h == w else ""
+        raise UserError(f"{checkpoint} predicts {h}x{w} frames but {data} holds {H}x{W}, and evaluation resizes "
+                        f"only by a whole factor on both axes; write the held-out set at {h}x{w} or a whole multiple or "
+                        f"divisor of it{hint}")
+    return s
+
+
+def resolution_note(model_hw: tuple[int, int], data_hw: tuple[int, int]) -> str:
+    """"" at the data's resolution, else e.g. " (64×64, upsampled to 128×128)"."""
+    if tuple(model_hw) == tuple(data_hw):
+        return ""
+    how = "upsampled" if model_hw[0] < data_hw[0] else "downsampled"
+    return f" ({model_hw[0]}×{model_hw[1]}, {how} to {data_hw[0]}×{data_hw[1]})"
+
+
+def token_px_in_data(patch_px: int, factor: Fraction) -> int | None:
+    """A model token's size in data pixels (``factor`` = model / data resolution), or None when it
+    is not a whole number of at least 2 pixels (no token grid to measure)."""
+    px = Fraction(patch_px) / factor
+    return int(px) if px.denominator == 1 and px >= 2 else None
+
+
+def at_resolution(episode: df.Episode, camera: str, hw: tuple[int, int]) -> df.Episode:
+    """``episode`` with only ``camera``, its RGB-D-N and K resized to ``hw`` (itself when already
+    there). The resized copy carries no segmentation (prediction reads none)."""
+    cam = episode.cameras[camera]
+    if tuple(cam.rgb.shape[1:3]) == tuple(hw) and list(episode.cameras) == [camera]:
+        return episode
+    rgb, depth_m, normal_cam, K = resize_rgbdn(cam.rgb, cam.depth_m, cam.normal_cam, cam.K, *hw)
+    frames = df.CameraFrames(rgb=rgb, depth_m=depth_m, normal_cam=normal_cam, K=K, T_world_cam=cam.T_world_cam)
+    return dataclasses.replace(episode, cameras={camera: frames})
+
+
+def predict_at_data_resolution(pipeline, firsts: list[df.Episode], instructions: list[str], cameras: list[str],
+                               num_frames: list[int], *, seed: int, num_steps: int,
+                               batch_size: int | None) -> list[tuple[df.Episode, np.ndarray]]:
+    """One prediction per scene at its first frame's resolution, whatever the model's: a list of
+    (prediction at the data's resolution, its RGB as the model made it (T, h, w, 3) uint8).
+
+    ``firsts[i]``: the first-frame episode of scene i (frame 0 of camera ``cameras[i]``);
+    ``num_frames[i]``: frames to predict. Scenes go ``batch_size`` per network call
+    (``predict_scenes``), each from the noise ``predict_episode(..., seed=seed)`` draws. A first
+    frame of another resolution than the model's is resized to it, and the prediction back
+    (:func:`at_resolution`); frame 0 is then the given first frame again.
+    """
+    from tesseract4d.model.predict import predict_scenes
+
+    model_hw = tuple(pipeline.resolution)
+    inputs = [at_resolution(f, cam, model_hw) for f, cam in zip(firsts, cameras)]
+    out: list[tuple[df.Episode, np.ndarray] | None] = [None] * len(firsts)
+    for n in sorted(set(num_frames)):  # predict_scenes takes one clip length per call
+        idx = [i for i, m in enumerate(num_frames) if m == n]
+        preds = predict_scenes(pipeline, [inputs[i] for i in idx], [instructions[i] for i in idx],
+                               batch_size=batch_size, num_frames=n, seed=seed, num_steps=num_steps,
+                               noise_seeds=[seed] * len(idx))
+        for i, pred in zip(idx, preds):
+            model_rgb = pred.cameras[cameras[i]].rgb
+            first = firsts[i].cameras[cameras[i]]
+            data_hw = tuple(first.rgb.shape[1:3])
+            if data_hw != model_hw:
+                pred = at_resolution(pred, cameras[i], data_hw)
+                cam = pred.cameras[cameras[i]]
+                # Frame 0 of a prediction is the given first frame, at the data's resolution too.
+                cam.rgb[0], cam.depth_m[0], cam.normal_cam[0] = first.rgb[0], first.depth_m[0], first.normal_cam[0]
+                pred.metadata["prediction"]["resized"] = {"model_resolution": list(model_hw),
+                                                          "data_resolution": list(data_hw)}
+            out[i] = (pred, model_rgb)
+    return out
+
+
 def evaluate_heldout(cfg: HeldoutConfig, progress: bool = True) -> dict:
     """Run the evaluation; returns the report (also written to cfg.out when given).
 
     ``cfg.checkpoint`` may be one checkpoint or a list: every checkpoint predicts every episode
     and all are scored side by side with the static world (methods ``<name>`` / ``<name>_raw``;
-    one checkpoint keeps the keys ``model`` / ``model_raw``).
+    one checkpoint keeps the keys ``model`` / ``model_raw``). Checkpoints of another resolution
+    than the data's are evaluated through resizing (see the module docstring).
     """
     from tqdm import tqdm
 
@@ -153,72 +248,101 @@ def evaluate_heldout(cfg: HeldoutConfig, progress: bool = True) -> dict:
     from tesseract4d.evaluation.metrics import moving_region_mask
     from reconstruction.reconstruct import ReconConfig, reconstruct_episode
     from tesseract4d.evaluation.instruction_following import TARGET_OBJECT, direction_score
-    from tesseract4d.model.predict import load_pipeline, predict_episode
+    from tesseract4d.model.predict import DEFAULT_SCENE_BATCH, load_pipeline
 
     data = Path(cfg.data)
-    df.read_info(data)
+    info = df.read_info(data)
+    data_hw = (int(info.height), int(info.width))
     files = select_episodes(data, cfg.max_episodes)
     checkpoints = _checkpoints(cfg)
     keys = method_keys(checkpoints)
+    batch_size = DEFAULT_SCENE_BATCH if cfg.batch_size is None else int(cfg.batch_size)
+    if batch_size < 1:
+        raise UserError(f"--batch-size must be at least 1, got {batch_size}")
     pipelines = [load_pipeline(c, precision=cfg.precision) for c in checkpoints]
+    factors = [data_to_model_factor(c, tuple(p.resolution), data, data_hw) for c, p in zip(checkpoints, pipelines)]
     patch_px = [token_patch_px(p) for p in pipelines]
     methods = [k for pair in keys for k in pair] + ["static"]
     labels = {"static": METHOD_LABELS["static"]}
-    for with_c, raw in keys:
-        single = with_c == "model"
-        labels[with_c] = METHOD_LABELS["model"] if single else f"{with_c} + consistency"
-        labels[raw] = METHOD_LABELS["model_raw"] if single else f"{with_c}, no consistency"
+    resolutions = {}
+    for (with_c, raw), pipeline, s in zip(keys, pipelines, factors):
+        note = resolution_note(pipeline.resolution, data_hw)
+        labels[with_c] = f"{with_c}{note} + consistency"  # "model + consistency" for a single checkpoint
+        labels[raw] = f"{with_c}{note}, no consistency"
+        resolutions[with_c] = {"model": list(pipeline.resolution), "data": list(data_hw),
+                               "resized": None if s == 1 else ("upsampled" if s < 1 else "downsampled")}
+    # Token grids: each model's at its own resolution and token size; the static world's and the
+    # ground truth's at the data's, with the first checkpoint's token size in data pixels.
     method_patch = {k: px for (a, b), px in zip(keys, patch_px) for k in (a, b)}
-    method_patch["static"] = patch_px[0]
+    static_patch_px = token_px_in_data(patch_px[0], factors[0])
+    method_patch["static"] = static_patch_px
     num_steps = cfg.num_steps or pipelines[0].preset.num_steps
-    cfg = dataclasses.replace(cfg, num_steps=num_steps)  # resolved, for the report
+    cfg = dataclasses.replace(cfg, num_steps=num_steps, batch_size=batch_size)  # resolved, for the report
     max_depth_m = cfg.max_depth_m if cfg.max_depth_m is not None else float(pipelines[0].model_space.far_m)
     rows, scores = [], {m: [] for m in methods}
     contrast_entries: dict[str, list] = {m: [] for m in methods + ["ground_truth"]}
-    bar = tqdm(files, desc="held-out", unit="episode", disable=not progress)
-    for path in bar:
-        gt = df.read_episode(path)
-        camera = cfg.camera or next(iter(gt.cameras))
-        if camera not in gt.cameras:
-            raise UserError(f"{path} has no camera {camera!r}; it has {sorted(gt.cameras)}")
-        gt_cam = gt.cameras[camera]
-        num_frames = len(gt_cam.rgb)
-        first = df.read_episode(path, cameras=[camera], frames=slice(0, 1))
-        bar.set_postfix_str(f"{gt.env_id} seed {gt.seed}")
-        moving = moving_region_mask(gt_cam)
-        outputs = {}
-        for (with_c, raw), pipeline in zip(keys, pipelines):
-            pred = predict_episode(pipeline, first, gt.instruction, num_frames=num_frames, seed=cfg.sample_seed,
-                                   num_steps=cfg.num_steps or pipeline.preset.num_steps)
-            outputs[with_c] = reconstruct_episode(pred, config=ReconConfig())
-            outputs[raw] = pred
-        outputs["static"] = static_world(first, camera, num_frames)
-        skill = (gt.intent or {}).get("skill") or "task"
-        row = {"episode": str(path.relative_to(data)), "task": gt.env_id, "seed": gt.seed, "group_id": gt.group_id,
-               "skill": skill, "variant": (gt.intent or {}).get("variant"),
-               "instruction": gt.instruction, "metrics": {}, "direction": {}, "objects": {}}
-        gt_believe = episode_believability(gt, camera, gt_cam.rgb, patch_px[0])
-        row["token_grid_ratio_gt"] = gt_believe["metrics"]["token_grid_ratio"]
-        if gt_believe["contrast_entry"] is not None:
-            contrast_entries["ground_truth"].append((gt.group_id, gt_believe["contrast_entry"]))
-        for method, output in outputs.items():
-            rgb = output.cameras[camera].rgb if isinstance(output, df.Episode) else output.rgb  # episode or Recon4D
-            metrics = evaluate_episode(output, gt, camera=camera, moving_mask=moving, max_depth_m=max_depth_m)["mean"]
-            believe = episode_believability(gt, camera, rgb, method_patch[method])
-            metrics.update(believe["metrics"])
-            row["metrics"][method] = metrics
-            row["objects"][method] = believe["per_object"]
-            if believe["contrast_entry"] is not None:
-                contrast_entries[method].append((gt.group_id, believe["contrast_entry"]))
-            if gt.env_id in TARGET_OBJECT and gt_cam.segmentation is not None:
-                s = direction_score(gt.env_id, gt_cam.rgb, gt_cam.segmentation, gt_cam.seg_id_to_name,
-                                    gt.object_poses[TARGET_OBJECT[gt.env_id]], gt_cam.K, gt_cam.T_world_cam, rgb[-1])
-                scores[method].append(s)
-                row["direction"][method] = s.to_dict()
-        rows.append(row)
+    bar = tqdm(total=len(files), desc="held-out", unit="episode", disable=not progress)
+    # Episodes go through in chunks of one network batch, so memory does not grow with the set.
+    for chunk_start in range(0, len(files), batch_size):
+        chunk = files[chunk_start:chunk_start + batch_size]
+        gts, cameras, firsts = [], [], []
+        for path in chunk:
+            gt = df.read_episode(path)
+            camera = cfg.camera or next(iter(gt.cameras))
+            if camera not in gt.cameras:
+                raise UserError(f"{path} has no camera {camera!r}; it has {sorted(gt.cameras)}")
+            gts.append(gt)
+            cameras.append(camera)
+            firsts.append(df.read_episode(path, cameras=[camera], frames=slice(0, 1)))
+        num_frames = [len(gt.cameras[cam].rgb) for gt, cam in zip(gts, cameras)]
+        bar.set_postfix_str(f"{gts[0].env_id} seed {gts[0].seed}: predicting")
+        instructions = [gt.instruction for gt in gts]
+        predictions = [predict_at_data_resolution(pipeline, firsts, instructions, cameras, num_frames,
+                                                  seed=cfg.sample_seed, batch_size=batch_size,
+                                                  num_steps=cfg.num_steps or pipeline.preset.num_steps)
+                       for pipeline in pipelines]
+        for j, (path, gt, camera, first) in enumerate(zip(chunk, gts, cameras, firsts)):
+            gt_cam = gt.cameras[camera]
+            bar.set_postfix_str(f"{gt.env_id} seed {gt.seed}")
+            moving = moving_region_mask(gt_cam)
+            outputs, model_rgb = {}, {}
+            for (with_c, raw), preds in zip(keys, predictions):
+                pred, model_rgb[with_c] = preds[j]
+                model_rgb[raw] = model_rgb[with_c]
+                outputs[with_c] = reconstruct_episode(pred, config=ReconConfig())
+                outputs[raw] = pred
+            outputs["static"] = static_world(first, camera, num_frames[j])
+            skill = (gt.intent or {}).get("skill") or "task"
+            row = {"episode": str(path.relative_to(data)), "task": gt.env_id, "seed": gt.seed, "group_id": gt.group_id,
+                   "skill": skill, "variant": (gt.intent or {}).get("variant"),
+                   "instruction": gt.instruction, "metrics": {}, "direction": {}, "objects": {}}
+            gt_believe = episode_believability(gt, camera, gt_cam.rgb, static_patch_px)
+            row["token_grid_ratio_gt"] = gt_believe["metrics"]["token_grid_ratio"]
+            if gt_believe["contrast_entry"] is not None:
+                contrast_entries["ground_truth"].append((gt.group_id, gt_believe["contrast_entry"]))
+            for method, output in outputs.items():
+                rgb = output.cameras[camera].rgb if isinstance(output, df.Episode) else output.rgb  # episode or Recon4D
+                metrics = evaluate_episode(output, gt, camera=camera, moving_mask=moving,
+                                           max_depth_m=max_depth_m)["mean"]
+                believe = episode_believability(gt, camera, rgb, method_patch[method],
+                                                token_rgb=model_rgb.get(method))
+                metrics.update(believe["metrics"])
+                row["metrics"][method] = metrics
+                row["objects"][method] = believe["per_object"]
+                if believe["contrast_entry"] is not None:
+                    contrast_entries[method].append((gt.group_id, believe["contrast_entry"]))
+                if gt.env_id in TARGET_OBJECT and gt_cam.segmentation is not None:
+                    sc = direction_score(gt.env_id, gt_cam.rgb, gt_cam.segmentation, gt_cam.seg_id_to_name,
+                                         gt.object_poses[TARGET_OBJECT[gt.env_id]], gt_cam.K, gt_cam.T_world_cam,
+                                         rgb[-1])
+                    scores[method].append(sc)
+                    row["direction"][method] = sc.to_dict()
+            rows.append(row)
+            bar.update(1)
+    bar.close()
     report = build_report(cfg, rows, methods, labels, scores, contrast_entries, max_depth_m,
                           checkpoints=dict(zip([k[0] for k in keys], map(str, checkpoints))),
-                          patch_px=dict(zip([k[0] for k in keys], patch_px)))
+                          patch_px=dict(zip([k[0] for k in keys], patch_px)), resolutions=resolutions)
     report = json_safe(report)
     if cfg.out is not None:
         write_heldout_report(report, cfg.out)
@@ -226,8 +350,9 @@ def evaluate_heldout(cfg: HeldoutConfig, progress: bool = True) -> dict:
 
 
 def build_report(cfg, rows: list[dict], methods: list[str], labels: dict, scores: dict, contrast_entries: dict,
-                 max_depth_m: float, checkpoints: dict, patch_px: dict) -> dict:
-    """The report of scored rows: summary, per task, per skill, instruction following, contrast."""
+                 max_depth_m: float, checkpoints: dict, patch_px: dict, resolutions: dict | None = None) -> dict:
+    """The report of scored rows: summary, per task, per skill, instruction following, contrast.
+    ``resolutions``: per checkpoint method, its model and data resolution and how it was resized."""
     from tesseract4d.evaluation.heldout_believability import breakdown, contrast_by_group, counts, direction_breakdown
     from tesseract4d.evaluation.instruction_following import summarize
 
@@ -242,8 +367,8 @@ def build_report(cfg, rows: list[dict], methods: list[str], labels: dict, scores
     config = {k: (str(v) if isinstance(v, Path) else [str(x) for x in v] if isinstance(v, (list, tuple)) else v)
               for k, v in dataclasses.asdict(cfg).items()}
     return {
-        "format": "tesseract4d-heldout-eval", "format_version": 2,
-        "config": config, "checkpoints": checkpoints, "token_patch_px": patch_px,
+        "format": "tesseract4d-heldout-eval", "format_version": 3,
+        "config": config, "checkpoints": checkpoints, "token_patch_px": patch_px, "resolutions": resolutions or {},
         "episodes": len(rows), "tasks": tasks, "methods": {m: labels[m] for m in methods}, "max_depth_m": max_depth_m,
         "summary": summary, "per_task": breakdown(rows, methods, "task"), "per_skill": breakdown(rows, methods, "skill"),
         "episodes_per_task": counts(rows, "task"), "episodes_per_skill": counts(rows, "skill"),
@@ -323,6 +448,14 @@ def format_markdown(report: dict) -> str:
                  f"metrics over pixels with true depth ≤ {report['max_depth_m']:g} m (the model's depth range); "
                  f"instruction following over the {n} of them whose target object the colour tracker can follow "
                  f"(tracker error on the ground truth: {_fmt(follow[first].get('tracker_px'), '')} px).")
+    resized = {m: r for m, r in report.get("resolutions", {}).items() if r.get("resized")}
+    if resized:
+        lines.append("Resolutions: " + "; ".join(
+            f"{m} predicts {r['model'][0]}×{r['model'][1]}, {r['resized']} to the data's {r['data'][0]}×{r['data'][1]}"
+            for m, r in resized.items())
+            + "; the first frame is resized to the model's resolution and the prediction back "
+              "(tesseract4d/resize.py); every metric is taken at the data's resolution but the token grid, which is "
+              "measured on the prediction at the model's own resolution and token size.")
     contrast = report.get("contrast")
     if contrast and contrast[first].get("instructions"):
         gt = contrast.get("ground_truth", {})

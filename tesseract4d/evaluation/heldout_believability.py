@@ -132,8 +132,12 @@ def contrast_entry(gt, camera: str, pred_rgb: np.ndarray) -> dict | None:
     return entry
 
 
-def episode_believability(gt, camera: str, pred_rgb: np.ndarray, patch_px: int) -> dict:
-    """Every believability measure of one predicted clip (see the module docstring).
+def episode_believability(gt, camera: str, pred_rgb: np.ndarray, patch_px: int | None,
+                          token_rgb: np.ndarray | None = None) -> dict:
+    """Every believability measure of one predicted clip (see the module docstring). ``patch_px``:
+    the model's token size in pixels of ``token_rgb`` (default ``pred_rgb``), the clip whose token
+    grid is measured (a prediction resized to the data's resolution is measured as the model made
+    it); None = no token grid to measure (NaN).
 
     Returns ``{"metrics": {objects_present, token_grid_ratio, edge_sharpness, motion},
     "per_object": {name: share}, "contrast_entry": dict | None}``. Frames are matched by index.
@@ -143,7 +147,9 @@ def episode_believability(gt, camera: str, pred_rgb: np.ndarray, patch_px: int) 
     pred_rgb = np.asarray(pred_rgb)
     n = min(len(gt_rgb), len(pred_rgb))
     gt_rgb, pred_rgb = gt_rgb[:n], pred_rgb[:n]
-    metrics = {"objects_present": float("nan"), "token_grid_ratio": token_grid_ratio(pred_rgb, patch_px),
+    metrics = {"objects_present": float("nan"),
+               "token_grid_ratio": float("nan") if patch_px is None else token_grid_ratio(
+                   pred_rgb if token_rgb is None else np.asarray(token_rgb)[:n], patch_px),
                "edge_sharpness": edge_sharpness(pred_rgb, gt_rgb), "motion": clip_motion(pred_rgb)}
     per_object = {}
     if cam.segmentation is not None:

@@ -188,17 +188,22 @@ def predict_scenes(
     text_guidance: float | None = None,
     image_guidance: float | None = None,
     camera: str | None = None,
+    noise_seeds: list[int] | None = None,
     progress: Callable[[int, int], None] | None = None,
 ) -> list[df.Episode]:
     """One prediction per scene (``first_frames[i]`` with ``instructions[i]``), ``batch_size`` scenes
     per network call (default :data:`DEFAULT_SCENE_BATCH`): the throughput path for evaluations.
 
-    Scene i's initial noise comes from a generator seeded with (``seed``, i), so its first clip does
-    not depend on ``batch_size`` or on the other scenes (up to floating-point rounding of batched
-    maths). ``progress(step, total)`` counts denoising steps over all batches.
+    Scene i's initial noise comes from a generator seeded with (``seed``, i), or with
+    ``noise_seeds[i]`` when given, so its first clip does not depend on ``batch_size`` or on the
+    other scenes (up to floating-point rounding of batched maths). A noise seed s draws the noise
+    that :func:`predict_episode` with ``seed=s`` draws, for codecs whose encoding draws none (pixel
+    and autoencoder presets). ``progress(step, total)`` counts denoising steps over all batches.
     """
     if len(first_frames) != len(instructions):
         raise UserError(f"{len(first_frames)} first frames for {len(instructions)} instructions; give one of each per scene")
+    if noise_seeds is not None and len(noise_seeds) != len(first_frames):
+        raise UserError(f"{len(noise_seeds)} noise seeds for {len(first_frames)} scenes; give one per scene, or none")
     batch_size = DEFAULT_SCENE_BATCH if batch_size is None else int(batch_size)
     if batch_size < 1:
         raise UserError(f"--batch-size must be at least 1, got {batch_size}")
@@ -210,7 +215,7 @@ def predict_scenes(
     for b in range(num_batches):
         chunk = range(b * batch_size, min(len(scenes), (b + 1) * batch_size))
         latents = torch.cat([torch.randn(noise_shape, generator=torch.Generator().manual_seed(
-            int(seed) * 1_000_003 + i)) for i in chunk])
+            int(seed) * 1_000_003 + i if noise_seeds is None else int(noise_seeds[i]))) for i in chunk])
         step_progress = None
         if progress is not None:
             step_progress = (lambda s, t, b=b: progress(b * t + s, num_batches * t))
