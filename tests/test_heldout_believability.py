@@ -421,3 +421,19 @@ def test_direction_breakdown_per_task():
             {"task": "Other-v1", "skill": "task", "direction": {}}]
     out = direction_breakdown(rows, ["m"], "task")
     assert out == {"PushCube-v1": {"m": {"episodes": 2, "right_way": 0.5, "mean_cosine": pytest.approx(0.35)}}}
+
+
+def test_the_tracker_window_covers_the_same_share_of_the_image_at_any_resolution():
+    """A cube that moves 40 px in a 128 px image (20 px at 64) is found at both sizes."""
+    from tesseract4d.evaluation.heldout_believability import track_object
+
+    for size, shift in ((64, 20), (128, 40)):
+        first = np.full((size, size, 3), 90, np.uint8)
+        target = first.copy()
+        s = size // 8
+        first[s:2 * s, s:2 * s] = (200, 30, 30)
+        target[s:2 * s, s + shift:2 * s + shift] = (200, 30, 30)
+        mask = np.zeros((size, size), bool)
+        mask[s:2 * s, s:2 * s] = True
+        du, dv = track_object(first, mask, target)
+        assert du == pytest.approx(shift) and dv == pytest.approx(0.0), size

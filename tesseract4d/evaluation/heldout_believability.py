@@ -70,15 +70,20 @@ def commanded_px(intent: dict, start_xyz_world: np.ndarray, K: np.ndarray, T_wor
     return float(d[0]), float(d[1])
 
 
+SEARCH_FRACTION = 24 / 64  # the tracker's window half-size as a share of the image width (24 px at 64x64)
+
+
 def track_object(first_rgb: np.ndarray, object_mask: np.ndarray, target_rgb: np.ndarray,
-                 search_px: int = 24) -> tuple[float, float] | None:
+                 search_px: int | None = None) -> tuple[float, float] | None:
     """Displacement (du, dv) of an object from the ground truth's first frame to ``target_rgb``.
 
     The colour tracker of :mod:`instruction_following` with the object's *distinctive* colours (as
     :func:`believability.objects_present`: its first-frame pixels unlike everything around it) in
     place of its mean colour, which a shaded cube (lit top, dark sides) may match nowhere. Pixels of
     those colours that lay outside the object in the first frame (a same-coloured goal or object)
-    are left out, and only a window of ``search_px`` around the start counts; the start is the
+    are left out, and only a window of ``search_px`` (default: ``SEARCH_FRACTION`` of the image
+    width, at least 24 px, so the window covers the same part of the scene at any resolution)
+    around the start counts; the start is the
     same estimator on the first frame, so a static clip measures zero motion.
     first_rgb, target_rgb: (H, W, 3) uint8; object_mask: (H, W) bool. None when the object is not
     visible (or not distinctive) in the first frame, or not found in the target.
@@ -88,6 +93,8 @@ def track_object(first_rgb: np.ndarray, object_mask: np.ndarray, target_rgb: np.
         return None
     rgb0 = np.asarray(first_rgb, np.float32)
     H, W = mask.shape
+    if search_px is None:
+        search_px = max(24, round(SEARCH_FRACTION * W))
     own = rgb0[mask]
     keep = _min_colour_distance(own, rgb0[_dilate(mask, PRESENCE_SLACK_PX) & ~mask]) > OBJECT_COLOUR_TOL
     palette = own[keep]
