@@ -30,7 +30,7 @@ MODEL_CONFIG_FILE = "config.json"  # diffusers' name for a model's config
 SCHEDULER_CONFIG_FILE = "scheduler_config.json"  # diffusers' name for a scheduler's config
 # The checkpoint shipped with the package: the default of `predict`, `demo`, `evaluate --heldout`
 # and the viewer's Generate panel.
-SHIPPED_CHECKPOINT = Path(__file__).resolve().parent.parent / "checkpoints" / "tiny"
+SHIPPED_CHECKPOINT = Path(__file__).resolve().parent.parent / "checkpoints" / "v2"
 # The first shipped model (pixel space, 64x64), kept for comparison and for the pixel-space tests.
 TINY_CHECKPOINT = Path(__file__).resolve().parent.parent / "checkpoints" / "tiny"
 
