@@ -437,3 +437,17 @@ def test_the_tracker_window_covers_the_same_share_of_the_image_at_any_resolution
         mask[s:2 * s, s:2 * s] = True
         du, dv = track_object(first, mask, target)
         assert du == pytest.approx(shift) and dv == pytest.approx(0.0), size
+
+
+def test_clip_motion_ignores_a_constant_offset_of_the_predicted_frames_from_the_given_frame():
+    """A latent model's frames 1.. are autoencoder decodes: a constant error against the given frame 0
+    is not motion; a moving square is."""
+    still = np.full((6, 16, 16, 3), 100, np.uint8)
+    decoded = still.copy()
+    decoded[1:] = 110  # every predicted frame off by the same codec error, nothing moves
+    assert clip_motion(decoded) == 0.0
+    moving = decoded.copy()
+    for t in range(1, 6):
+        moving[t, 4:8, 2 * t:2 * t + 4] = 250
+    assert clip_motion(moving) > 1.0
+    assert clip_motion(decoded[:2]) == pytest.approx(10.0)

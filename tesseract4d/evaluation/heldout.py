@@ -434,7 +434,7 @@ def format_markdown(report: dict) -> str:
         ("token_grid_ratio", f"token grid ratio (goal {TOKEN_GRID_GOAL[0]:g}–{TOKEN_GRID_GOAL[1]:g}; "
                              f"ground truth {_fmt(report.get('token_grid_ratio_gt'), '')})", "all"),
         ("edge_sharpness", f"edge sharpness vs ground truth (goal ≥ {EDGE_SHARPNESS_GOAL:g})", "ground-truth edges"),
-        ("motion", "motion: mean |RGB change| from frame 0", "all"),
+        ("motion", "motion: mean |RGB change| from the first predicted frame", "all"),
     )
     for key, label, region in believe:
         if not any(key in summary[m] for m in methods):

@@ -48,11 +48,16 @@ def scene_object_ids(seg_id_to_name: dict) -> list[int]:
 
 
 def clip_motion(rgb: np.ndarray) -> float:
-    """Mean absolute change of a (T, H, W, 3) clip from its first frame, over all later frames."""
+    """Mean absolute change of a (T, H, W, 3) clip over its predicted frames: from frame 1 (the first
+    predicted frame) to every later one. Frame 0 is the given first frame; a latent model's frames
+    are decoded by its autoencoder, whose constant reconstruction error against the given frame
+    is not motion. A clip of two frames: the change from frame 0 to frame 1."""
     x = np.asarray(rgb, np.float32)
     if len(x) < 2:
         return 0.0
-    return float(np.abs(x[1:] - x[:1]).mean())
+    if len(x) == 2:
+        return float(np.abs(x[1] - x[0]).mean())
+    return float(np.abs(x[2:] - x[1:2]).mean())
 
 
 def commanded_px(intent: dict, start_xyz_world: np.ndarray, K: np.ndarray, T_world_cam: np.ndarray) -> tuple[float, float]:
