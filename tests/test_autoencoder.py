@@ -200,6 +200,22 @@ def test_latent_cache_reused_when_valid_rebuilt_when_autoencoder_changes(tmp_pat
     assert tuple(batch.shape) == (3, 4, 4, 4, 4) and len(texts) == 3 and tuple(objects.shape) == (3, 4, 4, 4)
 
 
+def test_latent_cache_never_writes_into_a_folder_that_is_not_a_cache(tmp_path):
+    from tesseract4d.model.latent_cache import ensure_latent_cache
+
+    data = write_segmented_dataset(tmp_path / "data", episodes=1)
+    save_autoencoder(RGBDNAutoencoder(get_autoencoder_preset("ae-test")), tmp_path / "ae")
+    theirs = tmp_path / "theirs"
+    theirs.mkdir()
+    (theirs / "latents.safetensors").write_text("not ours")
+    (theirs / "cache.json").write_text('{"format": "something else"}')
+    before = {p.name: p.read_bytes() for p in theirs.iterdir()}
+    with pytest.raises(UserError, match="is not a latent cache"):
+        ensure_latent_cache(data, tmp_path / "ae", folder=theirs)
+    assert {p.name: p.read_bytes() for p in theirs.iterdir()} == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["ae", "data", "theirs"]  # no temporary left behind
+
+
 def test_latent_cache_rejects_other_resolution(tmp_path):
     from tesseract4d.model.latent_cache import ensure_latent_cache
 
