@@ -26,7 +26,6 @@ Run folder::
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import math
 import os
@@ -42,6 +41,7 @@ import torch
 import torch.nn.functional as F
 
 from tesseract4d import dataset_format as df
+from tesseract4d.configs import config_dict, folder_list
 from tesseract4d.errors import UserError
 from tesseract4d.precision import announce, resolve_precision
 from tesseract4d.model.autoencoder import (
@@ -96,17 +96,10 @@ class AutoencoderTrainConfig:
 
     @property
     def data_folders(self) -> list[Path]:
-        if self.data is None:
-            return []
-        return [Path(d) for d in self.data] if isinstance(self.data, (list, tuple)) else [Path(self.data)]
+        return folder_list(self.data)
 
     def to_dict(self) -> dict:
-        def plain(v):
-            if isinstance(v, Path):
-                return str(v)
-            return [plain(x) for x in v] if isinstance(v, (list, tuple)) else v
-
-        return {k: plain(v) for k, v in dataclasses.asdict(self).items()}
+        return config_dict(self)
 
 
 def lr_at(step: int, cfg: AutoencoderTrainConfig) -> float:

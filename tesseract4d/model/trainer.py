@@ -35,6 +35,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from tesseract4d.configs import config_dict, folder_list
 from tesseract4d.errors import UserError
 from tesseract4d.precision import announce, resolve_precision
 from tesseract4d.psnr import rgb_psnr
@@ -99,19 +100,10 @@ class TrainConfig:
     @property
     def data_folders(self) -> list[Path]:
         """The dataset folder(s) as a list."""
-        if self.data is None:
-            return []
-        return [Path(d) for d in self.data] if isinstance(self.data, (list, tuple)) else [Path(self.data)]
+        return folder_list(self.data)
 
     def to_dict(self) -> dict:
-        def plain(v):
-            if isinstance(v, Path):
-                return str(v)
-            if isinstance(v, (list, tuple)):
-                return [plain(x) for x in v]
-            return v
-
-        return {k: plain(v) for k, v in dataclasses.asdict(self).items()}
+        return config_dict(self)
 
     def validate(self) -> None:
         """One-line UserErrors for numeric options that would train into NaN or not train at all
