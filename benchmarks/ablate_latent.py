@@ -1,13 +1,22 @@
 """Recipe-lever ablation of the latent world model at a fixed training budget.
 
-Each variant trains ``latent-128`` (or a width/depth variant of it) from scratch for the same
-number of minutes on the same data and seed, then is scored by the held-out evaluation
-(``tesseract4d evaluate --checkpoint --heldout``): moving-region metrics of the raw prediction and
-instruction following (share of clips moving the target the right way, mean direction cosine).
-Runs go to OUT/<variant>/ (resumed when present: a finished variant is not retrained).
+Every trained variant starts from scratch on the same data, seed and number of minutes, and
+differs from the baseline (the recipe v2 ships: first-frame noise 0.1, moving and object weight 2,
+clean-sample target, text dropout 0.1, ``latent-128``) in one lever only. The width/depth variants
+get the same minutes, so they show what depth buys at equal wall time. The guidance variants
+reuse the baseline's weights and change only the sampler's text guidance scale.
 
-  .venv/bin/python benchmarks/ablate_latent.py --data data/ae128 --heldout data/ae128_heldout \\
-      --autoencoder runs/ae/autoencoder --out runs/ablation --minutes 30 [--variants baseline,cond_noise]
+Each variant is scored by the held-out evaluation (``tesseract4d evaluate --heldout``) on the
+same episodes: moving-region RGB PSNR, depth AbsRel, normal error and 4D Chamfer of the raw
+prediction, object permanence, instruction contrast over counterfactual groups and whether
+"keep still" stays still, with the static world's value beside the first row. Runs go to
+OUT/<variant>/ and are resumed when present: a finished variant is neither retrained nor
+re-evaluated, so the command can be run again after an interruption. The table is printed and
+written to OUT/ablation.md (and OUT/ablation.json).
+
+  .venv/bin/python benchmarks/ablate_latent.py --data data/v2_tabletop data/v2_tasks data/ae128 \\
+      --autoencoder runs/v2/ae_ft --heldout data/heldout_groups128 --max-per-task 16 \\
+      --out runs/ablation --minutes 9 [--variants baseline,velocity]
 """
 
 from __future__ import annotations
@@ -18,61 +27,113 @@ import subprocess
 import sys
 from pathlib import Path
 
-# variant -> extra `tesseract4d train` arguments
-VARIANTS: dict[str, list[str]] = {
-    "baseline": [],
-    "cond_noise_0.3": ["--condition-noise", "0.3"],
-    "moving_weight_4": ["--moving-weight", "4"],
-    "object_weight_4": ["--object-weight", "4"],
-    "velocity": ["--prediction", "velocity"],
-    "text_dropout_0.3": ["--text-dropout", "0.3"],
-    "small_2_layers": ["--preset", "latent-128-small"],
-    "large_8_layers": ["--preset", "latent-128-large"],
+BASELINE = ["--preset", "latent-128", "--condition-noise", "0.1", "--moving-weight", "2", "--object-weight", "2",
+            "--prediction", "x0", "--text-dropout", "0.1"]
+
+# variant -> (what changes, `tesseract4d train` arguments replacing the baseline's, or None to reuse the
+# baseline's weights, extra `tesseract4d evaluate` arguments)
+VARIANTS: dict[str, tuple[str, list[str] | None, list[str]]] = {
+    "baseline": ("v2 recipe", [], []),
+    "cond_noise_0": ("no first-frame noise", ["--condition-noise", "0"], []),
+    "weights_1": ("moving and object weight 1", ["--moving-weight", "1", "--object-weight", "1"], []),
+    "velocity": ("velocity target", ["--prediction", "velocity"], []),
+    "text_dropout_0.3": ("text dropout 0.3", ["--text-dropout", "0.3"], []),
+    "guidance_1": ("text guidance 1 (none)", None, ["--text-guidance", "1"]),
+    "guidance_3": ("text guidance 3", None, ["--text-guidance", "3"]),
+    "small_2_layers": ("2 layers, same minutes", ["--preset", "latent-128-small"], []),
+    "large_8_layers": ("8 layers, same minutes", ["--preset", "latent-128-large"], []),
 }
-COLUMNS = (("rgb_psnr_db_moving", "RGB PSNR moving (dB)"), ("depth_abs_rel_moving", "depth AbsRel moving"),
-           ("normal_mean_deg_moving", "normal err moving (°)"))
+COLUMNS = (("rgb_psnr_db_moving", "PSNR moving (dB)", ".2f"), ("depth_abs_rel_moving", "AbsRel moving", ".3f"),
+           ("normal_mean_deg_moving", "normals moving (°)", ".1f"), ("chamfer_l1_m_moving", "Chamfer moving (mm)", ".1f"),
+           ("objects_present", "objects present", ".3f"), ("contrast", "contrast", ".3f"))
+
+
+def train_args(extra: list[str]) -> list[str]:
+    """The baseline's arguments with the flags in ``extra`` replaced by theirs."""
+    args, i = list(BASELINE), 0
+    while i < len(extra):
+        flag, value = extra[i], extra[i + 1]
+        if flag in args:
+            args[args.index(flag) + 1] = value
+        else:
+            args += [flag, value]
+        i += 2
+    return args
+
+
+def keep_still(report: dict, method: str) -> str:
+    """'right/total' over the keep-still instructions of the report's counterfactual groups."""
+    total = report["episodes_per_skill"].get("keep_still", 0)
+    share = report["contrast"][method].get("per_skill", {}).get("keep_still", 0.0)
+    return f"{round(share * total)}/{total}"
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--data", type=Path, required=True)
-    parser.add_argument("--heldout", type=Path, required=True)
-    parser.add_argument("--autoencoder", type=Path, required=True)
+    parser.add_argument("--data", type=Path, nargs="+", required=True, help="training dataset folder(s)")
+    parser.add_argument("--heldout", type=Path, required=True, help="held-out counterfactual groups")
+    parser.add_argument("--autoencoder", type=Path, required=True, help="exported RGB-D-N autoencoder (all variants)")
     parser.add_argument("--out", type=Path, required=True)
-    parser.add_argument("--minutes", type=float, default=30.0, help="training budget per variant (default %(default)s)")
+    parser.add_argument("--minutes", type=float, default=9.0, help="training budget per variant (default %(default)s)")
     parser.add_argument("--variants", default=",".join(VARIANTS), help="comma-separated (default: all)")
     parser.add_argument("--precision", choices=("auto", "fp32", "bf16"), default="auto",
-                        help="passed to every training run (default %(default)s: bf16 only where the CPU has it)")
-    parser.add_argument("--max-per-task", type=int, default=3)
+                        help="passed to every run (default %(default)s: bf16 only where the CPU has it)")
+    parser.add_argument("--max-per-task", type=int, default=16,
+                        help="held-out episodes per task; whole groups of the counterfactual set (default %(default)s)")
     args = parser.parse_args(argv)
+    names = args.variants.split(",")
+    unknown = [n for n in names if n not in VARIANTS]
+    if unknown:
+        parser.error(f"unknown variant(s) {', '.join(unknown)}; choose from {', '.join(VARIANTS)}")
     cli = [sys.executable, "-m", "tesseract4d.cli"]
-    rows = []
-    for name in args.variants.split(","):
-        run = args.out / name
-        extra = VARIANTS[name]
+    results = {}
+    for name in names:
+        label, extra, eval_extra = VARIANTS[name]
+        run = args.out / ("baseline" if extra is None else name)
         if not (run / "final" / "tesseract4d_config.json").is_file():
-            cmd = [*cli, "train", "--data", str(args.data), "--autoencoder", str(args.autoencoder), "--out", str(run),
-                   "--max-minutes", str(args.minutes), "--max-steps", "100000", "--val-every", "0", "--no-progress",
-                   "--precision", args.precision, *extra]
-            subprocess.run(cmd, check=True)
-        report_path = run / "eval" / "report.json"
+            if extra is None:
+                raise SystemExit(f"{name} samples the baseline's weights: run the 'baseline' variant first")
+            cmd = [*cli, "train", "--data", *map(str, args.data), "--autoencoder", str(args.autoencoder),
+                   "--out", str(run), "--max-minutes", str(args.minutes), "--max-steps", "100000", "--val-every", "0",
+                   "--no-progress", "--precision", args.precision, *train_args(extra)]
+            resume = ["--resume"] if (run / "train_config.json").is_file() else []
+            subprocess.run(cmd + resume, check=True)
+        eval_dir = args.out / name / "eval"
+        report_path = eval_dir / "report.json"
         if not report_path.is_file():
             subprocess.run([*cli, "evaluate", "--checkpoint", str(run / "final"), "--heldout", str(args.heldout),
-                            "--out", str(run / "eval"), "--max-per-task", str(args.max_per_task)], check=True)
+                            "--out", str(eval_dir), "--max-per-task", str(args.max_per_task), "--precision",
+                            args.precision, *eval_extra], check=True, stdout=subprocess.DEVNULL)
         report = json.loads(report_path.read_text())
-        steps = json.loads((run / "final" / "tesseract4d_config.json").read_text())["training"]["steps"]
-        model, static = report["summary"]["model_raw"], report["summary"]["static"]
-        follow = report["instruction_following"]["model_raw"]
-        rows.append((name, str(steps), *(f"{model[k]:.3g} ({static[k]:.3g})" for k, _ in COLUMNS),
-                     f"{follow.get('right_way', float('nan')):.2f}", f"{follow.get('mean_cosine', float('nan')):.2f}"))
-        print(*rows[-1], sep=" | ", flush=True)
-    header = ("variant", "steps", *(label + " (static)" for _, label in COLUMNS), "right way", "cosine")
-    print(f"\n{args.minutes:g} min per variant; held-out {args.heldout}; the static world in brackets\n")
-    print("| " + " | ".join(header) + " |")
-    print("|" + "---|" * len(header))
-    for row in rows:
-        print("| " + " | ".join(row) + " |")
+        config = json.loads((run / "final" / "tesseract4d_config.json").read_text())
+        model = next(k for k in report["summary"] if k.endswith("_raw"))
+        results[name] = {"label": label, "steps": config["training"]["steps"], "model": report["summary"][model],
+                         "static": report["summary"]["static"], "keep_still": keep_still(report, model),
+                         "static_keep_still": keep_still(report, "static"),
+                         "episodes": sum(report["episodes_per_task"].values())}
+        print(name, json.dumps({k: v for k, v in results[name].items() if k not in ("model", "static")}), flush=True)
+    table = format_table(results, args)
+    print(table)
+    args.out.mkdir(parents=True, exist_ok=True)
+    (args.out / "ablation.md").write_text(table + "\n")
+    (args.out / "ablation.json").write_text(json.dumps(results, indent=1) + "\n")
     return 0
+
+
+def format_table(results: dict, args: argparse.Namespace) -> str:
+    header = ("variant", "what changes", "steps", *(label for _, label, _ in COLUMNS), "keep still")
+    lines = [f"{args.minutes:g} min of training per variant; held-out {args.heldout} "
+             f"({next(iter(results.values()))['episodes']} episodes); raw prediction, moving region", "",
+             "| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    first = next(iter(results.values()))
+    for name, r in results.items():
+        cells = [f"{r['model'][k]:{fmt}}" if k != "chamfer_l1_m_moving" else f"{1000 * r['model'][k]:{fmt}}"
+                 for k, _, fmt in COLUMNS]
+        lines.append("| " + " | ".join((name, r["label"], str(r["steps"]), *cells, r["keep_still"])) + " |")
+    static = [f"{first['static'][k]:{fmt}}" if k != "chamfer_l1_m_moving" else f"{1000 * first['static'][k]:{fmt}}"
+              for k, _, fmt in COLUMNS]
+    lines.append("| " + " | ".join(("static world", "first frame repeated", "-", *static, first["static_keep_still"])) + " |")
+    return "\n".join(lines)
 
 
 if __name__ == "__main__":

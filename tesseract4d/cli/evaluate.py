@@ -62,6 +62,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                       help=f"held-out dataset folder (datagen --seed-start {HELDOUT_SEED_START} --instruction-split heldout)")
     held.add_argument("--out", type=Path, help="folder for report.json and report.md")
     held.add_argument("--steps", type=int, help="sampler steps (default: the checkpoint preset's)")
+    held.add_argument("--text-guidance", type=float, metavar="SCALE",
+                      help="text guidance scale of the sampler (default: each checkpoint preset's; 1 = no guidance)")
     held.add_argument("--sample-seed", type=int, default=0, help="diffusion noise seed (default %(default)s)")
     held.add_argument("--max-per-task", type=int, help="episodes per task at most (default: all)")
     held.add_argument("--batch-size", type=int, metavar="N",
@@ -101,7 +103,8 @@ def run_heldout(args: argparse.Namespace) -> int:
                                                      overwrite=args.overwrite)
     cfg = HeldoutConfig(checkpoint=checkpoints[0] if len(checkpoints) == 1 else checkpoints, data=args.heldout, out=None, camera=args.camera,
                         num_steps=args.steps, sample_seed=args.sample_seed, max_episodes=args.max_per_task,
-                        max_depth_m=args.max_depth, precision=args.precision, batch_size=args.batch_size)
+                        max_depth_m=args.max_depth, precision=args.precision, batch_size=args.batch_size,
+                        text_guidance=args.text_guidance)
     report = evaluate_heldout(cfg)
     if output is not None:
         with output as stage:

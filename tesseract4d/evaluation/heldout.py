@@ -83,6 +83,7 @@ class HeldoutConfig:
     max_depth_m: float | None = None
     precision: str = "auto"  # auto|fp32|bf16 (tesseract4d/precision.py)
     batch_size: int | None = None  # scenes per network call; None = predict.DEFAULT_SCENE_BATCH
+    text_guidance: float | None = None  # None: each checkpoint preset's text guidance scale
 
 
 def static_world(first: df.Episode, camera: str, num_frames: int) -> df.Episode:
@@ -198,7 +199,8 @@ def at_resolution(episode: df.Episode, camera: str, hw: tuple[int, int]) -> df.E
 
 def predict_at_data_resolution(pipeline, firsts: list[df.Episode], instructions: list[str], cameras: list[str],
                                num_frames: list[int], *, seed: int, num_steps: int,
-                               batch_size: int | None) -> list[tuple[df.Episode, np.ndarray]]:
+                               batch_size: int | None,
+                               text_guidance: float | None = None) -> list[tuple[df.Episode, np.ndarray]]:
     """One prediction per scene at its first frame's resolution, whatever the model's: a list of
     (prediction at the data's resolution, its RGB as the model made it (T, h, w, 3) uint8).
 
@@ -217,7 +219,7 @@ def predict_at_data_resolution(pipeline, firsts: list[df.Episode], instructions:
         idx = [i for i, m in enumerate(num_frames) if m == n]
         preds = predict_scenes(pipeline, [inputs[i] for i in idx], [instructions[i] for i in idx],
                                batch_size=batch_size, num_frames=n, seed=seed, num_steps=num_steps,
-                               noise_seeds=[seed] * len(idx))
+                               text_guidance=text_guidance, noise_seeds=[seed] * len(idx))
         for i, pred in zip(idx, preds):
             model_rgb = pred.cameras[cameras[i]].rgb
             first = firsts[i].cameras[cameras[i]]
@@ -299,7 +301,8 @@ def evaluate_heldout(cfg: HeldoutConfig, progress: bool = True) -> dict:
         instructions = [gt.instruction for gt in gts]
         predictions = [predict_at_data_resolution(pipeline, firsts, instructions, cameras, num_frames,
                                                   seed=cfg.sample_seed, batch_size=batch_size,
-                                                  num_steps=cfg.num_steps or pipeline.preset.num_steps)
+                                                  num_steps=cfg.num_steps or pipeline.preset.num_steps,
+                                                  text_guidance=cfg.text_guidance)
                        for pipeline in pipelines]
         for j, (path, gt, camera, first) in enumerate(zip(chunk, gts, cameras, firsts)):
             gt_cam = gt.cameras[camera]
