@@ -221,9 +221,21 @@ class ReflowTrainer(Trainer):
         check_not_input(config.out, [config.teacher], "--out")
         self.teacher_config = read_inference_config(config.teacher)
         self.teacher_digest = weights_digest(config.teacher)
-        config = dataclasses.replace(config, text_dropout=0.0, image_dropout=0.0,
+        # The student inherits the teacher's target and, for a latent preset, its autoencoder (the
+        # copy inside the teacher checkpoint, hash-checked); it sees the clean first frame, as at sampling.
+        recipe = self.teacher_config.get("recipe") or {}
+        config = dataclasses.replace(config, text_dropout=0.0, image_dropout=0.0, condition_noise=0.0,
+                                     prediction=recipe.get("prediction", "x0"),
+                                     autoencoder=config.autoencoder or self._teacher_autoencoder(config.teacher),
                                      pretrained=config.pretrained or self.teacher_config.get("pretrained_dir"))
         super().__init__(config)
+
+    def _teacher_autoencoder(self, teacher: Path) -> Path | None:
+        """The autoencoder folder inside a latent teacher checkpoint (None for other presets)."""
+        from tesseract4d.model.latent_checkpoint import checkpoint_autoencoder
+
+        entry = self.teacher_config.get("autoencoder")
+        return None if entry is None else checkpoint_autoencoder(Path(teacher), entry)
 
     def _resolve_preset(self, config: TrainConfig):
         from tesseract4d.model.presets import PRESETS, preset_from_dict
