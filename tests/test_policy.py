@@ -71,15 +71,52 @@ def test_action_space_and_camera_mismatch_name_both_sides():
         check_compatible(cfg, control_mode="pd_joint_pos", action_dim=8, camera="side", resolution=(128, 128), what="env")
 
 
+def test_an_idm_takes_renders_a_whole_factor_larger_or_smaller():
+    cfg = IDMConfig()  # trained at 64x64
+    for size in (32, 64, 128, 256):
+        check_compatible(cfg, control_mode="pd_joint_pos", action_dim=8, camera="close", resolution=(size, size), what="env")
+    with pytest.raises(UserError, match=r"'close' at 64x64.*'close' at 96x96"):
+        check_compatible(cfg, control_mode="pd_joint_pos", action_dim=8, camera="close", resolution=(96, 96), what="env")
+
+
 def test_world_model_checkpoint_of_another_resolution_is_refused():
     from tesseract4d.model.predict import load_pipeline
     from tesseract4d.policy.loop import LoopConfig, WorldModelFuture
 
     pipe = load_pipeline(TINY_CHECKPOINT)
-    with pytest.raises(UserError, match=r"camera 'close' at 64x64 but the rollout renders camera 'close' at 128x128"):
-        WorldModelFuture(pipe, LoopConfig(resolution=(128, 128)))
+    with pytest.raises(UserError, match=r"camera 'close' at 64x64 but the rollout renders camera 'close' at 96x96"):
+        WorldModelFuture(pipe, LoopConfig(resolution=(96, 96)))
     with pytest.raises(UserError, match=r"camera 'close'.*camera 'side'"):
         WorldModelFuture(pipe, LoopConfig(camera="side"))
+
+
+def test_a_world_model_predicts_for_renders_of_twice_its_resolution():
+    """A 64x64 world model in a rollout rendered at 128x128: the clip comes back at 128x128 with
+    frame 0 the observation itself, and the IDM's points are taken at its own 64x64."""
+    from datagen.capture import Frame
+    from tesseract4d.model.predict import load_pipeline
+    from tesseract4d.policy.idm import InverseDynamics
+    from tesseract4d.policy.loop import LoopConfig, PolicyRunner, WorldModelFuture
+    from tesseract4d.policy.points import frame_points
+    from tesseract4d.resize import resize_rgbdn
+
+    rng = np.random.default_rng(0)
+    K = np.array([[110.0, 0, 64], [0, 110.0, 64], [0, 0, 1]])
+    n = rng.normal(size=(128, 128, 3)).astype(np.float32)
+    frame = Frame(rgb=rng.integers(0, 255, (128, 128, 3), dtype=np.uint8),
+                  depth_m=rng.uniform(0.4, 1.0, (128, 128)).astype(np.float32),
+                  normal_cam=n / np.linalg.norm(n, axis=-1, keepdims=True), segmentation=np.zeros((128, 128), np.int32),
+                  K=K, T_world_cam=np.eye(4))
+    lc = LoopConfig(resolution=(128, 128), sample_steps=1)
+    clip = WorldModelFuture(load_pipeline(TINY_CHECKPOINT), lc).clip(frame, "PushCube-v1", 0, "push the cube", 0)
+    assert clip.rgb.shape == (16, 128, 128, 3) and clip.depth_m.shape == (16, 128, 128)
+    np.testing.assert_array_equal(clip.rgb[0], frame.rgb)
+    np.testing.assert_array_equal(clip.depth_m[0], frame.depth_m)
+    np.testing.assert_allclose(clip.K[1], K)  # the prediction's intrinsics are the render's again
+    runner = PolicyRunner(None, InverseDynamics(IDMConfig(num_points=64)), None, lc)
+    pts = runner._points(frame.rgb, frame.depth_m, frame.K, frame.T_world_cam, np.random.default_rng(0))
+    rgb64, depth64, _, K64 = resize_rgbdn(frame.rgb, frame.depth_m, frame.normal_cam, frame.K, 64, 64)
+    np.testing.assert_array_equal(pts, frame_points(rgb64, depth64, K64, frame.T_world_cam, 64, np.random.default_rng(0)))
 
 
 # --------------------------------------------------------------------------- with the simulator

@@ -37,7 +37,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--max-steps", type=int, default=lc.max_steps, help="env steps per episode (default %(default)s)")
     parser.add_argument("--sample-steps", type=int, default=lc.sample_steps, help="diffusion steps per prediction (default %(default)s)")
     parser.add_argument("--camera", default=lc.camera, help="camera preset (default %(default)s)")
-    parser.add_argument("--resolution", type=int, default=lc.resolution[0], help="square image size (default %(default)s)")
+    parser.add_argument("--resolution", type=int,
+                        help="rendered square image size (default: the world model's with the world_model arm, else "
+                             "the IDM's); the world model and the IDM each get frames at their own resolution when it "
+                             "differs by a whole factor")
     parser.add_argument("--instruction-split", default=lc.instruction_split, choices=["train", "heldout"],
                         help="instruction paraphrases (default %(default)s)")
     parser.add_argument("--videos", type=int, default=d.videos, help="MP4s per arm and task (default %(default)s)")
@@ -52,7 +55,7 @@ def run(args: argparse.Namespace) -> int:
     from tesseract4d.policy.rollout_eval import RolloutConfig, run_rollouts
 
     loop = LoopConfig(replan_every=args.replan_every, max_steps=args.max_steps, sample_steps=args.sample_steps,
-                      camera=args.camera, resolution=(args.resolution, args.resolution),
+                      camera=args.camera, resolution=None if args.resolution is None else (args.resolution, args.resolution),
                       instruction_split=args.instruction_split)
     cfg = RolloutConfig(tasks=[t.strip() for t in args.tasks.split(",") if t.strip()], seed_start=args.seed_start,
                         episodes=args.episodes, arms=[a.strip() for a in args.arms.split(",") if a.strip()],

@@ -187,7 +187,11 @@ def check_compatible(config: IDMConfig, *, control_mode: str, action_dim: int, c
     if config.control_mode != control_mode or config.action_dim != action_dim:
         raise UserError(f"the IDM was trained on actions {config.control_mode} ({config.action_dim}-d) but {what} "
                         f"uses {control_mode} ({action_dim}-d); train an IDM on data of that control mode")
-    if config.camera != camera or tuple(config.resolution) != tuple(resolution):
+    from tesseract4d.resize import resize_factor
+
+    # Frames of another resolution reach the IDM resized to its own, by a whole factor (the policy loop).
+    if config.camera != camera or resize_factor(resolution, config.resolution) is None:
         raise UserError(f"the IDM was trained on camera {config.camera!r} at {config.resolution[0]}x{config.resolution[1]} "
                         f"but {what} renders camera {camera!r} at {resolution[0]}x{resolution[1]}; "
-                        f"pass --camera/--resolution to match, or train an IDM on that camera")
+                        f"pass --camera/--resolution to match (a whole multiple or divisor of its resolution), "
+                        f"or train an IDM on that camera")

@@ -9,6 +9,11 @@ One episode in ManiSkill on the CPU:
 4. IDM: the action chunk between them and how many env steps it spans; execute it;
 5. observe again and go to 3 with the next clip frame; every ``replan_every`` clip frames go to 2.
 
+The world model, the IDM and the rendered camera may differ in resolution by a whole factor: the
+observation goes to the world model's resolution and its prediction back (``tesseract4d.resize``,
+edge-safe), and every frame reaches the IDM at the resolution it was trained on. So a 128² world
+model steers an IDM trained on 64² renders of the same camera.
+
 Behaviour cloning runs the same loop without steps 2 and the future cloud. Success is the env's own
 ``info["success"]``, reached at any step (ManiSkill's ``success_once``).
 """
@@ -25,6 +30,7 @@ from tesseract4d import dataset_format as df
 from tesseract4d.errors import UserError
 from tesseract4d.policy.idm import InverseDynamics, check_compatible, expand_chunk, sentence_embeddings
 from tesseract4d.policy.points import frame_points
+from tesseract4d.resize import resize_factor, resize_rgbdn
 
 STAGES = ("observe", "predict", "reconstruct", "idm", "act")
 
@@ -42,7 +48,7 @@ class LoopConfig:
     sample_steps: int = 10  # diffusion steps per prediction
     sample_seed: int = 0
     camera: str = "close"
-    resolution: tuple[int, int] = (64, 64)
+    resolution: tuple[int, int] = (64, 64)  # the rendered observation (height, width)
     instruction_split: str = "heldout"
     point_seed: int = 0
 
@@ -83,6 +89,16 @@ class Trace:
     replans: list = field(default_factory=list)  # (first observed index, FutureClip) per replan
 
 
+def at_hw(rgb: np.ndarray, depth_m: np.ndarray, normal_cam: np.ndarray | None, K: np.ndarray,
+          hw: tuple[int, int]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(rgb, depth_m, normal_cam, K) of a frame or clip at ``hw`` (a whole factor up or down; the
+    same arrays when already there). ``normal_cam`` None: no normals (zeros come back)."""
+    normal = np.zeros(rgb.shape, np.float32) if normal_cam is None else normal_cam
+    if tuple(depth_m.shape[-2:]) == tuple(hw):
+        return rgb, depth_m, normal, K
+    return resize_rgbdn(rgb, depth_m, normal, K, *hw)
+
+
 def observation_episode(frames: list, env_id: str, seed: int, instruction: str, camera: str) -> df.Episode:
     """Observed capture.Frames as a dataset episode (viewer / world-model input)."""
     cam = df.CameraFrames(
@@ -103,19 +119,27 @@ class WorldModelFuture:
         self.pipeline = pipeline
         self.config = config
         ckpt_cam = pipeline.camera_name
-        if tuple(pipeline.resolution) != tuple(config.resolution) or (ckpt_cam and ckpt_cam != config.camera):
-            raise UserError(f"the world model was trained on camera {ckpt_cam!r} at {pipeline.resolution[0]}x{pipeline.resolution[1]} "
+        self.model_hw = tuple(pipeline.resolution)
+        if resize_factor(config.resolution, self.model_hw) is None or (ckpt_cam and ckpt_cam != config.camera):
+            raise UserError(f"the world model was trained on camera {ckpt_cam!r} at {self.model_hw[0]}x{self.model_hw[1]} "
                             f"but the rollout renders camera {config.camera!r} at {config.resolution[0]}x{config.resolution[1]}; "
-                            f"pass --camera {ckpt_cam} --resolution {pipeline.resolution[0]} or use a matching checkpoint")
+                            f"pass --camera {ckpt_cam} --resolution {self.model_hw[0]} (or a whole multiple or divisor of "
+                            f"it) or use a matching checkpoint")
 
     def clip(self, frame, env_id: str, seed: int, instruction: str, step: int) -> FutureClip:
         from tesseract4d.model.predict import predict_episode
 
         c = self.config
         first = observation_episode([frame], env_id, seed, instruction, c.camera)
+        cam = first.cameras[c.camera]
+        cam.rgb, cam.depth_m, cam.normal_cam, cam.K = at_hw(cam.rgb, cam.depth_m, cam.normal_cam, cam.K, self.model_hw)
         pred = predict_episode(self.pipeline, first, instruction, num_frames=c.num_frames, num_steps=c.sample_steps,
                                seed=c.sample_seed + step)
         cam = pred.cameras[c.camera]
+        # back at the rendered resolution; frame 0 is the observation itself
+        cam.rgb, cam.depth_m, cam.normal_cam, cam.K = at_hw(cam.rgb, cam.depth_m, cam.normal_cam, cam.K,
+                                                            tuple(c.resolution))
+        cam.rgb[0], cam.depth_m[0], cam.normal_cam[0] = frame.rgb, frame.depth_m, frame.normal_cam
         return FutureClip(cam.rgb, cam.depth_m, cam.K, cam.T_world_cam, episode=pred)
 
 
@@ -160,6 +184,11 @@ class PolicyRunner:
         check_compatible(self.model.config, control_mode=CONTROL_MODE, action_dim=action_dim, camera=self.config.camera,
                          resolution=tuple(self.config.resolution), what=f"the rollout env {self.sim.env_id}")
 
+    def _points(self, rgb, depth_m, K, T_world_cam, rng: np.random.Generator) -> np.ndarray:
+        """The IDM's point cloud of one frame, taken at the resolution the IDM was trained on."""
+        rgb, depth_m, _, K = at_hw(rgb, depth_m, None, K, tuple(self.model.config.resolution))
+        return frame_points(rgb, depth_m, K, T_world_cam, self.model.config.num_points, rng)
+
     @torch.no_grad()
     def run(self, seed: int, future=None, trace: Trace | None = None) -> EpisodeResult:
         c, model = self.config, self.model
@@ -200,11 +229,11 @@ class PolicyRunner:
                 lap("predict")
             targets = range(1, c.replan_every + 1) if clip is not None else range(1)
             for j in targets:
-                now_pts = frame_points(frame.rgb, frame.depth_m, frame.K, frame.T_world_cam, model.config.num_points, rng)
+                now_pts = self._points(frame.rgb, frame.depth_m, frame.K, frame.T_world_cam, rng)
                 next_pts = None
                 if clip is not None:
-                    next_pts = torch.from_numpy(frame_points(clip.rgb[j], clip.depth_m[j], clip.K[j], clip.T_world_cam[j],
-                                                             model.config.num_points, rng))[None]
+                    next_pts = torch.from_numpy(self._points(clip.rgb[j], clip.depth_m[j], clip.K[j], clip.T_world_cam[j],
+                                                             rng))[None]
                 lap("reconstruct")
                 qpos = torch.from_numpy(self.sim.env.unwrapped.agent.robot.get_qpos()[0].cpu().numpy().astype(np.float32))[None]
                 out = model(torch.from_numpy(now_pts)[None], next_pts, text, qpos)

@@ -227,6 +227,13 @@ def run_rollouts(cfg: RolloutConfig, progress: bool = True) -> dict:
         from tesseract4d.model.predict import load_pipeline
 
         pipeline = load_pipeline(cfg.checkpoint, precision=cfg.precision)
+    if lc.resolution is None:  # render at the world model's resolution, else at the IDM's
+        policy = idm or bc
+        source = (pipeline.resolution if pipeline is not None else policy.config.resolution if policy is not None
+                  else LoopConfig.resolution)
+        lc = dataclasses.replace(lc, resolution=tuple(int(x) for x in source))
+        cfg = dataclasses.replace(cfg, loop=lc)
+    if pipeline is not None:
         WorldModelFuture(pipeline, lc)  # checks camera and resolution before any rollout
     text_encoder = TextEncoder("minilm", max_tokens=32)
     out = Path(cfg.out)
