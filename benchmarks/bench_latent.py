@@ -21,7 +21,7 @@ import tempfile
 from pathlib import Path
 
 from bench_model import _peak_rss_mb, _reset_peak_rss, bench_sampling, bench_training
-from measure import median_seconds, print_table
+from measure import add_isa_cap_argument, apply_isa_cap, median_seconds, print_table
 
 
 def bench_autoencoder_codec(ae_dir: Path, bf16: bool, repeats: int) -> dict:
@@ -94,7 +94,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--train-steps", type=int, default=5, help="timed training steps per row")
     parser.add_argument("--repeats", type=int, default=3, help="timed repeats per encode/decode/sampling row")
     parser.add_argument("--no-tiny", action="store_true", help="skip the pixel tiny rows")
+    add_isa_cap_argument(parser)
     args = parser.parse_args(argv)
+    apply_isa_cap(args.cap_isa)
 
     from tesseract4d import runtime
 

@@ -22,7 +22,7 @@ import sys
 import tempfile
 import time
 from pathlib import Path
-from measure import print_table
+from measure import add_isa_cap_argument, apply_isa_cap, print_table
 
 
 def _reset_peak_rss() -> None:
@@ -87,7 +87,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--batch-size", type=int, default=4)
     parser.add_argument("--sample-steps", default="10,25,50")
     parser.add_argument("--repeats", type=int, default=3, help="timed clips per sampling setting")
+    add_isa_cap_argument(parser)
     args = parser.parse_args(argv)
+    apply_isa_cap(args.cap_isa)
 
     from tesseract4d import runtime
 

@@ -6,7 +6,9 @@ its bare name.
 
 from __future__ import annotations
 
+import os
 import statistics
+import sys
 import time
 from typing import Callable, Sequence
 
@@ -28,3 +30,27 @@ def print_table(header: Sequence[str], rows: Sequence[Sequence[object]]) -> None
     widths = [max(len(str(x)) for x in col) for col in zip(header, *rows)]
     for row in (header, tuple("-" * w for w in widths), *rows):
         print("  ".join(str(x).ljust(w) for x, w in zip(row, widths)))
+
+
+# Environments that run this CPU as one of a lower ISA: oneDNN, ATen's vectorised kernels and MKL
+# are capped, so bf16 matmuls lose their native path (tesseract4d.precision.isa_cap) as on a CPU
+# without AVX512-BF16/AMX. An emulation on the same cores: a stand-in for, not a measurement of,
+# another processor.
+ISA_CAPS = {"avx2": {"ONEDNN_MAX_CPU_ISA": "AVX2", "ATEN_CPU_CAPABILITY": "avx2", "MKL_ENABLE_INSTRUCTIONS": "AVX2"}}
+
+
+def add_isa_cap_argument(parser) -> None:
+    parser.add_argument("--cap-isa", choices=sorted(ISA_CAPS),
+                        help="run as an AVX2-only CPU (oneDNN, ATen and MKL capped to AVX2; the table says so)")
+
+
+def apply_isa_cap(cap: str | None) -> None:
+    """Re-run this script with the cap's environment, which must be set before torch loads."""
+    if cap is None:
+        return
+    env = ISA_CAPS[cap]
+    if all(os.environ.get(k) == v for k, v in env.items()):
+        return
+    if "torch" in sys.modules:
+        raise RuntimeError("apply_isa_cap must run before torch is imported")
+    os.execve(sys.executable, [sys.executable, *sys.argv], {**os.environ, **env})

@@ -11,10 +11,15 @@ preset, batch 4, one 16-frame clip at 10 steps with text guidance):
 
 So ``auto`` (the default of every command that runs a model) picks bf16 only where it is fast,
 and forcing bf16 elsewhere warns with those numbers. Importing this module is cheap (no torch).
+
+A oneDNN ISA cap in the environment (``ONEDNN_MAX_CPU_ISA=AVX2``, as the benchmarks' ``--cap-isa``
+sets with ``ATEN_CPU_CAPABILITY`` and ``MKL_ENABLE_INSTRUCTIONS`` to run a CPU as an AVX2-only one)
+takes native bf16 away from PyTorch's kernels, so ``auto`` then picks fp32 too.
 """
 
 from __future__ import annotations
 
+import os
 import sys
 from dataclasses import dataclass
 from pathlib import Path
@@ -31,6 +36,9 @@ SLOW_BF16_WARNING = (
     "13.8 vs 4.05 s per clip); use --precision auto or fp32"
 )
 CPUINFO = Path("/proc/cpuinfo")
+# ONEDNN_MAX_CPU_ISA values that still allow native bf16 matmuls (any other cap removes them).
+BF16_ISA_CAPS = ("ALL", "AVX512_CORE_BF16", "AVX512_CORE_FP16", "AVX512_CORE_AMX", "AVX512_CORE_AMX_FP16",
+                 "AVX10_1_512", "AVX10_1_512_AMX", "AVX10_1_512_AMX_FP16", "AVX10_2_512", "AVX10_2_512_AMX_2")
 
 
 @dataclass(frozen=True)
@@ -87,6 +95,14 @@ def has_fast_bf16(flags: Iterable[str]) -> bool:
     return any(f in set(flags) for f in FAST_BF16_CPU_FLAGS)
 
 
+def isa_cap(environ: dict | None = None) -> str | None:
+    """The oneDNN ISA cap of the environment (``ONEDNN_MAX_CPU_ISA``, or its older name
+    ``DNNL_MAX_CPU_ISA``) when it takes native bf16 away, else None."""
+    env = os.environ if environ is None else environ
+    cap = (env.get("ONEDNN_MAX_CPU_ISA") or env.get("DNNL_MAX_CPU_ISA") or "").strip().upper()
+    return cap if cap and cap not in BF16_ISA_CAPS else None
+
+
 def cpu_isa(flags: Iterable[str] | None = None) -> str:
     """A short ISA summary for benchmark tables, e.g. "AVX512, avx512_bf16" or "AVX2"."""
     flags = cpu_flags() if flags is None else frozenset(flags)
@@ -99,7 +115,8 @@ def cpu_isa(flags: Iterable[str] | None = None) -> str:
     else:
         base = "baseline"
     extras = [f for f in ("amx_bf16", "avx512_bf16") if f in flags]
-    return ", ".join([base, *extras])
+    cap = isa_cap()
+    return ", ".join([base, *extras]) + (f"; capped to {cap} by ONEDNN_MAX_CPU_ISA" if cap else "")
 
 
 def describe_cpu(cpuinfo: str | None = None) -> str:
@@ -109,12 +126,13 @@ def describe_cpu(cpuinfo: str | None = None) -> str:
 
 
 def resolve_precision(requested: str = "auto", device: str = "cpu", cpuinfo: str | None = None,
-                      warn: bool = True) -> Precision:
+                      warn: bool = True, environ: dict | None = None) -> Precision:
     """Turn ``auto|fp32|bf16`` into the precision to run with on ``device``.
 
     ``auto``: bf16 on a CPU with AMX-BF16/AVX512-BF16 or a CUDA device that supports bf16, else fp32.
     ``bf16`` forced on a CPU without native bf16 prints a warning with the measured slowdown.
-    ``cpuinfo`` (the text of /proc/cpuinfo) is for tests; by default the machine's own is read.
+    ``cpuinfo`` (the text of /proc/cpuinfo) and ``environ`` (for the ISA cap, :func:`isa_cap`) are
+    for tests; by default the machine's own are read.
     """
     if requested not in PRECISIONS:
         raise UserError(f"unknown precision {requested!r}; choose one of: {', '.join(PRECISIONS)}")
@@ -129,6 +147,9 @@ def resolve_precision(requested: str = "auto", device: str = "cpu", cpuinfo: str
         fast = has_fast_bf16(flags)
         native = [f for f in FAST_BF16_CPU_FLAGS if f in flags]
         where = f"the CPU has {native[0]}" if fast else "the CPU has no AMX or AVX512-BF16"
+        cap = isa_cap(environ)
+        if fast and cap:
+            fast, where = False, f"the CPU has {native[0]}, but ONEDNN_MAX_CPU_ISA={cap} takes it away"
     else:
         fast, where = False, f"device {device!r}"
     if requested == "fp32":

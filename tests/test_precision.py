@@ -31,6 +31,18 @@ def test_auto_picks_bf16_only_with_native_bf16(cpuinfo, expected):
     assert chosen.reason.startswith("auto: ")
 
 
+@pytest.mark.parametrize("environ, expected", [
+    ({}, "bf16"), ({"ONEDNN_MAX_CPU_ISA": "AVX2"}, "fp32"), ({"ONEDNN_MAX_CPU_ISA": "avx512_core"}, "fp32"),
+    ({"DNNL_MAX_CPU_ISA": "AVX2"}, "fp32"), ({"ONEDNN_MAX_CPU_ISA": "AVX512_CORE_BF16"}, "bf16"),
+    ({"ONEDNN_MAX_CPU_ISA": "ALL"}, "bf16"), ({"ONEDNN_MAX_CPU_ISA": "AVX512_CORE_AMX"}, "bf16"),
+])
+def test_a_onednn_isa_cap_without_bf16_makes_auto_pick_fp32(environ, expected):
+    chosen = resolve_precision("auto", "cpu", cpuinfo=EPYC_AVX512_BF16, environ=environ)
+    assert chosen.name == expected
+    if expected == "fp32":
+        assert "ONEDNN_MAX_CPU_ISA" in chosen.reason
+
+
 def test_flag_parsing_reads_the_first_cpu_only():
     assert has_fast_bf16(cpu_flags(XEON_AMX))
     assert not has_fast_bf16(cpu_flags(EPYC_AVX2))
