@@ -239,6 +239,26 @@ def test_compare_mode_labels_a_counterfactual_pair():
         ViewerApp(push, compare=still, labels=("only one",), port=0)
 
 
+def test_view_command_labels_the_two_clouds_of_compare_mode(tmp_path, monkeypatch):
+    import viewer.app
+
+    from tesseract4d.cli import main
+
+    push = recon_from_episode(analytic_episode(num_frames=2, height=32, width=32, seed=1)).save(tmp_path / "push", write_ply=False)
+    still = recon_from_episode(analytic_episode(num_frames=2, height=32, width=32, seed=1, instruction="keep still")).save(
+        tmp_path / "still", write_ply=False)
+    served = []
+
+    def serve(app):  # instead of serving until Ctrl-C: start, read the labels, stop
+        with app:
+            served.append((app.layer._label_node.text, app.right_layer._label_node.text))
+
+    monkeypatch.setattr(viewer.app, "serve_forever", serve)
+    argv = ["view", str(push), "--compare", str(still), "--labels", "push it", "keep still", "--port", "0"]
+    assert main(argv) == 0 and served[-1] == ("push it", "keep still")
+    assert main(["view", str(push), "--labels", "a", "b", "--port", "0"]) == 2  # no --compare: one line, no server
+
+
 def test_model_generator_reports_a_missing_checkpoint(tmp_path):
     from viewer.generate import model_generator
 

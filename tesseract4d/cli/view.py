@@ -22,6 +22,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--port", type=int, default=8080, help="port to serve on (default %(default)s)")
     parser.add_argument("--export", type=Path, metavar="HTML", help="write a standalone HTML recording to this file and exit")
     parser.add_argument("--compare", metavar="GT_PATH", help="ground truth of the same episode, shown beside PATH")
+    parser.add_argument("--labels", nargs=2, metavar=("LEFT", "RIGHT"),
+                        help="names drawn above the two point clouds of compare mode, e.g. two instructions "
+                             "(default: prediction, ground truth)")
     parser.add_argument("--metrics", type=Path, metavar="REPORT_JSON",
                         help="per-frame metrics from `tesseract4d evaluate` for compare mode (default: cheap image metrics)")
     parser.add_argument("--checkpoint", type=Path, default=SHIPPED_CHECKPOINT,
@@ -61,7 +64,10 @@ def run(args: argparse.Namespace) -> int:
         return 0
     from viewer.app import ViewerApp, serve_forever
 
-    app = ViewerApp.from_path(args.path, compare=args.compare, metrics=args.metrics, checkpoint=args.checkpoint,
+    if args.labels and args.compare is None:
+        raise UserError("--labels names the two point clouds of compare mode: pass --compare PATH too")
+    labels = {"labels": tuple(args.labels)} if args.labels else {}
+    app = ViewerApp.from_path(args.path, compare=args.compare, metrics=args.metrics, checkpoint=args.checkpoint, **labels,
                               precision=args.precision, camera=args.camera, host=args.host, port=args.port, max_points=args.max_points)
     serve_forever(app)
     return 0
