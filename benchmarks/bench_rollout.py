@@ -17,6 +17,7 @@ from __future__ import annotations
 import argparse
 import statistics
 import time
+from measure import add_isa_cap_argument, apply_isa_cap
 
 
 def main() -> None:
@@ -30,7 +31,9 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--precision", choices=("auto", "fp32", "bf16"), default="auto",
                     help="world-model precision (default %(default)s: bf16 only where the CPU has it)")
+    add_isa_cap_argument(ap)
     args = ap.parse_args()
+    apply_isa_cap(args.cap_isa)
 
     from tesseract4d import runtime
 
@@ -43,7 +46,7 @@ def main() -> None:
     from tesseract4d.model.predict import load_pipeline
     from tesseract4d.model.text_encoder import TextEncoder
     from tesseract4d.policy.idm import load_idm, sentence_embeddings
-    from tesseract4d.policy.loop import LoopConfig, WorldModelFuture
+    from tesseract4d.policy.loop import LoopConfig, WorldModelFuture, at_hw
     from tesseract4d.policy.points import frame_points
 
     idm = load_idm(args.idm)
@@ -66,8 +69,11 @@ def main() -> None:
         recon = idm_s = 0.0
         for j in range(1, cfg.replan_every + 1):
             a = time.perf_counter()
-            now = frame_points(frame.rgb, frame.depth_m, frame.K, frame.T_world_cam, idm.config.num_points, rng)
-            nxt = frame_points(clip.rgb[j], clip.depth_m[j], clip.K[j], clip.T_world_cam[j], idm.config.num_points, rng)
+            idm_hw = tuple(idm.config.resolution)  # as in the loop: frames reach the IDM at its resolution
+            rgb, depth, _, K = at_hw(frame.rgb, frame.depth_m, None, frame.K, idm_hw)
+            now = frame_points(rgb, depth, K, frame.T_world_cam, idm.config.num_points, rng)
+            rgb, depth, _, K = at_hw(clip.rgb[j], clip.depth_m[j], None, clip.K[j], idm_hw)
+            nxt = frame_points(rgb, depth, K, clip.T_world_cam[j], idm.config.num_points, rng)
             b = time.perf_counter()
             with torch.no_grad():
                 idm.decode(idm(torch.from_numpy(now)[None], torch.from_numpy(nxt)[None], text, qpos), qpos)
