@@ -27,7 +27,7 @@ def main() -> None:
     ap.add_argument("--task", default="PushCube-v1")
     ap.add_argument("--seed", type=int, default=100000)
     ap.add_argument("--replan-every", type=int, default=4)
-    ap.add_argument("--sample-steps", type=int, default=10)
+    ap.add_argument("--sample-steps", type=int, help="diffusion steps per prediction (default: the checkpoint's)")
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--precision", choices=("auto", "fp32", "bf16"), default="auto",
                     help="world-model precision (default %(default)s: bf16 only where the CPU has it)")
@@ -96,7 +96,7 @@ def main() -> None:
     from tesseract4d.precision import describe_cpu
 
     print(f"CPU: {describe_cpu()}; torch capability {torch.backends.cpu.get_cpu_capability()}; {torch.get_num_threads()} threads")
-    print(f"task {args.task}, k = {cfg.replan_every} clip frames per cycle, {args.sample_steps} diffusion steps, "
+    print(f"task {args.task}, k = {cfg.replan_every} clip frames per cycle, {args.sample_steps or pipe.preset.num_steps} diffusion steps, "
           f"{idm.config.num_points} points per cloud, world model {pipe.resolution[0]}x{pipe.resolution[1]}, "
           f"{'bf16' if pipe.bf16 else 'fp32'}, {args.repeats} repeats")
     print(f"{'stage':<26}{'median s':>10}{'min s':>10}")

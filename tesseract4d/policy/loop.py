@@ -45,7 +45,7 @@ class LoopConfig:
     max_steps: int = 200  # env steps before the episode counts as failed
     max_chunk_steps: int = 30  # upper bound on the steps one IDM chunk may span
     num_frames: int = 16  # frames per predicted clip
-    sample_steps: int = 10  # diffusion steps per prediction
+    sample_steps: int | None = None  # diffusion steps per prediction; None = the checkpoint preset's
     sample_seed: int = 0
     camera: str = "close"
     resolution: tuple[int, int] = (64, 64)  # the rendered observation (height, width)
