@@ -4,7 +4,9 @@ Every trained variant starts from scratch on the same data, seed and number of m
 differs from the baseline (the recipe v2 ships: first-frame noise 0.1, moving and object weight 2,
 clean-sample target, text dropout 0.1, ``latent-128``) in one lever only. The width/depth variants
 get the same minutes, so they show what depth buys at equal wall time. The guidance variants
-reuse the baseline's weights and change only the sampler's text guidance scale.
+reuse the baseline's weights and change only the sampler's text guidance scale. ``seed_1`` repeats
+the baseline with another training seed: how far two runs of one recipe differ is the yardstick
+for every other row.
 
 Each variant is scored by the held-out evaluation (``tesseract4d evaluate --heldout``) on the
 same episodes: moving-region RGB PSNR, depth AbsRel, normal error and 4D Chamfer of the raw
@@ -34,6 +36,7 @@ BASELINE = ["--preset", "latent-128", "--condition-noise", "0.1", "--moving-weig
 # baseline's weights, extra `tesseract4d evaluate` arguments)
 VARIANTS: dict[str, tuple[str, list[str] | None, list[str]]] = {
     "baseline": ("v2 recipe", [], []),
+    "seed_1": ("v2 recipe, training seed 1 (run-to-run spread)", ["--seed", "1"], []),
     "cond_noise_0": ("no first-frame noise", ["--condition-noise", "0"], []),
     "weights_1": ("moving and object weight 1", ["--moving-weight", "1", "--object-weight", "1"], []),
     "velocity": ("velocity target", ["--prediction", "velocity"], []),
