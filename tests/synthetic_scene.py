@@ -143,9 +143,9 @@ def synthetic_episode(seed: int, frames: int = 8, size: int = 32, direction: int
                       frame_steps=np.arange(frames, dtype=np.int32), success=True)
 
 
-def write_synthetic_dataset(root: Path, episodes: int = 4, frames: int = 8, size: int = 32) -> Path:
+def write_synthetic_dataset(root: Path, episodes: int = 4, frames: int = 8, size: int = 32, seed_start: int = 0) -> Path:
     df.init_dataset(root, df.DatasetInfo(height=size, width=size, cameras=["close"]))
-    for seed in range(episodes):
+    for seed in range(seed_start, seed_start + episodes):
         df.write_episode(root, synthetic_episode(seed, frames, size, direction=1 if seed % 2 == 0 else -1))
     return root
 

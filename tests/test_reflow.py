@@ -92,6 +92,19 @@ def test_distill_student_follows_teacher_in_few_steps(teacher, tmp_path, capsys)
     assert psnr_student > psnr_teacher_few + 1.0 and psnr_student > 25.0, (psnr_student, psnr_teacher_few)
 
 
+def test_pairs_from_several_dataset_folders(teacher, tmp_path):
+    ckpt, data = teacher
+    more = write_synthetic_dataset(tmp_path / "more", episodes=2, seed_start=100)
+    argv = ["distill", "--pairs-only", "--teacher", str(ckpt), "--pairs", str(tmp_path / "p"), "--num-pairs", "4",
+            "--teacher-steps", "2", "--pair-batch-size", "2", "--no-progress", "--data", str(data), str(more)]
+    assert main(argv) == 0
+    pairs = ReflowPairs(tmp_path / "p")
+    assert len(pairs) == 4 and pairs.manifest["data"] == [str(data), str(more)]
+    assert main(argv) == 0  # complete: resumed as it is
+    # the same episodes twice is refused before any pair is made
+    assert main([*argv[:5], str(tmp_path / "q"), *argv[6:], str(data)]) == 2 and not (tmp_path / "q").exists()
+
+
 def test_distill_errors(teacher, tmp_path):
     ckpt, data = teacher
     assert main(["distill", "--teacher", str(ckpt), "--pairs", str(tmp_path / "none"), "--out", str(tmp_path / "r")]) == 2

@@ -26,7 +26,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
     p, d = PairsConfig(Path(), Path(), Path()), ReflowConfig()
     parser.add_argument("--teacher", type=Path, required=True, help="the inference checkpoint to distil (e.g. RUN/final)")
-    parser.add_argument("--data", type=Path, help="dataset folder the pairs' first frames and instructions come from")
+    parser.add_argument("--data", type=Path, nargs="+",
+                        help="dataset folder(s) the pairs' first frames and instructions come from (drawn as one set)")
     parser.add_argument("--pairs", type=Path, required=True, help="pairs folder (written, or resumed, from --data)")
     parser.add_argument("--out", type=Path, help="the student's run folder (checkpoints, logs, final/)")
     parser.add_argument("--pairs-only", action="store_true", help="make the pairs and stop")
@@ -59,7 +60,7 @@ def run(args: argparse.Namespace) -> int:
         raise UserError("pass --out RUN (the student's run folder), or --pairs-only to make the pairs only")
     if args.data is not None:
         generate_pairs(PairsConfig(
-            teacher=args.teacher, data=args.data, out=args.pairs, num_pairs=args.num_pairs,
+            teacher=args.teacher, data=args.data[0] if len(args.data) == 1 else args.data, out=args.pairs, num_pairs=args.num_pairs,
             batch_size=args.pair_batch_size, teacher_steps=args.teacher_steps, seed=args.seed, camera=args.camera,
             precision=args.precision), progress=not args.no_progress)
         print(f"pairs: {args.pairs}")

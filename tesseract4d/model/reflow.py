@@ -39,7 +39,7 @@ SHARD_PREFIX = "pairs-"
 @dataclass
 class PairsConfig:
     teacher: Path  # inference checkpoint folder
-    data: Path  # dataset folder the first frames and instructions come from
+    data: Path | list[Path]  # dataset folder(s) the first frames and instructions come from
     out: Path  # pairs folder
     num_pairs: int = 512
     shard_size: int = 32
@@ -52,7 +52,9 @@ class PairsConfig:
     precision: str = "auto"
 
     def to_dict(self) -> dict:
-        return {k: str(v) if isinstance(v, Path) else v for k, v in dataclasses.asdict(self).items()}
+        from tesseract4d.configs import config_dict
+
+        return config_dict(self)
 
 
 def weights_digest(checkpoint: str | os.PathLike) -> str:
@@ -89,7 +91,8 @@ def generate_pairs(cfg: PairsConfig, progress: bool = True) -> Path:
     from safetensors.torch import save_file
     from tqdm import tqdm
 
-    from tesseract4d.model.clips import ClipDataset
+    from tesseract4d.configs import folder_list, plain
+    from tesseract4d.model.clips import ClipDataset, merge_clip_datasets
     from tesseract4d.model.predict import load_pipeline
 
     if cfg.num_pairs < 1 or cfg.shard_size < 1 or cfg.batch_size < 1:
@@ -99,12 +102,13 @@ def generate_pairs(cfg: PairsConfig, progress: bool = True) -> Path:
     steps = cfg.teacher_steps or p.num_steps
     text_g = p.text_guidance if cfg.text_guidance is None else cfg.text_guidance
     image_g = p.image_guidance if cfg.image_guidance is None else cfg.image_guidance
-    data = ClipDataset(cfg.data, num_frames=p.num_frames, height=p.height, width=p.width,
-                       model_space=pipe.model_space, camera=cfg.camera or pipe.camera_name)
+    data = merge_clip_datasets([ClipDataset(folder, num_frames=p.num_frames, height=p.height, width=p.width,
+                                            model_space=pipe.model_space, camera=cfg.camera or pipe.camera_name)
+                                for folder in folder_list(cfg.data)])
     out = Path(cfg.out)
     manifest = {"format": 1, "teacher": str(cfg.teacher), "teacher_digest": weights_digest(cfg.teacher),
                 "teacher_preset": p.to_dict(), "teacher_steps": steps, "text_guidance": text_g,
-                "image_guidance": image_g, "data": str(cfg.data), "camera": data.camera, "seed": cfg.seed,
+                "image_guidance": image_g, "data": plain(cfg.data), "camera": data.camera, "seed": cfg.seed,
                 "shard_size": cfg.shard_size, "config": cfg.to_dict()}
     _check_manifest(out, manifest)
     out.mkdir(parents=True, exist_ok=True)
