@@ -28,15 +28,16 @@ def bench_autoencoder_codec(ae_dir: Path, bf16: bool, repeats: int) -> dict:
     import torch
 
     from tesseract4d.model.autoencoder import load_autoencoder
+    from tesseract4d.model.codec import AutoencoderCodec
 
-    model = load_autoencoder(ae_dir)
-    x = torch.rand(16, 7, model.config.height, model.config.width) * 2 - 1  # one 16-frame clip
+    codec = AutoencoderCodec(load_autoencoder(ae_dir))  # as the pipeline and the latent cache use it
+    cfg = codec.autoencoder.config
+    x = torch.rand(1, 16, 7, cfg.height, cfg.width) * 2 - 1  # one 16-frame clip
     with torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
-        z = model.encode(x)
+        z = codec.encode(x)
         _reset_peak_rss()
-        enc = median_seconds(lambda: model.encode(x), repeats)
-        with torch.no_grad():
-            dec = median_seconds(lambda: model.decode(z), repeats)
+        enc = median_seconds(lambda: codec.encode(x), repeats)
+        dec = median_seconds(lambda: codec.decode(z), repeats)
     return {"encode_s": enc, "decode_s": dec, "peak_mb": _peak_rss_mb()}
 
 
