@@ -20,7 +20,7 @@ import argparse
 import sys
 import time
 from pathlib import Path
-from measure import print_table
+from measure import add_isa_cap_argument, apply_isa_cap, print_table
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -32,7 +32,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--max-episodes", type=int, default=8)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--strip", type=Path, help="PNG of the first scene's frames")
+    add_isa_cap_argument(parser)
     args = parser.parse_args(argv)
+    apply_isa_cap(args.cap_isa)
 
     from tesseract4d import runtime
 
