@@ -46,8 +46,7 @@ def main() -> None:
     from tesseract4d.model.predict import load_pipeline
     from tesseract4d.model.text_encoder import TextEncoder
     from tesseract4d.policy.idm import load_idm, sentence_embeddings
-    from tesseract4d.policy.loop import LoopConfig, WorldModelFuture, at_hw
-    from tesseract4d.policy.points import frame_points
+    from tesseract4d.policy.loop import LoopConfig, WorldModelFuture, idm_points
 
     idm = load_idm(args.idm)
     pipe = load_pipeline(args.checkpoint, precision=args.precision)
@@ -69,11 +68,9 @@ def main() -> None:
         recon = idm_s = 0.0
         for j in range(1, cfg.replan_every + 1):
             a = time.perf_counter()
-            idm_hw = tuple(idm.config.resolution)  # as in the loop: frames reach the IDM at its resolution
-            rgb, depth, _, K = at_hw(frame.rgb, frame.depth_m, None, frame.K, idm_hw)
-            now = frame_points(rgb, depth, K, frame.T_world_cam, idm.config.num_points, rng)
-            rgb, depth, _, K = at_hw(clip.rgb[j], clip.depth_m[j], None, clip.K[j], idm_hw)
-            nxt = frame_points(rgb, depth, K, clip.T_world_cam[j], idm.config.num_points, rng)
+            # as in the loop: frames reach the IDM at its resolution
+            now = idm_points(idm.config, frame.rgb, frame.depth_m, frame.K, frame.T_world_cam, rng)
+            nxt = idm_points(idm.config, clip.rgb[j], clip.depth_m[j], clip.K[j], clip.T_world_cam[j], rng)
             b = time.perf_counter()
             with torch.no_grad():
                 idm.decode(idm(torch.from_numpy(now)[None], torch.from_numpy(nxt)[None], text, qpos), qpos)

@@ -95,8 +95,7 @@ def test_a_world_model_predicts_for_renders_of_twice_its_resolution():
     frame 0 the observation itself, and the IDM's points are taken at its own 64x64."""
     from datagen.capture import Frame
     from tesseract4d.model.predict import load_pipeline
-    from tesseract4d.policy.idm import InverseDynamics
-    from tesseract4d.policy.loop import LoopConfig, PolicyRunner, WorldModelFuture
+    from tesseract4d.policy.loop import LoopConfig, WorldModelFuture, idm_points
     from tesseract4d.policy.points import frame_points
     from tesseract4d.resize import resize_rgbdn
 
@@ -113,8 +112,8 @@ def test_a_world_model_predicts_for_renders_of_twice_its_resolution():
     np.testing.assert_array_equal(clip.rgb[0], frame.rgb)
     np.testing.assert_array_equal(clip.depth_m[0], frame.depth_m)
     np.testing.assert_allclose(clip.K[1], K)  # the prediction's intrinsics are the render's again
-    runner = PolicyRunner(None, InverseDynamics(IDMConfig(num_points=64)), None, lc)
-    pts = runner._points(frame.rgb, frame.depth_m, frame.K, frame.T_world_cam, np.random.default_rng(0))
+    pts = idm_points(IDMConfig(num_points=64), frame.rgb, frame.depth_m, frame.K, frame.T_world_cam,
+                     np.random.default_rng(0))
     rgb64, depth64, _, K64 = resize_rgbdn(frame.rgb, frame.depth_m, frame.normal_cam, frame.K, 64, 64)
     np.testing.assert_array_equal(pts, frame_points(rgb64, depth64, K64, frame.T_world_cam, 64, np.random.default_rng(0)))
 

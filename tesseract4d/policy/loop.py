@@ -92,11 +92,18 @@ class Trace:
 def at_hw(rgb: np.ndarray, depth_m: np.ndarray, normal_cam: np.ndarray | None, K: np.ndarray,
           hw: tuple[int, int]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """(rgb, depth_m, normal_cam, K) of a frame or clip at ``hw`` (a whole factor up or down; the
-    same arrays when already there). ``normal_cam`` None: no normals (zeros come back)."""
-    normal = np.zeros(rgb.shape, np.float32) if normal_cam is None else normal_cam
+    same arrays when already there). ``normal_cam`` None: no normals (None, or zeros when resized)."""
     if tuple(depth_m.shape[-2:]) == tuple(hw):
-        return rgb, depth_m, normal, K
+        return rgb, depth_m, normal_cam, K
+    normal = np.zeros(rgb.shape, np.float32) if normal_cam is None else normal_cam
     return resize_rgbdn(rgb, depth_m, normal, K, *hw)
+
+
+def idm_points(config, rgb: np.ndarray, depth_m: np.ndarray, K: np.ndarray, T_world_cam: np.ndarray,
+               rng: np.random.Generator) -> np.ndarray:
+    """The IDM's point cloud of one frame, taken at the resolution the IDM (``config``) was trained on."""
+    rgb, depth_m, _, K = at_hw(rgb, depth_m, None, K, tuple(config.resolution))
+    return frame_points(rgb, depth_m, K, T_world_cam, config.num_points, rng)
 
 
 def observation_episode(frames: list, env_id: str, seed: int, instruction: str, camera: str) -> df.Episode:
@@ -184,11 +191,6 @@ class PolicyRunner:
         check_compatible(self.model.config, control_mode=CONTROL_MODE, action_dim=action_dim, camera=self.config.camera,
                          resolution=tuple(self.config.resolution), what=f"the rollout env {self.sim.env_id}")
 
-    def _points(self, rgb, depth_m, K, T_world_cam, rng: np.random.Generator) -> np.ndarray:
-        """The IDM's point cloud of one frame, taken at the resolution the IDM was trained on."""
-        rgb, depth_m, _, K = at_hw(rgb, depth_m, None, K, tuple(self.model.config.resolution))
-        return frame_points(rgb, depth_m, K, T_world_cam, self.model.config.num_points, rng)
-
     @torch.no_grad()
     def run(self, seed: int, future=None, trace: Trace | None = None) -> EpisodeResult:
         c, model = self.config, self.model
@@ -229,11 +231,11 @@ class PolicyRunner:
                 lap("predict")
             targets = range(1, c.replan_every + 1) if clip is not None else range(1)
             for j in targets:
-                now_pts = self._points(frame.rgb, frame.depth_m, frame.K, frame.T_world_cam, rng)
+                now_pts = idm_points(model.config, frame.rgb, frame.depth_m, frame.K, frame.T_world_cam, rng)
                 next_pts = None
                 if clip is not None:
-                    next_pts = torch.from_numpy(self._points(clip.rgb[j], clip.depth_m[j], clip.K[j], clip.T_world_cam[j],
-                                                             rng))[None]
+                    next_pts = torch.from_numpy(idm_points(model.config, clip.rgb[j], clip.depth_m[j], clip.K[j],
+                                                           clip.T_world_cam[j], rng))[None]
                 lap("reconstruct")
                 qpos = torch.from_numpy(self.sim.env.unwrapped.agent.robot.get_qpos()[0].cpu().numpy().astype(np.float32))[None]
                 out = model(torch.from_numpy(now_pts)[None], next_pts, text, qpos)
