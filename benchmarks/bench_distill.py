@@ -10,8 +10,8 @@ ground truth, and seconds per clip (predict_scenes, all scenes in one call). A P
 first scene (rows: ground truth, teacher reference, student and teacher at each step count) goes
 to --strip.
 
-  .venv/bin/python benchmarks/bench_distill.py --teacher tesseract4d/checkpoints/tiny \
-      --student runs/student/final --data data/heldout [--steps 1,2,4] [--strip strip.png]
+  .venv/bin/python benchmarks/bench_distill.py --teacher tesseract4d/checkpoints/v2 \
+      --student tesseract4d/checkpoints/v2-2step --data data/heldout [--steps 1,2,4] [--strip strip.png]
 """
 
 from __future__ import annotations

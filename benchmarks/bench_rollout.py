@@ -7,7 +7,7 @@ of the predicted clip (normal integration + temporal consistency + TSDF), which 
 use (see the table), and rendering one observation.
 
   PYTHONPATH=. OMP_WAIT_POLICY=PASSIVE python benchmarks/bench_rollout.py --idm runs/idm/final \
-      --checkpoint tesseract4d/checkpoints/tiny --repeats 5
+      [--checkpoint tesseract4d/checkpoints/v2] --repeats 5
 
 Target: a cycle <= 2 s on the 2-core CPU.
 """
@@ -17,13 +17,17 @@ from __future__ import annotations
 import argparse
 import statistics
 import time
+from pathlib import Path
+
 from measure import add_isa_cap_argument, apply_isa_cap
+
+SHIPPED = Path(__file__).resolve().parent.parent / "tesseract4d" / "checkpoints" / "v2-2step"
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--idm", required=True, help="IDM folder (train-idm RUN/final)")
-    ap.add_argument("--checkpoint", default="tesseract4d/checkpoints/tiny")
+    ap.add_argument("--checkpoint", default=str(SHIPPED), help="world model (default: the shipped default, v2-2step)")
     ap.add_argument("--task", default="PushCube-v1")
     ap.add_argument("--seed", type=int, default=100000)
     ap.add_argument("--replan-every", type=int, default=4)

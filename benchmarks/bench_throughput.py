@@ -2,12 +2,12 @@
 
 `predict_scenes(pipeline, first_frames, instructions, batch_size=N)` samples N scenes (first frame +
 instruction) in one call of the pipeline; this measures clips/s and seconds per call for N = 1, 2,
-4, 8 on a checkpoint (default: the shipped tiny one) at its preset's steps and guidance, or with
+4, 8 on a checkpoint (default: the shipped default, v2-2step) at its preset's steps and guidance, or with
 --steps/--no-guidance (e.g. a distilled student). First frames are synthetic scenes at the
 checkpoint's resolution: speed does not depend on the content. The first line names the CPU model
 and ISA and the precision used.
 
-  .venv/bin/python benchmarks/bench_throughput.py [--checkpoint tesseract4d/checkpoints/tiny] [--batches 1,2,4,8]
+  .venv/bin/python benchmarks/bench_throughput.py [--checkpoint tesseract4d/checkpoints/v2] [--batches 1,2,4,8] [--cap-isa avx2]
 """
 
 from __future__ import annotations
@@ -18,19 +18,21 @@ import statistics
 import sys
 import time
 from pathlib import Path
-from measure import print_table
+from measure import add_isa_cap_argument, apply_isa_cap, print_table
 
 ROOT = Path(__file__).resolve().parent.parent
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--checkpoint", type=Path, default=ROOT / "tesseract4d" / "checkpoints" / "tiny")
+    parser.add_argument("--checkpoint", type=Path, default=ROOT / "tesseract4d" / "checkpoints" / "v2-2step")
     parser.add_argument("--batches", default="1,2,4,8", help="scenes per pipeline call (default %(default)s)")
     parser.add_argument("--repeats", type=int, default=2, help="timed calls per batch size (median)")
     parser.add_argument("--steps", type=int, help="sampler steps (default: the checkpoint preset's)")
     parser.add_argument("--precision", default="auto", choices=("auto", "fp32", "bf16"))
+    add_isa_cap_argument(parser)
     args = parser.parse_args(argv)
+    apply_isa_cap(args.cap_isa)
 
     from tesseract4d import runtime
 

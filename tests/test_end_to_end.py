@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from tesseract4d.dataset_format import HELDOUT_SEED_START
-from tesseract4d.model.checkpoint import SHIPPED_CHECKPOINT, read_inference_config
+from tesseract4d.model.checkpoint import CHECKPOINTS_DIR, SHIPPED_CHECKPOINT, V2_CHECKPOINT, read_inference_config
 
 pytestmark = [pytest.mark.sim, pytest.mark.slow]
 
@@ -40,16 +40,17 @@ def heldout(tmp_path_factory) -> Path:
     return out
 
 
-def test_shipped_checkpoint_is_small_and_self_describing():
-    files = [p for p in SHIPPED_CHECKPOINT.rglob("*") if p.is_file()]
-    size_mb = sum(p.stat().st_size for p in files) / 2**20
-    assert size_mb <= 40, f"shipped checkpoint is {size_mb:.1f} MB"
-    names = {p.relative_to(SHIPPED_CHECKPOINT).as_posix() for p in files}
-    assert {"transformer/config.json", "transformer/diffusion_pytorch_model.safetensors", "tesseract4d_config.json",
-            "scheduler/scheduler_config.json", "MODEL_CARD.md"} <= names
-    if "autoencoder" in read_inference_config(SHIPPED_CHECKPOINT):  # a latent model carries its autoencoder
-        assert {"autoencoder/config.json", "autoencoder/model.safetensors"} <= names
-    assert not any(n.endswith((".pt", ".pth", ".pkl", ".bin")) for n in names), "weights must be safetensors"
+def test_shipped_checkpoints_are_small_and_self_describing():
+    shipped = [p for p in CHECKPOINTS_DIR.rglob("*") if p.is_file()]
+    size_mb = sum(p.stat().st_size for p in shipped) / 2**20
+    assert size_mb <= 40, f"the shipped checkpoints are {size_mb:.1f} MB together"
+    for checkpoint in (SHIPPED_CHECKPOINT, V2_CHECKPOINT):
+        names = {p.relative_to(checkpoint).as_posix() for p in checkpoint.rglob("*") if p.is_file()}
+        assert {"transformer/config.json", "transformer/diffusion_pytorch_model.safetensors", "tesseract4d_config.json",
+                "scheduler/scheduler_config.json", "MODEL_CARD.md"} <= names, checkpoint
+        if "autoencoder" in read_inference_config(checkpoint):  # a latent model carries its autoencoder
+            assert {"autoencoder/config.json", "autoencoder/model.safetensors"} <= names, checkpoint
+        assert not any(n.endswith((".pt", ".pth", ".pkl", ".bin")) for n in names), "weights must be safetensors"
 
 
 def test_predict_reconstruct_evaluate_export(heldout, tmp_path, artifacts_dir):

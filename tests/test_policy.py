@@ -10,7 +10,7 @@ import pytest
 
 from tesseract4d.cli import main
 from tesseract4d.errors import UserError
-from tesseract4d.model.checkpoint import TINY_CHECKPOINT
+from tesseract4d.model.checkpoint import SHIPPED_CHECKPOINT
 from tesseract4d.policy.idm import IDMConfig, check_compatible, chunk_indices, encode_target, expand_chunk
 from tesseract4d.policy.rollout_eval import summarize, wilson_interval
 
@@ -83,15 +83,15 @@ def test_world_model_checkpoint_of_another_resolution_is_refused():
     from tesseract4d.model.predict import load_pipeline
     from tesseract4d.policy.loop import LoopConfig, WorldModelFuture
 
-    pipe = load_pipeline(TINY_CHECKPOINT)
-    with pytest.raises(UserError, match=r"camera 'close' at 64x64 but the rollout renders camera 'close' at 96x96"):
+    pipe = load_pipeline(SHIPPED_CHECKPOINT)  # 128x128
+    with pytest.raises(UserError, match=r"camera 'close' at 128x128 but the rollout renders camera 'close' at 96x96"):
         WorldModelFuture(pipe, LoopConfig(resolution=(96, 96)))
     with pytest.raises(UserError, match=r"camera 'close'.*camera 'side'"):
         WorldModelFuture(pipe, LoopConfig(camera="side"))
 
 
 def test_a_world_model_predicts_for_renders_of_twice_its_resolution():
-    """A 64x64 world model in a rollout rendered at 128x128: the clip comes back at 128x128 with
+    """The 128x128 world model in a rollout rendered at 256x256: the clip comes back at 256x256 with
     frame 0 the observation itself, and the IDM's points are taken at its own 64x64."""
     from datagen.capture import Frame
     from tesseract4d.model.predict import load_pipeline
@@ -100,15 +100,15 @@ def test_a_world_model_predicts_for_renders_of_twice_its_resolution():
     from tesseract4d.resize import resize_rgbdn
 
     rng = np.random.default_rng(0)
-    K = np.array([[110.0, 0, 64], [0, 110.0, 64], [0, 0, 1]])
-    n = rng.normal(size=(128, 128, 3)).astype(np.float32)
-    frame = Frame(rgb=rng.integers(0, 255, (128, 128, 3), dtype=np.uint8),
-                  depth_m=rng.uniform(0.4, 1.0, (128, 128)).astype(np.float32),
-                  normal_cam=n / np.linalg.norm(n, axis=-1, keepdims=True), segmentation=np.zeros((128, 128), np.int32),
+    K = np.array([[220.0, 0, 128], [0, 220.0, 128], [0, 0, 1]])
+    n = rng.normal(size=(256, 256, 3)).astype(np.float32)
+    frame = Frame(rgb=rng.integers(0, 255, (256, 256, 3), dtype=np.uint8),
+                  depth_m=rng.uniform(0.4, 1.0, (256, 256)).astype(np.float32),
+                  normal_cam=n / np.linalg.norm(n, axis=-1, keepdims=True), segmentation=np.zeros((256, 256), np.int32),
                   K=K, T_world_cam=np.eye(4))
-    lc = LoopConfig(resolution=(128, 128), sample_steps=1)
-    clip = WorldModelFuture(load_pipeline(TINY_CHECKPOINT), lc).clip(frame, "PushCube-v1", 0, "push the cube", 0)
-    assert clip.rgb.shape == (16, 128, 128, 3) and clip.depth_m.shape == (16, 128, 128)
+    lc = LoopConfig(resolution=(256, 256), sample_steps=1)
+    clip = WorldModelFuture(load_pipeline(SHIPPED_CHECKPOINT), lc).clip(frame, "PushCube-v1", 0, "push the cube", 0)
+    assert clip.rgb.shape == (16, 256, 256, 3) and clip.depth_m.shape == (16, 256, 256)
     np.testing.assert_array_equal(clip.rgb[0], frame.rgb)
     np.testing.assert_array_equal(clip.depth_m[0], frame.depth_m)
     np.testing.assert_allclose(clip.K[1], K)  # the prediction's intrinsics are the render's again

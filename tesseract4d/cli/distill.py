@@ -1,8 +1,9 @@
 """Distil a checkpoint into a few-step student (rectified-flow reflow): one network pass per step.
 
-  tesseract4d distill --teacher checkpoints/tiny --data data/train --pairs runs/pairs --out runs/student
-  tesseract4d distill --pairs-only --teacher checkpoints/tiny --data data/train --pairs runs/pairs
-  tesseract4d distill --teacher checkpoints/tiny --pairs runs/pairs --out runs/student --resume
+  tesseract4d distill --teacher tesseract4d/checkpoints/v2 --data data/train --pairs runs/pairs --out runs/student
+  tesseract4d distill --pairs-only --teacher tesseract4d/checkpoints/v2 --data data/train --pairs runs/pairs
+  tesseract4d distill --teacher tesseract4d/checkpoints/v2 --pairs runs/pairs --out runs/student --resume
+  tesseract4d train --export runs/student --to checkpoints/v2-2step --half   # the student in float16
 
 Two stages, each resumable:
 1. pairs: the teacher samples --num-pairs clips with its full sampler (its preset's steps and

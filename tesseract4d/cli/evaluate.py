@@ -20,9 +20,9 @@ report.json and report.md (the README's results table) to --out.
 
 Examples:
   tesseract4d evaluate out/recon --gt data/test/episodes/PickCube-v1/seed_100000.h5 --json out/report.json
-  tesseract4d evaluate --checkpoint tesseract4d/checkpoints/tiny --heldout data/heldout --out outputs/heldout_eval
-  tesseract4d evaluate --heldout data/heldout_groups --checkpoint tesseract4d/checkpoints/tiny \
-      --checkpoint runs/v2/checkpoint --out outputs/heldout_compare
+  tesseract4d evaluate --heldout data/heldout --out outputs/heldout_eval      # the shipped default (v2-2step)
+  tesseract4d evaluate --heldout data/heldout_groups --checkpoint tesseract4d/checkpoints/v2 \
+      --checkpoint tesseract4d/checkpoints/v2-2step --out outputs/heldout_compare
 """
 
 from __future__ import annotations

@@ -4,7 +4,7 @@
   tesseract4d train --data data/skills data/tasks --autoencoder runs/ae/autoencoder --out runs/v2   # two datasets
   tesseract4d train --preset tiny --data data/train --out runs/tiny --max-minutes 60
   tesseract4d train --out runs/tiny --resume --data data/train      # continue exactly where it stopped
-  tesseract4d train --export runs/tiny --to checkpoints/tiny        # inference folder (EMA weights)
+  tesseract4d train --export runs/tiny --to checkpoints/mine        # inference folder (EMA weights)
   tesseract4d train --export runs/v2 --to checkpoints/v2 --half     # the same in float16 (half the size)
 
 Every run ends (max steps, --max-minutes, Ctrl-C or SIGTERM) with a checkpoint and an export of

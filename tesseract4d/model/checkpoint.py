@@ -28,11 +28,12 @@ SCHEDULER_DIR = "scheduler"
 WEIGHTS_FILE = "diffusion_pytorch_model.safetensors"  # diffusers' name for safetensors weights
 MODEL_CONFIG_FILE = "config.json"  # diffusers' name for a model's config
 SCHEDULER_CONFIG_FILE = "scheduler_config.json"  # diffusers' name for a scheduler's config
-# The checkpoint shipped with the package: the default of `predict`, `demo`, `evaluate --heldout`
-# and the viewer's Generate panel.
-SHIPPED_CHECKPOINT = Path(__file__).resolve().parent.parent / "checkpoints" / "v2"
-# The first shipped model (pixel space, 64x64), kept for comparison and for the pixel-space tests.
-TINY_CHECKPOINT = Path(__file__).resolve().parent.parent / "checkpoints" / "tiny"
+CHECKPOINTS_DIR = Path(__file__).resolve().parent.parent / "checkpoints"  # what the package ships
+# The default of `predict`, `demo`, `evaluate --heldout`, `rollout` and the viewer's Generate panel:
+# v2 distilled into a 2-step sampler without guidance (one network pass per step).
+SHIPPED_CHECKPOINT = CHECKPOINTS_DIR / "v2-2step"
+# v2 itself (10 steps, text guidance 1.5): the teacher of the default, kept for comparison and distillation.
+V2_CHECKPOINT = CHECKPOINTS_DIR / "v2"
 
 
 def format_header() -> dict:
