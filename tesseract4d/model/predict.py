@@ -167,12 +167,10 @@ def predict_counterfactuals(
 
 
 # Scenes per pipeline call of predict_scenes when not given. Measured with
-# benchmarks/bench_throughput.py on the shipped tiny checkpoint (64x64, 16 frames, 10 steps with
-# text guidance = 2 network passes per step), bf16, AMD EPYC with AVX512-BF16, 2 cores shared with a
-# training run (not idle). clips/s for 1/2/4/8 scenes per call, calmest run (load average 1.4):
-# 0.571/0.601/0.605/0.523; two busier runs: 0.29/0.24/0.46/0.23 and 0.18/0.21/0.15/-. 2-4 scenes are
-# about 5% faster per clip than 1 here and 8 is slower; 4 was the fastest in two of the runs.
-# Re-measure on another machine.
+# benchmarks/bench_throughput.py on a quiet 2-core AMD EPYC with AVX512-BF16, clips/s for 1/2/4/8
+# scenes per call: the default v2-2step in bf16 2.45/2.70/2.84/2.97, capped to AVX2 (fp32)
+# 2.30/2.44/2.31/2.14; v2 (10 guided steps) for 1/4: 0.52/0.61 bf16, 0.49/0.46 capped. 4 is within 7%
+# of the best everywhere and keeps memory moderate. Re-measure on another machine.
 DEFAULT_SCENE_BATCH = 4
 
 
