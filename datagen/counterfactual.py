@@ -55,6 +55,7 @@ def run_group(sim: EpisodeSimulator, seed: int, k: int, specs: list[str] | None 
     rng = np.random.default_rng([int(seed), 271828])
     result = GroupResult(env_id, seed, False, k)
     first: Episode | None = None
+    sim.fresh_scene(seed)  # the group must not depend on the groups simulated before it
     for name in rng.permutation(names):
         if len(result.episodes) == k:
             break
