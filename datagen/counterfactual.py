@@ -55,7 +55,6 @@ def run_group(sim: EpisodeSimulator, seed: int, k: int, specs: list[str] | None 
     rng = np.random.default_rng([int(seed), 271828])
     result = GroupResult(env_id, seed, False, k)
     first: Episode | None = None
-    sim.fresh_scene(seed)  # the group must not depend on the groups simulated before it
     for name in rng.permutation(names):
         if len(result.episodes) == k:
             break
@@ -89,7 +88,7 @@ def _try(sim: EpisodeSimulator, seed: int, variant: sk.SkillVariant, target, oth
          variant_index: int, k: int) -> Episode | None:
     env_id, env = sim.env_id, sim.env
     base = env.unwrapped
-    env.reset(seed=seed)
+    sim.fresh_scene(seed)  # each future from a rebuilt scene: it depends on nothing simulated before it
     intent = sk.commanded_intent(env_id, base, variant, target, other)
     present = intent["objects_present"]
     start = {n: sk.object_positions(env_id, base)[n] for n in present}
