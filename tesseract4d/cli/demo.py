@@ -82,7 +82,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="skill whose instruction is the contrast when --contrast-instruction is not given "
                              "(default %(default)s)")
     parser.add_argument("--no-contrast", action="store_true", help="predict one future only (the main instruction)")
-    parser.add_argument("--checkpoint", type=Path, default=d.checkpoint, help="model checkpoint folder (default: the shipped v2 model, tesseract4d/checkpoints/v2)")
+    parser.add_argument("--checkpoint", type=Path, default=d.checkpoint, help="model checkpoint folder (default: the shipped v2-2step, tesseract4d/checkpoints/v2-2step; tesseract4d/checkpoints/v2 is its 10-step teacher)")
     parser.add_argument("--out", type=Path, default=d.out, help="output folder (default %(default)s)")
     parser.add_argument("--num-frames", type=int, help="frames to predict (default: one clip, the checkpoint preset's length)")
     parser.add_argument("--steps", type=int, help="sampler steps (default: the checkpoint preset's)")

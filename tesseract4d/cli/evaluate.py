@@ -56,7 +56,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "depth is at most M (default: all pixels; held-out evaluation: the checkpoint's depth range)")
     held = parser.add_argument_group("held-out evaluation of a model (instead of PRED --gt)")
     held.add_argument("--checkpoint", type=Path, action=_AppendCheckpoint, default=SHIPPED_CHECKPOINT,
-                      help="model checkpoint folder (default: the shipped v2 model); repeat it to score several "
+                      help="model checkpoint folder (default: the shipped v2-2step); repeat it to score several "
                            "checkpoints side by side with the static world in one report")
     held.add_argument("--heldout", type=Path,
                       help=f"held-out dataset folder (datagen --seed-start {HELDOUT_SEED_START} --instruction-split heldout)")

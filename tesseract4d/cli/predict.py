@@ -57,7 +57,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
     d = PredictConfig()
     parser.add_argument("--checkpoint", type=Path, default=d.checkpoint,
-                        help="inference checkpoint folder (RUN/final or --export output; default: the shipped v2 model)")
+                        help="inference checkpoint folder (RUN/final or --export output; default: the shipped v2-2step; tesseract4d/checkpoints/v2 is its 10-step teacher)")
     parser.add_argument("--instruction", help="what should happen (default: the episode's / scene's own instruction)")
     src = parser.add_argument_group("first frame (one of)")
     src.add_argument("--task", help="ManiSkill task id to render, with --seed")

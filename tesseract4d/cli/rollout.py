@@ -5,7 +5,7 @@ IDM + world-model predictions, and behaviour cloning, with success rates and 95 
       --tasks PushCube-v1,PullCube-v1,PickCube-v1,StackCube-v1 --episodes 50 --out out/rollouts
 
 The env is rendered at the world model's resolution (by default) and every frame reaches the IDM
-at the resolution it was trained on, resized by a whole factor: the shipped 128² v2 steers an IDM
+at the resolution it was trained on, resized by a whole factor: the shipped 128² models steer an IDM
 trained on 64² renders.
 
 Loop per episode: observe (RGB-D-N) -> predict the clip from the current frame and the instruction
@@ -38,13 +38,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--idm", help="inverse dynamics model folder (train-idm RUN/final)")
     parser.add_argument("--bc", help="behaviour-cloning model folder (train-idm --no-future RUN/final)")
     parser.add_argument("--checkpoint", default=str(SHIPPED_CHECKPOINT),
-                        help="world-model inference checkpoint (default: the shipped v2; a `distill` student's RUN/final "
-                             "predicts in 2 steps)")
+                        help="world-model inference checkpoint (default: the shipped v2-2step, 2 steps; "
+                             "tesseract4d/checkpoints/v2 takes 10 guided steps)")
     parser.add_argument("--replan-every", type=int, default=lc.replan_every, help="predicted frames executed per prediction, k (default %(default)s)")
     parser.add_argument("--max-steps", type=int, default=lc.max_steps, help="env steps per episode (default %(default)s)")
     parser.add_argument("--sample-steps", type=int,
-                        help="diffusion steps per prediction (default: the checkpoint's, e.g. 10 for v2, 2 for a "
-                             "`distill` student)")
+                        help="diffusion steps per prediction (default: the checkpoint's, 2 for v2-2step, 10 for v2)")
     parser.add_argument("--camera", default=lc.camera, help="camera preset (default %(default)s)")
     parser.add_argument("--resolution", type=int,
                         help="rendered square image size (default: the world model's with the world_model arm, else "

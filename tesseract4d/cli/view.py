@@ -28,7 +28,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--metrics", type=Path, metavar="REPORT_JSON",
                         help="per-frame metrics from `tesseract4d evaluate` for compare mode (default: cheap image metrics)")
     parser.add_argument("--checkpoint", type=Path, default=SHIPPED_CHECKPOINT,
-                        help="model checkpoint of the Generate panel (default: the shipped v2 model, tesseract4d/checkpoints/v2)")
+                        help="model checkpoint of the Generate panel (default: the shipped v2-2step, tesseract4d/checkpoints/v2-2step; tesseract4d/checkpoints/v2 is its 10-step teacher)")
     parser.add_argument("--camera", help="which camera of an episode to show (default: the first)")
     parser.add_argument("--overwrite", action="store_true", help="with --export: replace a file that is not an earlier export")
     parser.add_argument("--max-points", type=int, default=DEFAULT_MAX_POINTS,
