@@ -31,7 +31,7 @@ from pathlib import Path
 
 from measure import add_isa_cap_argument, apply_isa_cap, median_seconds
 
-SHIPPED = Path(__file__).resolve().parent.parent / "tesseract4d" / "checkpoints" / "v2-2step"
+from tesseract4d.model.checkpoint import SHIPPED_CHECKPOINT  # no torch: the ISA cap is applied later
 
 
 def _transformer_inputs(pipe, batch: int):
@@ -139,7 +139,7 @@ def bench_part(name: str, module, inputs, names, calls_per_clip: int, args, bf16
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--checkpoint", type=Path, default=SHIPPED, help="inference checkpoint (default: the shipped default, v2-2step)")
+    parser.add_argument("--checkpoint", type=Path, default=SHIPPED_CHECKPOINT, help="inference checkpoint (default: the shipped default, v2-2step)")
     parser.add_argument("--repeats", type=int, default=10, help="timed calls per backend (median reported)")
     parser.add_argument("--threads", type=int, default=2, help="intra-op threads for every backend")
     add_isa_cap_argument(parser)
@@ -151,6 +151,7 @@ def main(argv: list[str] | None = None) -> int:
     runtime.configure()
     import torch
 
+    from tesseract4d.model.pipeline import guidance_passes
     from tesseract4d.model.predict import load_pipeline
     from tesseract4d.precision import describe_cpu, resolve_precision
 
@@ -159,7 +160,7 @@ def main(argv: list[str] | None = None) -> int:
     p = pipe.preset
     bf16 = resolve_precision("auto", "cpu", warn=False).bf16
     capped = args.cap_isa is not None
-    batch = 1 + (p.text_guidance != 1.0) + (p.image_guidance != 1.0)
+    batch = len(guidance_passes(p.text_guidance, p.image_guidance))
     inputs, names = _transformer_inputs(pipe, batch)
     rows = bench_part("transformer", pipe.transformer.eval(), inputs, names, p.num_steps, args, bf16, capped)
     if hasattr(pipe.codec, "autoencoder"):

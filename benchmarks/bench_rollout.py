@@ -17,17 +17,15 @@ from __future__ import annotations
 import argparse
 import statistics
 import time
-from pathlib import Path
-
 from measure import add_isa_cap_argument, apply_isa_cap
 
-SHIPPED = Path(__file__).resolve().parent.parent / "tesseract4d" / "checkpoints" / "v2-2step"
+from tesseract4d.model.checkpoint import SHIPPED_CHECKPOINT  # no torch: the ISA cap is applied later
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--idm", required=True, help="IDM folder (train-idm RUN/final)")
-    ap.add_argument("--checkpoint", default=str(SHIPPED), help="world model (default: the shipped default, v2-2step)")
+    ap.add_argument("--checkpoint", default=str(SHIPPED_CHECKPOINT), help="world model (default: the shipped default, v2-2step)")
     ap.add_argument("--task", default="PushCube-v1")
     ap.add_argument("--seed", type=int, default=100000)
     ap.add_argument("--replan-every", type=int, default=4)

@@ -20,12 +20,14 @@ import time
 from pathlib import Path
 from measure import add_isa_cap_argument, apply_isa_cap, print_table
 
+from tesseract4d.model.checkpoint import SHIPPED_CHECKPOINT  # no torch: the ISA cap is applied later
+
 ROOT = Path(__file__).resolve().parent.parent
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--checkpoint", type=Path, default=ROOT / "tesseract4d" / "checkpoints" / "v2-2step")
+    parser.add_argument("--checkpoint", type=Path, default=SHIPPED_CHECKPOINT)
     parser.add_argument("--batches", default="1,2,4,8", help="scenes per pipeline call (default %(default)s)")
     parser.add_argument("--repeats", type=int, default=2, help="timed calls per batch size (median)")
     parser.add_argument("--steps", type=int, help="sampler steps (default: the checkpoint preset's)")
@@ -42,13 +44,14 @@ def main(argv: list[str] | None = None) -> int:
     sys.path.insert(0, str(ROOT / "tests"))
     from synthetic_scene import synthetic_episode
 
+    from tesseract4d.model.pipeline import guidance_passes
     from tesseract4d.model.predict import load_pipeline, predict_scenes
     from tesseract4d.precision import describe_cpu, resolve_precision
 
     pipe = load_pipeline(args.checkpoint, precision=args.precision)
     p = pipe.preset
     steps = args.steps or p.num_steps
-    passes = 1 + (p.text_guidance != 1.0 or p.image_guidance != 1.0) + (p.image_guidance != 1.0)
+    passes = len(guidance_passes(p.text_guidance, p.image_guidance))
     chosen = resolve_precision(args.precision, "cpu", warn=False)
     print(f"CPU: {describe_cpu()}; precision {chosen.name}; torch {torch.__version__}, {torch.get_num_threads()} threads, "
           f"OMP_WAIT_POLICY={os.environ.get('OMP_WAIT_POLICY')}, load average {os.getloadavg()[0]:.1f}")

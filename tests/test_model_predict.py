@@ -147,3 +147,35 @@ def test_frames_and_steps_default_to_the_checkpoint_preset(pipe):
     ep = predict_episode(pipe, synthetic_episode(5, frames=1), "push the square to the right",
                          progress=lambda step, total: calls.append((step, total)))
     assert ep.num_frames == MICRO.num_frames and calls[-1] == (MICRO.num_steps, MICRO.num_steps)
+
+
+@pytest.mark.parametrize("text_guidance,image_guidance", [(2.0, 1.0), (2.0, 1.5)])
+def test_batched_guidance_equals_the_separate_passes(checkpoint, text_guidance, image_guidance):
+    """The sampler puts its conditional and unconditional passes into one forward; its guided
+    prediction equals the one combined from a separate forward per pass."""
+    from tesseract4d.model.codec import make_condition
+    from tesseract4d.model.pipeline import guidance_passes
+
+    pipe = load_pipeline(checkpoint, precision="fp32")
+    p, g = pipe.preset, torch.Generator().manual_seed(0)
+    first = pipe.codec.encode(torch.rand(2, 1, 7, p.height, p.width, generator=g) * 2 - 1)
+    nt = pipe.codec.num_latent_frames(p.num_frames)
+    cond = make_condition(first, nt, p.condition)
+    null_cond = torch.zeros_like(cond)
+    x = torch.randn((2, nt, *first.shape[2:]), generator=g)
+    text = pipe.text_encoder.encode(["push the square to the left", "keep still"])
+    null_text = torch.zeros_like(text)
+    sigma = 0.6
+    with torch.no_grad():
+        batched = pipe._predict_x0(x, sigma, cond, null_cond, text, null_text, text_guidance, image_guidance)
+
+        def one(c, t):
+            return pipe.transformer(x, c, t, torch.full((2,), sigma)).float()
+
+        full, img, none = one(cond, text), one(cond, null_text), one(null_cond, null_text)
+    if image_guidance == 1.0:
+        expected = img + text_guidance * (full - img)
+    else:
+        expected = none + image_guidance * (img - none) + text_guidance * (full - img)
+    assert len(guidance_passes(text_guidance, image_guidance)) == (2 if image_guidance == 1.0 else 3)
+    torch.testing.assert_close(batched, expected, atol=1e-4, rtol=1e-4)

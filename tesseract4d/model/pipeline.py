@@ -28,6 +28,18 @@ def make_scheduler():
     return FlowMatchEulerDiscreteScheduler(num_train_timesteps=1000, shift=1.0)
 
 
+def guidance_passes(text_guidance: float, image_guidance: float) -> tuple[str, ...]:
+    """The conditionings one sampler step batches into one network forward: "full" (first frame and
+    text), then "image" (first frame, no text) when any guidance is on, then "none" (neither) when
+    first-frame guidance is on. A guidance scale of 1 needs no pass of its own."""
+    passes = ("full",)
+    if text_guidance != 1.0 or image_guidance != 1.0:
+        passes += ("image",)
+    if image_guidance != 1.0:
+        passes += ("none",)
+    return passes
+
+
 class RGBDNPipeline:
     """First frame + instruction -> RGB-D-N clip, all in model space (see model_space.py).
 
@@ -68,11 +80,8 @@ class RGBDNPipeline:
 
     def _predict_x0(self, x_t, sigma, cond, null_cond, text, null_text, text_guidance, image_guidance):
         """Guided x0_hat (b, t', c, h, w) for the current noisy sample."""
-        passes = [(cond, text)]
-        if text_guidance != 1.0 or image_guidance != 1.0:
-            passes.append((cond, null_text))
-        if image_guidance != 1.0:
-            passes.append((null_cond, null_text))
+        inputs = {"full": (cond, text), "image": (cond, null_text), "none": (null_cond, null_text)}
+        passes = [inputs[name] for name in guidance_passes(text_guidance, image_guidance)]
         n = len(passes)
         b = x_t.shape[0]
         with torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=self.bf16):
