@@ -229,3 +229,51 @@ def test_a_latent_teacher_distils_into_a_few_step_student_that_carries_its_autoe
     psnr_few = model_space_psnr(student.codec, few, target)
     print(f"student 2 steps {psnr_student:.2f} dB, teacher 2 steps {psnr_few:.2f} dB (vs teacher 8 guided steps)")
     assert psnr_student > psnr_few + 1.0, (psnr_student, psnr_few)
+
+
+def test_decoder_only_fine_tune_swaps_into_the_checkpoint_with_the_same_latents(tmp_path):
+    """train-autoencoder --decoder-only keeps the encoder and latent statistics bit for bit, and
+    swap-decoder puts the new decoder into a copy of the checkpoint: same latents, new pixels; an
+    autoencoder that encodes differently, or --decoder-only without --init, is refused."""
+    from tesseract4d import cli
+    from tesseract4d.model.autoencoder import load_autoencoder
+    from tesseract4d.model.predict import load_pipeline
+    from tesseract4d.model.trainer import Trainer
+
+    data = write_segmented_dataset(tmp_path / "data", episodes=2)
+    final = Trainer(_config(data, tmp_path / "run", _autoencoder(tmp_path / "ae", data=data))).train()
+    dec = tmp_path / "dec"
+    assert cli.main(["train-autoencoder", "--init", str(final / "autoencoder"), "--decoder-only", "--data", str(data),
+                     "--out", str(dec), "--preset", "ae-test", "--max-steps", "3", "--batch-size", "2",
+                     "--lr", "1e-2", "--warmup-steps", "1", "--precision", "fp32", "--quiet"]) == 0
+    old, new = load_autoencoder(final / "autoencoder"), load_autoencoder(dec / "autoencoder")
+    assert new.config.latent_mean == old.config.latent_mean and new.config.latent_std == old.config.latent_std
+    so, sn = old.state_dict(), new.state_dict()
+    encoder_keys = [k for k in so if k.startswith(("vae.encoder.", "vae.quant_conv."))]
+    assert encoder_keys and all(torch.equal(so[k], sn[k]) for k in encoder_keys)
+    assert not all(torch.equal(so[k], sn[k]) for k in so if k.startswith("vae.decoder."))
+
+    swapped = tmp_path / "swapped"
+    assert cli.main(["swap-decoder", "--checkpoint", str(final), "--autoencoder", str(dec / "autoencoder"),
+                     "--to", str(swapped), "--half"]) == 0
+    cfg = json.loads((swapped / "tesseract4d_config.json").read_text())
+    before = json.loads((final / "tesseract4d_config.json").read_text())["autoencoder"]["hash"]
+    assert cfg["autoencoder"]["trained_with_hash"] == before == cfg["autoencoder"]["decoder_replaced"]["previous_hash"]
+    first = torch.rand(1, 7, 32, 32) * 2 - 1
+    a, b = load_pipeline(final, precision="fp32"), load_pipeline(swapped, precision="fp32")
+    za = a(first, ["push"], num_inference_steps=2, generator=torch.Generator().manual_seed(1), output_type="latent")
+    zb = b(first, ["push"], num_inference_steps=2, generator=torch.Generator().manual_seed(1), output_type="latent")
+    assert torch.equal(za, zb)
+    assert not torch.equal(a.codec.decode(za), b.codec.decode(zb))
+
+    other = _autoencoder(tmp_path / "other", seed=9, data=data)
+    with pytest.raises(UserError, match="--decoder-only"):
+        from tesseract4d.model.latent_checkpoint import replace_decoder
+
+        replace_decoder(final, other, tmp_path / "refused")
+    assert not (tmp_path / "refused").exists()
+    from tesseract4d.model.autoencoder_trainer import AutoencoderTrainConfig, AutoencoderTrainer
+
+    with pytest.raises(UserError, match="--init"):
+        AutoencoderTrainer(AutoencoderTrainConfig(data=data, out=tmp_path / "noinit", preset="ae-test",
+                                                  decoder_only=True, progress=False))

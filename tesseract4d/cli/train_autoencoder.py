@@ -15,6 +15,8 @@ Example:
   tesseract4d train-autoencoder --data data/ae128 --heldout data/ae128_heldout --out runs/ae --resume
   tesseract4d train-autoencoder --init runs/ae/autoencoder --data data/ae128 data/skills128 --frame-stride 4 \\
       --lr 1.5e-4 --warmup-steps 50 --max-steps 1500 --heldout data/skills128_heldout --out runs/ae_ft   # fine-tune
+  tesseract4d train-autoencoder --init tesseract4d/checkpoints/v2/autoencoder --decoder-only --data data/skills128 \
+      --heldout data/skills128_heldout --out runs/dec_ft     # a better decoder for v2's latents (see swap-decoder)
 """
 
 from __future__ import annotations
@@ -34,6 +36,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--init", type=Path, default=None,
                         help="start from this exported autoencoder (RUN/autoencoder) instead of random weights: "
                              "fine-tune it on new scenes; the latent model must then be trained on the new one")
+    parser.add_argument("--decoder-only", action="store_true",
+                        help="with --init: train only the decoder; the encoder and latent statistics stay exactly as they "
+                             "are, so a latent model trained on them keeps working: put the new decoder into its "
+                             "checkpoint with `tesseract4d swap-decoder`")
     parser.add_argument("--frame-stride", type=int, default=d.frame_stride,
                         help="train on every k-th frame of each episode (less memory; default %(default)s)")
     parser.add_argument("--heldout", type=Path, default=None,
@@ -72,7 +78,7 @@ def run(args: argparse.Namespace) -> int:
 
     cfg = AutoencoderTrainConfig(
         data=args.data, heldout=args.heldout, out=args.out, preset=args.preset, camera=args.camera,
-        init=args.init, frame_stride=args.frame_stride, warmup_steps=args.warmup_steps,
+        init=args.init, decoder_only=args.decoder_only, frame_stride=args.frame_stride, warmup_steps=args.warmup_steps,
         max_steps=args.max_steps, max_minutes=args.max_minutes, batch_size=args.batch_size, lr=args.lr,
         object_weight=args.object_weight, depth_weight=args.depth_weight, normal_weight=args.normal_weight,
         kl_weight=args.kl_weight, precision=args.precision, ckpt_minutes=args.ckpt_minutes,

@@ -14,6 +14,11 @@ survive compression:
 Everything random in a step (frames, posterior sample) comes from a generator seeded by
 (seed, step), so a resumed run continues exactly.
 
+``decoder_only`` fine-tunes only the decoder of an ``init`` autoencoder: its encoder and latent
+statistics stay bit-identical, so the latents (and a latent model trained on them, its latent
+caches' contents) stay valid and the new decoder can replace the old one in a latent checkpoint
+(``latent_checkpoint.replace_decoder``).
+
 Run folder::
 
     RUN/ae_train_config.json               the resolved AutoencoderTrainConfig
@@ -67,6 +72,7 @@ class AutoencoderTrainConfig:
     heldout: Path | None = None
     out: Path = Path("runs/autoencoder")
     init: Path | None = None  # start from this exported autoencoder (fine-tuning) instead of random weights
+    decoder_only: bool = False  # with init: train only the decoder (encoder and latent statistics frozen)
     frame_stride: int = 1  # train on every k-th frame of each episode
     preset: str = "ae-f8c32"
     camera: str | None = None
@@ -256,6 +262,9 @@ class AutoencoderTrainer:
             raise UserError("--data is required: a dataset folder written by `tesseract4d datagen --resolution 128`")
         if cfg.frame_stride < 1:
             raise UserError(f"--frame-stride must be at least 1, got {cfg.frame_stride}")
+        if cfg.decoder_only and cfg.init is None:
+            raise UserError("--decoder-only fine-tunes the decoder of an existing autoencoder: pass --init AE "
+                            "(e.g. tesseract4d/checkpoints/v2/autoencoder)")
         self.cfg = cfg
         self.fidelity_fn = fidelity_fn
         self.format_fn = format_fn or (lambda d: json.dumps(d))
@@ -269,10 +278,10 @@ class AutoencoderTrainer:
         ae_cfg: AutoencoderConfig = get_autoencoder_preset(cfg.preset)
         torch.manual_seed(cfg.seed)
         self.model = RGBDNAutoencoder(ae_cfg)
-        if cfg.init is not None and not cfg.resume:
-            self._load_init(cfg.init)
+        if cfg.init is not None and (cfg.decoder_only or not cfg.resume):
+            self._load_init(cfg.init)  # on --resume of a decoder-only run too: it keeps the init's latent statistics
         self.ema = EMA(self.model, cfg.ema_decay)
-        self.optimizer = torch.optim.AdamW(self.model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay,
+        self.optimizer = torch.optim.AdamW(self.trained_parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay,
                                            betas=(0.9, 0.99))
         self.frames = FrameSet.concat([
             FrameSet.load(folder, height=ae_cfg.height, width=ae_cfg.width, model_space=self.model.model_space,
@@ -301,6 +310,20 @@ class AutoencoderTrainer:
                             f"({mine.height}x{mine.width}, {tuple(mine.latent_shape)}); pass the matching --preset")
         state = load_file(str(Path(folder) / WEIGHTS_FILE))
         self.model.load_state_dict({k: v.float() for k, v in state.items()})
+        if self.cfg.decoder_only:
+            if saved.latent_mean is None or saved.latent_std is None:
+                raise UserError(f"--init {folder} has no latent statistics; export it with `tesseract4d train-autoencoder` first")
+            self.model.set_latent_stats(torch.tensor(saved.latent_mean), torch.tensor(saved.latent_std))
+            for module in self.frozen_modules():
+                module.requires_grad_(False)
+
+    def frozen_modules(self) -> list[torch.nn.Module]:
+        """What --decoder-only keeps fixed: everything that maps frames to latents."""
+        # latent_checkpoint.ENCODER_PREFIXES names the same modules' weights.
+        return [self.model.vae.encoder, self.model.vae.quant_conv] if self.cfg.decoder_only else []
+
+    def trained_parameters(self) -> list[torch.nn.Parameter]:
+        return [p for p in self.model.parameters() if p.requires_grad]
 
     def _check_run_folder(self) -> None:
         cfg_path = self.out / CONFIG_FILE
@@ -347,10 +370,11 @@ class AutoencoderTrainer:
     def export(self) -> dict:
         """Write RUN/autoencoder (EMA weights + latent statistics + fidelity.json) atomically; return the gate."""
         model = self.ema.model
-        g = torch.Generator().manual_seed(12345)
-        idx = torch.randperm(len(self.frames), generator=g)[:LATENT_STATS_FRAMES]
-        mean, std = measure_latent_stats(model, self.frames.frames[idx])
-        model.set_latent_stats(mean, std)
+        if not self.cfg.decoder_only:  # a frozen encoder keeps the init's statistics (set at load)
+            g = torch.Generator().manual_seed(12345)
+            idx = torch.randperm(len(self.frames), generator=g)[:LATENT_STATS_FRAMES]
+            mean, std = measure_latent_stats(model, self.frames.frames[idx])
+            model.set_latent_stats(mean, std)
         fidelity = self.fidelity_fn(model) if self.fidelity_fn is not None else {}
         fidelity = {"step": self.step, **fidelity}
         final = self.out / EXPORT_DIR
@@ -372,15 +396,18 @@ class AutoencoderTrainer:
         for group in self.optimizer.param_groups:
             group["lr"] = lr
         self.model.train()
+        for module in self.frozen_modules():
+            module.eval()
         with torch.autocast("cpu", dtype=torch.bfloat16, enabled=self.precision == "bf16"):
-            post = self.model.posterior(x)
+            with torch.set_grad_enabled(not cfg.decoder_only):
+                post = self.model.posterior(x)
             z = post.sample(generator=g)
             pred = self.model.decode_raw(z)
         kl = post.kl().float() / z[0].numel()  # (b,) per latent element
         loss, parts = reconstruction_loss(pred, x, mask, kl, cfg)
         self.optimizer.zero_grad(set_to_none=True)
         loss.backward()
-        grad_norm = torch.nn.utils.clip_grad_norm_(self.model.parameters(), cfg.grad_clip)
+        grad_norm = torch.nn.utils.clip_grad_norm_(self.trained_parameters(), cfg.grad_clip)
         if not torch.isfinite(loss):
             raise RuntimeError(f"autoencoder loss is {float(loss)} at step {self.step}; lower --lr or use --precision fp32")
         self.optimizer.step()

@@ -51,6 +51,19 @@ def write_inference_files(folder: str | os.PathLike, inference_config: dict) -> 
     make_scheduler().save_pretrained(folder / SCHEDULER_DIR)
 
 
+def weights_to_half(weights: Path) -> None:
+    """Rewrite a safetensors file with its float32 tensors as float16 (other dtypes kept)."""
+    import torch
+    from safetensors import safe_open
+    from safetensors.torch import save_file
+
+    with safe_open(str(weights), "pt") as f:
+        metadata = f.metadata()
+        tensors = {k: f.get_tensor(k) for k in f.keys()}
+    tensors = {k: v.half() if v.dtype == torch.float32 else v for k, v in tensors.items()}
+    save_file(tensors, str(weights), metadata=metadata)
+
+
 def read_inference_config(checkpoint: str | os.PathLike) -> dict:
     """INFERENCE_CONFIG_FILE of a checkpoint folder, checked for format and version; UserError
     with the fix when the folder is not a (readable) inference checkpoint."""

@@ -2,16 +2,20 @@
 
 The exported folder holds a copy of the autoencoder (``CKPT/autoencoder/``) and its hash in
 ``tesseract4d_config.json``; loading refuses a checkpoint whose autoencoder is missing or differs.
+A decoder fine-tuned on the same latents can replace the checkpoint's (``replace_decoder``).
 """
 
 from __future__ import annotations
 
+import json
+import os
 import shutil
 from pathlib import Path
 
 from tesseract4d.errors import UserError
 
 AUTOENCODER_DIR = "autoencoder"
+ENCODER_PREFIXES = ("vae.encoder.", "vae.quant_conv.")  # the autoencoder's weights that make its latents
 
 
 def autoencoder_entry(codec, autoencoder_dir: str | None) -> dict:
@@ -49,3 +53,72 @@ def checkpoint_autoencoder(checkpoint_dir: Path, entry: dict) -> Path:
         raise UserError(f"{folder} is autoencoder {found}, but {checkpoint_dir} was trained on {entry['hash']}; "
                         f"re-export the checkpoint with `tesseract4d train --export RUN` (it copies the right one)")
     return folder
+
+
+def encoder_differences(a, b) -> list[str]:
+    """What differs between the latent side (architecture, encoder weights, latent statistics) of two
+    RGBDNAutoencoders; empty when ``b``'s latents are ``a``'s, bit for bit."""
+    import torch
+
+    out = []
+    ca, cb = a.config.to_dict(), b.config.to_dict()
+    out += [f"config {k}: {ca[k]} vs {cb[k]}" for k in ca if k != "name" and ca[k] != cb.get(k)]
+    if out:
+        return out
+    sa, sb = a.state_dict(), b.state_dict()
+    for key in sa:
+        if key.startswith(ENCODER_PREFIXES) and not torch.equal(sa[key].float(), sb[key].float()):
+            out.append(f"weight {key}")
+    return out
+
+
+def replace_decoder(checkpoint: str | os.PathLike, autoencoder: str | os.PathLike, to: str | os.PathLike,
+                    half: bool = False, overwrite: bool = False) -> Path:
+    """Write a copy of the latent ``checkpoint`` into ``to`` whose autoencoder is ``autoencoder``: a
+    decoder-only fine-tune of the checkpoint's own (``train-autoencoder --decoder-only``), so the
+    transformer's latents are unchanged. Refused, naming what differs, when its encoder, latent
+    statistics or architecture are not the checkpoint's. ``half`` stores the new decoder in float16
+    (the encoder is copied as the checkpoint stores it, the transformer as it is)."""
+    from tesseract4d.model.autoencoder import WEIGHTS_FILE as AE_WEIGHTS
+    from tesseract4d.model.autoencoder import autoencoder_hash, load_autoencoder, read_autoencoder_config
+    import torch
+    from safetensors.torch import load_file, save_file
+
+    from tesseract4d.model.checkpoint import INFERENCE_CONFIG_FILE, SCHEDULER_DIR, TRANSFORMER_DIR, read_inference_config
+    from tesseract4d.outputs import OutputDir
+
+    checkpoint, autoencoder = Path(checkpoint), Path(autoencoder)
+    config = read_inference_config(checkpoint)
+    if "autoencoder" not in config:
+        raise UserError(f"{checkpoint} is a pixel-space checkpoint (preset {config.get('preset', {}).get('name')!r}); "
+                        f"only a latent checkpoint has a decoder to replace")
+    old_dir = checkpoint_autoencoder(checkpoint, config["autoencoder"])
+    read_autoencoder_config(autoencoder)  # a UserError naming the fix when it is not an autoencoder
+    diff = encoder_differences(load_autoencoder(old_dir), load_autoencoder(autoencoder))
+    if diff:
+        raise UserError(f"{autoencoder} does not encode like {old_dir} ({'; '.join(diff[:3])}"
+                        f"{'; ...' if len(diff) > 3 else ''}); make it with `tesseract4d train-autoencoder "
+                        f"--init {old_dir} --decoder-only`")
+    with OutputDir(to, "export", inputs=[checkpoint, autoencoder], overwrite=overwrite, flag="--to") as tmp:
+        shutil.copytree(checkpoint / TRANSFORMER_DIR, tmp / TRANSFORMER_DIR)
+        shutil.copytree(checkpoint / SCHEDULER_DIR, tmp / SCHEDULER_DIR)
+        dst = tmp / AUTOENCODER_DIR
+        dst.mkdir()
+        for name in ("config.json", "fidelity.json"):
+            if (autoencoder / name).is_file():
+                shutil.copy2(autoencoder / name, dst / name)
+        # The encoder's tensors are the checkpoint's own, as stored (float16 stays float16), so its
+        # latents stay bit-identical; the rest comes from the new autoencoder (float16 with ``half``).
+        old_weights, new_weights = load_file(str(old_dir / AE_WEIGHTS)), load_file(str(autoencoder / AE_WEIGHTS))
+        merged = {k: old_weights[k] if k.startswith(ENCODER_PREFIXES) else
+                  (v.half() if half and v.dtype == torch.float32 else v) for k, v in new_weights.items()}
+        save_file({k: v.contiguous() for k, v in merged.items()}, str(dst / AE_WEIGHTS))
+        old = config["autoencoder"]
+        config["autoencoder"] = {
+            **old, "hash": autoencoder_hash(dst), "source_dir": str(autoencoder),
+            # The autoencoder the transformer was trained with: its encoder is this one's.
+            "trained_with_hash": old.get("trained_with_hash", old["hash"]),
+            "decoder_replaced": {"previous_hash": old["hash"], "source_hash": autoencoder_hash(autoencoder)},
+        }
+        (tmp / INFERENCE_CONFIG_FILE).write_text(json.dumps(config, indent=2))
+    return Path(to)

@@ -42,7 +42,7 @@ from tesseract4d.psnr import rgb_psnr
 from tesseract4d.model.model_space import MODALITIES, ModelSpace
 from tesseract4d.model.checkpoint import (
     INFERENCE_CONFIG_FILE, MODEL_CONFIG_FILE, SCHEDULER_CONFIG_FILE, SCHEDULER_DIR, TRANSFORMER_DIR, WEIGHTS_FILE,
-    format_header, write_inference_files,
+    format_header, weights_to_half, write_inference_files,
 )
 from tesseract4d.model.presets import ModelPreset, get_preset, preset_from_dict
 
@@ -271,7 +271,7 @@ def export_checkpoint(run: str | os.PathLike, to: str | os.PathLike | None = Non
         state = json.loads((ckpt / STATE_FILE).read_text())
         config = dict(state["inference_config"])
         if half:
-            _to_half(tmp / TRANSFORMER_DIR / WEIGHTS_FILE)
+            weights_to_half(tmp / TRANSFORMER_DIR / WEIGHTS_FILE)
         if "autoencoder" in config:
             from tesseract4d.model.autoencoder import WEIGHTS_FILE as AE_WEIGHTS
             from tesseract4d.model.autoencoder import autoencoder_hash
@@ -279,24 +279,12 @@ def export_checkpoint(run: str | os.PathLike, to: str | os.PathLike | None = Non
 
             ae_dir = copy_autoencoder(config["autoencoder"], tmp)
             if half:  # the half autoencoder is another file: record its identity
-                _to_half(ae_dir / AE_WEIGHTS)
+                weights_to_half(ae_dir / AE_WEIGHTS)
                 config["autoencoder"] = {**config["autoencoder"], "hash": autoencoder_hash(ae_dir),
                                          "trained_with_hash": config["autoencoder"]["hash"]}
         config["weights_dtype"] = "float16" if half else "float32"
         write_inference_files(tmp, {**config, **format_header()})
     return to
-
-
-def _to_half(weights: Path) -> None:
-    """Rewrite a safetensors file with its float32 tensors as float16 (other dtypes kept)."""
-    from safetensors import safe_open
-    from safetensors.torch import save_file
-
-    with safe_open(str(weights), "pt") as f:
-        metadata = f.metadata()
-        tensors = {k: f.get_tensor(k) for k in f.keys()}
-    tensors = {k: v.half() if v.dtype == torch.float32 else v for k, v in tensors.items()}
-    save_file(tensors, str(weights), metadata=metadata)
 
 
 # --------------------------------------------------------------------------- trainer
