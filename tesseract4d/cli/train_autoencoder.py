@@ -55,6 +55,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--warmup-steps", type=int, default=d.warmup_steps, help="linear warm-up steps (default %(default)s)")
     parser.add_argument("--object-weight", type=float, default=d.object_weight,
                         help="loss weight of robot/object pixels relative to scenery (default %(default)s)")
+    parser.add_argument("--rgb-weight", type=float, default=d.rgb_weight, help="default %(default)s")
     parser.add_argument("--depth-weight", type=float, default=d.depth_weight, help="default %(default)s")
     parser.add_argument("--normal-weight", type=float, default=d.normal_weight, help="default %(default)s")
     parser.add_argument("--kl-weight", type=float, default=d.kl_weight, help="default %(default)s")
@@ -80,7 +81,7 @@ def run(args: argparse.Namespace) -> int:
         data=args.data, heldout=args.heldout, out=args.out, preset=args.preset, camera=args.camera,
         init=args.init, decoder_only=args.decoder_only, frame_stride=args.frame_stride, warmup_steps=args.warmup_steps,
         max_steps=args.max_steps, max_minutes=args.max_minutes, batch_size=args.batch_size, lr=args.lr,
-        object_weight=args.object_weight, depth_weight=args.depth_weight, normal_weight=args.normal_weight,
+        object_weight=args.object_weight, rgb_weight=args.rgb_weight, depth_weight=args.depth_weight, normal_weight=args.normal_weight,
         kl_weight=args.kl_weight, precision=args.precision, ckpt_minutes=args.ckpt_minutes,
         heldout_frames=args.heldout_frames, seed=args.seed, resume=args.resume, progress=not args.quiet,
     )
