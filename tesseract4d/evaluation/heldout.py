@@ -9,7 +9,12 @@ are scored against the simulator's ground truth with ``tesseract4d.evaluation.ep
   temporal consistency), i.e. what `tesseract4d demo` shows;
 - ``model_raw``: the same prediction back-projected as is (no consistency step);
 - ``static``: the static world, the first frame repeated (what a model that predicts no motion
-  scores; on the moving region it is the baseline to beat).
+  scores; on the moving region it is the baseline to beat);
+- ``autoencoder`` (``<name>_autoencoder`` beside several checkpoints), for a latent checkpoint at
+  the data's resolution: the ground truth itself encoded and decoded by the checkpoint's
+  autoencoder, the best a model in that latent space can show (its ceiling: colours, sharpness and
+  object permanence that the autoencoder loses, no latent model can get back). One per distinct
+  autoencoder.
 
 Every metric is reported over all pixels and over the moving region (ground-truth pixels that
 change over the clip), plus the instruction-following measure of
@@ -94,6 +99,35 @@ def static_world(first: df.Episode, camera: str, num_frames: int) -> df.Episode:
                              K=rep(cam.K), T_world_cam=rep(cam.T_world_cam))
     return df.Episode(env_id=first.env_id, seed=first.seed, instruction=first.instruction, cameras={camera: frames},
                       frame_steps=np.arange(num_frames, dtype=np.int32), fps=first.fps, source="static-baseline")
+
+
+def autoencoder_round_trip(pipeline, gt: df.Episode, camera: str) -> df.Episode:
+    """The ground truth of ``camera`` encoded and decoded by a latent ``pipeline``'s codec, in the
+    precision the pipeline decodes in: what the checkpoint's latent space can show at best."""
+    import torch
+
+    cam = gt.cameras[camera]
+    ms = pipeline.model_space
+    x = ms.encode(cam.rgb, cam.depth_m, cam.normal_cam)[None].to(pipeline.device)  # (1, T, 7, H, W)
+    with torch.no_grad(), torch.autocast(pipeline.device.type, dtype=torch.bfloat16, enabled=pipeline.bf16):
+        y = pipeline.codec.decode(pipeline.codec.encode(x)).float().clamp(-1.0, 1.0)[0]  # (T, 7, H, W)
+    rgb, depth_m, normal_cam = ms.decode(y)
+    frames = df.CameraFrames(rgb=rgb, depth_m=depth_m, normal_cam=normal_cam, K=cam.K, T_world_cam=cam.T_world_cam)
+    return df.Episode(env_id=gt.env_id, seed=gt.seed, instruction=gt.instruction, cameras={camera: frames},
+                      frame_steps=gt.frame_steps, fps=gt.fps, source="autoencoder-round-trip")
+
+
+def ceiling_methods(keys: list[tuple[str, str]], pipelines: list, factors: list) -> dict[str, int]:
+    """Method key -> pipeline index of the autoencoder ceilings: one per distinct autoencoder among
+    the latent checkpoints that predict at the data's resolution."""
+    out, seen = {}, set()
+    for i, ((with_c, _), pipeline, s) in enumerate(zip(keys, pipelines, factors)):
+        ae_hash = getattr(pipeline.codec, "autoencoder_hash", None)
+        if ae_hash is None or s != 1 or ae_hash in seen:
+            continue
+        seen.add(ae_hash)
+        out["autoencoder" if with_c == "model" else f"{with_c}_autoencoder"] = i
+    return out
 
 
 def select_episodes(data: Path, max_per_task: int | None) -> list[Path]:
@@ -264,8 +298,11 @@ def evaluate_heldout(cfg: HeldoutConfig, progress: bool = True) -> dict:
     pipelines = [load_pipeline(c, precision=cfg.precision) for c in checkpoints]
     factors = [data_to_model_factor(c, tuple(p.resolution), data, data_hw) for c, p in zip(checkpoints, pipelines)]
     patch_px = [token_patch_px(p) for p in pipelines]
-    methods = [k for pair in keys for k in pair] + ["static"]
+    ceilings = ceiling_methods(keys, pipelines, factors)
+    methods = [k for pair in keys for k in pair] + list(ceilings) + ["static"]
     labels = {"static": METHOD_LABELS["static"]}
+    for key, i in ceilings.items():
+        labels[key] = f"{keys[i][0]}'s autoencoder: truth encoded + decoded (ceiling)"
     resolutions = {}
     for (with_c, raw), pipeline, s in zip(keys, pipelines, factors):
         note = resolution_note(pipeline.resolution, data_hw)
@@ -278,6 +315,7 @@ def evaluate_heldout(cfg: HeldoutConfig, progress: bool = True) -> dict:
     method_patch = {k: px for (a, b), px in zip(keys, patch_px) for k in (a, b)}
     static_patch_px = token_px_in_data(patch_px[0], factors[0])
     method_patch["static"] = static_patch_px
+    method_patch.update({key: patch_px[i] for key, i in ceilings.items()})
     num_steps = cfg.num_steps or pipelines[0].preset.num_steps
     cfg = dataclasses.replace(cfg, num_steps=num_steps, batch_size=batch_size)  # resolved, for the report
     max_depth_m = cfg.max_depth_m if cfg.max_depth_m is not None else float(pipelines[0].model_space.far_m)
@@ -314,6 +352,8 @@ def evaluate_heldout(cfg: HeldoutConfig, progress: bool = True) -> dict:
                 model_rgb[raw] = model_rgb[with_c]
                 outputs[with_c] = reconstruct_episode(pred, config=ReconConfig())
                 outputs[raw] = pred
+            for key, i in ceilings.items():
+                outputs[key] = autoencoder_round_trip(pipelines[i], gt, camera)
             outputs["static"] = static_world(first, camera, num_frames[j])
             skill = (gt.intent or {}).get("skill") or "task"
             row = {"episode": str(path.relative_to(data)), "task": gt.env_id, "seed": gt.seed, "group_id": gt.group_id,
