@@ -114,6 +114,8 @@ def test_trainer_resume_is_exact_and_gate_is_stored(tmp_path):
     gate = second.train()
     for a, b in zip(full.model.state_dict().values(), second.model.state_dict().values()):
         assert torch.equal(a, b)
+    saved = json.loads((tmp_path / "split" / "ae_train_config.json").read_text())
+    assert saved["max_steps"] == 4 and saved["resume"] is True  # the config of the run as it continued
     stored = json.loads((tmp_path / "split" / "autoencoder" / "fidelity.json").read_text())
     assert stored["step"] == 4 and stored == json.loads(json.dumps(gate))
     for key in ("rgb_psnr_db", "object_rgb_psnr_db", "depth_mae_mm", "object_depth_mae_mm", "depth_abs_rel",

@@ -424,8 +424,8 @@ class AutoencoderTrainer:
         if cfg.resume:
             self.load_checkpoint()
             print(f"resumed {self.out} at step {self.step}")
-        else:
-            df.atomic_write_text(self.out / CONFIG_FILE, json.dumps(cfg.to_dict(), indent=2))
+        # Written on a resume too, so the folder says how the run continued (e.g. a longer --max-steps).
+        df.atomic_write_text(self.out / CONFIG_FILE, json.dumps(cfg.to_dict(), indent=2))
         print(f"autoencoder {cfg.preset}: {sum(p.numel() for p in self.model.parameters()) / 1e6:.2f} M params, "
               f"{len(self.frames)} training frames, precision {self.precision}, "
               f"{self.model.config.spatial_compression}x -> latent {self.model.config.latent_shape}")
