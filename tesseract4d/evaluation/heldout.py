@@ -104,14 +104,10 @@ def static_world(first: df.Episode, camera: str, num_frames: int) -> df.Episode:
 def autoencoder_round_trip(pipeline, gt: df.Episode, camera: str) -> df.Episode:
     """The ground truth of ``camera`` encoded and decoded by a latent ``pipeline``'s codec, in the
     precision the pipeline decodes in: what the checkpoint's latent space can show at best."""
-    import torch
-
     cam = gt.cameras[camera]
     ms = pipeline.model_space
     x = ms.encode(cam.rgb, cam.depth_m, cam.normal_cam)[None].to(pipeline.device)  # (1, T, 7, H, W)
-    with torch.no_grad(), torch.autocast(pipeline.device.type, dtype=torch.bfloat16, enabled=pipeline.bf16):
-        y = pipeline.codec.decode(pipeline.codec.encode(x)).float().clamp(-1.0, 1.0)[0]  # (T, 7, H, W)
-    rgb, depth_m, normal_cam = ms.decode(y)
+    rgb, depth_m, normal_cam = ms.decode(pipeline.decode(pipeline.codec.encode(x))[0])  # (T, 7, H, W) decoded
     frames = df.CameraFrames(rgb=rgb, depth_m=depth_m, normal_cam=normal_cam, K=cam.K, T_world_cam=cam.T_world_cam)
     return df.Episode(env_id=gt.env_id, seed=gt.seed, instruction=gt.instruction, cameras={camera: frames},
                       frame_steps=gt.frame_steps, fps=gt.fps, source="autoencoder-round-trip")

@@ -280,6 +280,8 @@ class AutoencoderTrainer:
         self.model = RGBDNAutoencoder(ae_cfg)
         if cfg.init is not None and (cfg.decoder_only or not cfg.resume):
             self._load_init(cfg.init)  # on --resume of a decoder-only run too: it keeps the init's latent statistics
+        for module in self.frozen_modules():
+            module.requires_grad_(False)
         self.ema = EMA(self.model, cfg.ema_decay)
         self.optimizer = torch.optim.AdamW(self.trained_parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay,
                                            betas=(0.9, 0.99))
@@ -314,8 +316,6 @@ class AutoencoderTrainer:
             if saved.latent_mean is None or saved.latent_std is None:
                 raise UserError(f"--init {folder} has no latent statistics; export it with `tesseract4d train-autoencoder` first")
             self.model.set_latent_stats(torch.tensor(saved.latent_mean), torch.tensor(saved.latent_std))
-            for module in self.frozen_modules():
-                module.requires_grad_(False)
 
     def frozen_modules(self) -> list[torch.nn.Module]:
         """What --decoder-only keeps fixed: everything that maps frames to latents."""

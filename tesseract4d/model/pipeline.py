@@ -131,13 +131,18 @@ class RGBDNPipeline:
                 progress(step_offset + i + 1, total_steps)
         return x
 
-    def _sample_clip(self, *args, **kwargs):
-        """One decoded clip (b, T, 7, H, W) in model space; arguments as :meth:`_denoise_clip`."""
-        z = self._denoise_clip(*args, **kwargs)
+    @torch.no_grad()
+    def decode(self, z: torch.Tensor) -> torch.Tensor:
+        """Network-space clips (b, t', c, h, w) -> fp32 model-space clips (b, T, 7, H, W) in [-1, 1],
+        in the pipeline's precision."""
         # A latent codec's decoder is a fifth to a tenth of a clip's time; bf16 decodes it in about
         # 60 % of fp32's time (benchmarks/bench_latent.py).
         with torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=self.bf16):
             return self.codec.decode(z).float().clamp(-1.0, 1.0)
+
+    def _sample_clip(self, *args, **kwargs):
+        """One decoded clip (b, T, 7, H, W) in model space; arguments as :meth:`_denoise_clip`."""
+        return self.decode(self._denoise_clip(*args, **kwargs))
 
     @torch.no_grad()
     def __call__(
