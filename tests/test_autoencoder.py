@@ -47,6 +47,24 @@ def test_round_trip_shapes_metric_depth_and_unit_normals():
         assert tuple(model.decode_clips(zc).shape) == (2, 4, 7, 32, 32)
 
 
+def test_renormalised_normals_are_unit_or_zero_with_finite_gradients():
+    """Normals are scaled to unit length; too short ones (no hit) become 0, and even an exactly zero
+    vector gives a finite gradient (the loss back-propagates through decoding)."""
+    from tesseract4d.model.model_space import renormalize_normals
+
+    s = channel_slices()["normal"]
+    x = torch.zeros(1, 7, 2, 2)
+    x[0, s, 0, 0] = torch.tensor([0.0, 0.0, 2.0])
+    x[0, s, 0, 1] = torch.tensor([0.1, 0.0, 0.0])  # shorter than MIN_NORMAL_LENGTH
+    x.requires_grad_(True)
+    y = renormalize_normals(x)
+    assert torch.allclose(y[0, s, 0, 0], torch.tensor([0.0, 0.0, 1.0]))
+    assert torch.equal(y[0, s, 0, 1], torch.zeros(3)) and torch.equal(y[0, s, 1, 1], torch.zeros(3))
+    assert torch.equal(y[0, :s.start], x[0, :s.start])
+    y.sum().backward()
+    assert torch.isfinite(x.grad).all()
+
+
 def test_bf16_decode_keeps_the_output_layer_in_fp32_and_stays_close_to_fp32():
     """Under bf16 autocast (what the pipeline does on a CPU with native bf16) the shipped
     autoencoder decodes in fp32 output, within a stated tolerance of the fp32 decode; the fp32

@@ -281,6 +281,49 @@ def test_decoder_only_fine_tune_swaps_into_the_checkpoint_with_the_same_latents(
                                                   decoder_only=True, progress=False))
 
 
+def test_a_lighter_decoder_starts_from_the_init_and_swaps_into_the_checkpoint(tmp_path):
+    """--decoder-layers-per-block 0 on a 1-layer init: the encoder and the kept resnets are the init's,
+    the second resnet of each up block is dropped, the result swaps in (same latents) and decodes;
+    adding layers, or resuming with another depth, is refused."""
+    from tesseract4d import cli
+    from tesseract4d.model.autoencoder import load_autoencoder
+    from tesseract4d.model.autoencoder_trainer import AutoencoderTrainConfig, AutoencoderTrainer
+    from tesseract4d.model.predict import load_pipeline
+    from tesseract4d.model.trainer import Trainer
+
+    data = write_segmented_dataset(tmp_path / "data", episodes=2)
+    final = Trainer(_config(data, tmp_path / "run", _autoencoder(tmp_path / "ae", data=data))).train()
+    init = load_autoencoder(final / "autoencoder")
+    cfg = dict(data=data, preset="ae-test", init=final / "autoencoder", decoder_only=True, precision="fp32",
+               max_steps=2, batch_size=2, warmup_steps=1, lr=1e-2, progress=False)
+    trainer = AutoencoderTrainer(AutoencoderTrainConfig(out=tmp_path / "light", decoder_layers_per_block=0, **cfg))
+    light, full = trainer.model.state_dict(), init.state_dict()
+    assert all(len(block.resnets) == 1 for block in trainer.model.vae.decoder.up_blocks)
+    assert all(torch.equal(v, full[k]) for k, v in light.items())  # every kept weight is the init's
+    dropped = set(full) - set(light)
+    assert dropped and all(".up_blocks." in k and ".resnets.1." in k for k in dropped)
+    trainer.train()
+
+    swapped = tmp_path / "swapped"
+    assert cli.main(["swap-decoder", "--checkpoint", str(final), "--autoencoder", str(tmp_path / "light" / "autoencoder"),
+                     "--to", str(swapped)]) == 0
+    first = torch.rand(1, 7, 32, 32) * 2 - 1
+    a, b = load_pipeline(final, precision="fp32"), load_pipeline(swapped, precision="fp32")
+    assert b.codec.autoencoder.config.decoder_layers == 0
+    kw = dict(num_inference_steps=2, output_type="latent")
+    za = a(first, ["push"], generator=torch.Generator().manual_seed(1), **kw)
+    zb = b(first, ["push"], generator=torch.Generator().manual_seed(1), **kw)
+    assert torch.equal(za, zb)
+    clip = b(first, ["push"], num_inference_steps=2, generator=torch.Generator().manual_seed(1))
+    assert clip.shape == (1, 8, 7, 32, 32) and torch.isfinite(clip).all()
+
+    with pytest.raises(UserError, match="not add them"):
+        AutoencoderTrainer(AutoencoderTrainConfig(out=tmp_path / "deeper", decoder_layers_per_block=2, **cfg))
+    with pytest.raises(UserError, match="decoder-layers-per-block 0"):
+        AutoencoderTrainer(AutoencoderTrainConfig(out=tmp_path / "light", resume=True, **cfg))
+    assert not (tmp_path / "deeper").exists()
+
+
 def test_heldout_evaluation_scores_the_autoencoder_ceiling_once_per_autoencoder(tmp_path):
     """A latent checkpoint at the data's resolution gets a ceiling row: the truth encoded and decoded
     by its autoencoder; two checkpoints sharing one autoencoder get one row."""

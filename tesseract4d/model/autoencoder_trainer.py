@@ -34,6 +34,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import re
 import shutil
 import signal
 import time
@@ -73,6 +74,7 @@ class AutoencoderTrainConfig:
     out: Path = Path("runs/autoencoder")
     init: Path | None = None  # start from this exported autoencoder (fine-tuning) instead of random weights
     decoder_only: bool = False  # with init: train only the decoder (encoder and latent statistics frozen)
+    decoder_layers_per_block: int | None = None  # a lighter decoder than the preset's (None: the preset's)
     frame_stride: int = 1  # train on every k-th frame of each episode
     preset: str = "ae-f8c32"
     camera: str | None = None
@@ -238,6 +240,10 @@ def reconstruction_loss(pred: torch.Tensor, target: torch.Tensor, mask: torch.Te
 # --------------------------------------------------------------------------- trainer
 
 
+# Decoder weights a lighter decoder (fewer layers per up block) leaves out of its init.
+_DROPPABLE = re.compile(r"vae\.decoder\.up_blocks\.\d+\.resnets\.\d+\.")
+
+
 def list_checkpoints(run: Path) -> list[Path]:
     return sorted(p for p in Path(run).glob(f"{CHECKPOINT_PREFIX}*") if p.is_dir() and (p / STATE_FILE).is_file())
 
@@ -276,6 +282,7 @@ class AutoencoderTrainer:
         from tesseract4d.model.trainer import EMA
 
         ae_cfg: AutoencoderConfig = get_autoencoder_preset(cfg.preset)
+        ae_cfg.decoder_layers_per_block = cfg.decoder_layers_per_block
         torch.manual_seed(cfg.seed)
         self.model = RGBDNAutoencoder(ae_cfg)
         if cfg.init is not None and (cfg.decoder_only or not cfg.resume):
@@ -310,8 +317,14 @@ class AutoencoderTrainer:
             raise UserError(f"--init {folder} is a {saved.height}x{saved.width} autoencoder with latents "
                             f"{tuple(saved.latent_shape)}, not preset {self.cfg.preset!r} "
                             f"({mine.height}x{mine.width}, {tuple(mine.latent_shape)}); pass the matching --preset")
-        state = load_file(str(Path(folder) / WEIGHTS_FILE))
-        self.model.load_state_dict({k: v.float() for k, v in state.items()})
+        state = {k: v.float() for k, v in load_file(str(Path(folder) / WEIGHTS_FILE)).items()}
+        if mine.decoder_layers > saved.decoder_layers:
+            raise UserError(f"--init {folder} has a decoder of {saved.decoder_layers} layers per block; a fine-tune "
+                            f"can keep or drop layers, not add them (--decoder-layers-per-block {mine.decoder_layers})")
+        # A lighter decoder keeps the init's first resnets of each up block; the others are residual
+        # (output = input + correction), so dropping them leaves a decoder that already roughly works.
+        own = self.model.state_dict().keys()
+        self.model.load_state_dict({k: v for k, v in state.items() if k in own or not _DROPPABLE.match(k)})
         if self.cfg.decoder_only:
             if saved.latent_mean is None or saved.latent_std is None:
                 raise UserError(f"--init {folder} has no latent statistics; export it with `tesseract4d train-autoencoder` first")
@@ -335,6 +348,11 @@ class AutoencoderTrainer:
             if saved.get("preset") != self.cfg.preset:
                 raise UserError(f"--resume: {self.out} trains preset {saved.get('preset')!r}, not {self.cfg.preset!r}; "
                                 f"pass --preset {saved.get('preset')}")
+            layers = saved.get("decoder_layers_per_block")
+            if layers != self.cfg.decoder_layers_per_block:
+                fix = "leave out --decoder-layers-per-block" if layers is None else f"pass --decoder-layers-per-block {layers}"
+                raise UserError(f"--resume: {self.out} trains a decoder with decoder_layers_per_block={layers}, "
+                                f"not {self.cfg.decoder_layers_per_block}; {fix}")
         elif self.out.exists() and any(self.out.iterdir()):
             raise UserError(f"{self.out} is not empty; continue it with --resume or choose a new --out")
 

@@ -16,6 +16,7 @@ from tesseract4d.errors import UserError
 
 AUTOENCODER_DIR = "autoencoder"
 ENCODER_PREFIXES = ("vae.encoder.", "vae.quant_conv.")  # the autoencoder's weights that make its latents
+DECODER_FIELDS = ("name", "decoder_layers_per_block")  # AutoencoderConfig fields the latents do not depend on
 
 
 def autoencoder_entry(codec, autoencoder_dir: str | None) -> dict:
@@ -62,7 +63,7 @@ def encoder_differences(a, b) -> list[str]:
 
     out = []
     ca, cb = a.config.to_dict(), b.config.to_dict()
-    out += [f"config {k}: {ca[k]} vs {cb[k]}" for k in ca if k != "name" and ca[k] != cb.get(k)]
+    out += [f"config {k}: {ca[k]} vs {cb[k]}" for k in ca if k not in DECODER_FIELDS and ca[k] != cb.get(k)]
     if out:
         return out
     sa, sb = a.state_dict(), b.state_dict()
