@@ -10,6 +10,7 @@ Weights are random (speed does not depend on them) unless --autoencoder names a 
 bf16 rows run only where the CPU has AMX or AVX512-BF16 (elsewhere bf16 is far slower).
 
   .venv/bin/python benchmarks/bench_latent.py [--autoencoder-preset ae-f8c32] [--repeats 3]
+  .venv/bin/python benchmarks/bench_latent.py --autoencoder AE [AE ...]   # trained ones, side by side
 """
 
 from __future__ import annotations
@@ -38,7 +39,8 @@ def bench_autoencoder_codec(ae_dir: Path, bf16: bool, repeats: int) -> dict:
         _reset_peak_rss()
         enc = median_seconds(lambda: codec.encode(x), repeats)
         dec = median_seconds(lambda: codec.decode(z), repeats)
-    return {"encode_s": enc, "decode_s": dec, "peak_mb": _peak_rss_mb()}
+    return {"encode_s": enc, "decode_s": dec, "peak_mb": _peak_rss_mb(),
+            "label": f"autoencoder ({cfg.decoder_layers + 1}-resnet decoder blocks)"}
 
 
 def bench_autoencoder_training(data: Path, preset: str, bf16: bool, steps: int) -> dict:
@@ -90,7 +92,9 @@ def bench_latent_sampling(ae_dir: Path, bf16: bool, steps: int, repeats: int) ->
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--autoencoder", type=Path, help="a trained autoencoder folder (default: random weights)")
+    parser.add_argument("--autoencoder", type=Path, nargs="+", default=None,
+                        help="trained autoencoder folder(s) (default: random weights); with several, the codec and "
+                             "sampling rows are measured for each, training rows for the first")
     parser.add_argument("--autoencoder-preset", default="ae-f8c32", help="preset of the random autoencoder")
     parser.add_argument("--train-steps", type=int, default=5, help="timed training steps per row")
     parser.add_argument("--repeats", type=int, default=3, help="timed repeats per encode/decode/sampling row")
@@ -123,23 +127,25 @@ def main(argv: list[str] | None = None) -> int:
 
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
-        ae_dir = args.autoencoder
+        ae_dirs = args.autoencoder
         ae_preset = args.autoencoder_preset
-        if ae_dir is None:
+        if not ae_dirs:
             torch.manual_seed(0)
-            ae_dir = save_autoencoder(RGBDNAutoencoder(get_autoencoder_preset(ae_preset)), tmp / "ae")
+            ae_dirs = [save_autoencoder(RGBDNAutoencoder(get_autoencoder_preset(ae_preset)), tmp / "ae")]
         data = write_segmented_dataset(tmp / "data128", episodes=4, frames=16, size=128)
         for bf16 in precisions:
             p = "bf16" if bf16 else "fp32"
-            r = bench_autoencoder_codec(ae_dir, bf16, args.repeats)
-            add("autoencoder", p, "encode 16-frame 128² clip", f"{r['encode_s']:.2f} s", f"{r['peak_mb']:.0f}")
-            add("autoencoder", p, "decode 16-frame 128² clip", f"{r['decode_s']:.2f} s", f"{r['peak_mb']:.0f}")
             r = bench_autoencoder_training(data, ae_preset, bf16, args.train_steps)
             add(f"autoencoder {ae_preset}", p, "train b8 frames", f"{1 / r['s_per_step']:.2f} steps/s", f"{r['peak_mb']:.0f}")
-            r = bench_latent_training(data, ae_dir, bf16, args.train_steps, 4)
+            r = bench_latent_training(data, ae_dirs[0], bf16, args.train_steps, 4)
             add("latent-128", p, "train b4 (latent cache)", f"{1 / r['s_per_step']:.2f} steps/s", f"{r['peak_mb']:.0f}")
-            r = bench_latent_sampling(ae_dir, bf16, 10, args.repeats)
-            add("latent-128", p, "sample 10 steps, guidance 1.5", f"{r['s_per_clip']:.2f} s/clip", f"{r['peak_mb']:.0f}")
+            for ae_dir in ae_dirs:
+                r = bench_autoencoder_codec(ae_dir, bf16, args.repeats)
+                add(r["label"], p, "encode 16-frame 128² clip", f"{r['encode_s']:.3f} s", f"{r['peak_mb']:.0f}")
+                add(r["label"], p, "decode 16-frame 128² clip", f"{r['decode_s']:.3f} s", f"{r['peak_mb']:.0f}")
+                label = "latent-128" + (f", {r['label'][len('autoencoder ('):-1]}" if len(ae_dirs) > 1 else "")
+                r = bench_latent_sampling(ae_dir, bf16, 10, args.repeats)
+                add(label, p, "sample 10 steps, guidance 1.5", f"{r['s_per_clip']:.2f} s/clip", f"{r['peak_mb']:.0f}")
         if not args.no_tiny:
             pixel = write_synthetic_dataset(tmp / "data64", episodes=4, frames=16, size=64)
             for bf16 in precisions:
