@@ -5,7 +5,9 @@ Rows (each with precision and the process's peak resident memory, VmHWM, reset b
 - autoencoder training steps/s (the trainer's own step, batch 8 frames);
 - latent model (``latent-128``) training steps/s at batch 4, reading a latent cache, and ``tiny`` beside it;
 - seconds per 16-frame clip at 10 steps with text guidance (two passes per step), decode included,
-  for ``latent-128`` and ``tiny``.
+  for ``latent-128`` (with each autoencoder) and ``tiny``, timed in turns (one clip of each per
+  round; the memory column is then the peak of all of them together), so that the drift of a
+  shared machine falls on every entry alike: the comparison is between these rows.
 Weights are random (speed does not depend on them) unless --autoencoder names a trained one.
 bf16 rows run only where the CPU has AMX or AVX512-BF16 (elsewhere bf16 is far slower).
 
@@ -17,11 +19,12 @@ from __future__ import annotations
 
 import argparse
 import os
+import statistics
 import sys
 import tempfile
 from pathlib import Path
 
-from bench_model import _peak_rss_mb, _reset_peak_rss, bench_sampling, bench_training
+from bench_model import _peak_rss_mb, _reset_peak_rss, bench_training, sampling_pipeline, time_clip
 from measure import add_isa_cap_argument, apply_isa_cap, median_seconds, print_table
 
 
@@ -69,25 +72,14 @@ def bench_latent_training(data: Path, ae_dir: Path, bf16: bool, steps: int, batc
         return {"s_per_step": s, "peak_mb": _peak_rss_mb()}
 
 
-def bench_latent_sampling(ae_dir: Path, bf16: bool, steps: int, repeats: int) -> dict:
-    import torch
-
-    from tesseract4d.model.build import build_codec, build_text_encoder, build_transformer
-    from tesseract4d.model.model_space import ModelSpace
-    from tesseract4d.model.pipeline import RGBDNPipeline, make_scheduler
-    from tesseract4d.model.presets import get_preset
-
-    preset = get_preset("latent-128")
-    codec = build_codec(preset, autoencoder=ae_dir)
-    torch.manual_seed(0)
-    pipe = RGBDNPipeline(build_transformer(preset, codec), make_scheduler(), codec, build_text_encoder(preset), preset,
-                         ModelSpace(preset.near_m, preset.far_m), bf16=bf16)
-    first = torch.rand(1, 7, preset.height, preset.width) * 2 - 1
-    pipe(first, ["pick up the red cube"], num_inference_steps=1)
-    _reset_peak_rss()
-    s = median_seconds(lambda: pipe(first, ["pick up the red cube"], num_inference_steps=steps,
-                                  text_guidance=preset.text_guidance, generator=torch.Generator().manual_seed(0)), repeats)
-    return {"s_per_clip": s, "peak_mb": _peak_rss_mb()}
+def bench_sampling_round_robin(entries: list[tuple[str, object, object]], steps: int, repeats: int) -> dict[str, float]:
+    """Median seconds per clip of each (label, pipeline, first frame), timed in turns (one clip of
+    each per round), so that the drift of a shared machine falls on every entry alike."""
+    times: dict[str, list[float]] = {label: [] for label, _, _ in entries}
+    for r in range(repeats):
+        for label, pipe, first in entries:
+            times[label].append(time_clip(pipe, first, steps, True, r))
+    return {label: statistics.median(t) for label, t in times.items()}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -133,27 +125,28 @@ def main(argv: list[str] | None = None) -> int:
             torch.manual_seed(0)
             ae_dirs = [save_autoencoder(RGBDNAutoencoder(get_autoencoder_preset(ae_preset)), tmp / "ae")]
         data = write_segmented_dataset(tmp / "data128", episodes=4, frames=16, size=128)
+        pixel = None if args.no_tiny else write_synthetic_dataset(tmp / "data64", episodes=4, frames=16, size=64)
         for bf16 in precisions:
             p = "bf16" if bf16 else "fp32"
             r = bench_autoencoder_training(data, ae_preset, bf16, args.train_steps)
             add(f"autoencoder {ae_preset}", p, "train b8 frames", f"{1 / r['s_per_step']:.2f} steps/s", f"{r['peak_mb']:.0f}")
             r = bench_latent_training(data, ae_dirs[0], bf16, args.train_steps, 4)
             add("latent-128", p, "train b4 (latent cache)", f"{1 / r['s_per_step']:.2f} steps/s", f"{r['peak_mb']:.0f}")
+            if pixel is not None:
+                r = bench_training("tiny", pixel, bf16, args.train_steps, 4)
+                add("tiny", p, "train b4", f"{1 / r['s_per_step']:.2f} steps/s", f"{r['peak_mb']:.0f}")
+            entries = []
             for ae_dir in ae_dirs:
                 r = bench_autoencoder_codec(ae_dir, bf16, args.repeats)
                 add(r["label"], p, "encode 16-frame 128² clip", f"{r['encode_s']:.3f} s", f"{r['peak_mb']:.0f}")
                 add(r["label"], p, "decode 16-frame 128² clip", f"{r['decode_s']:.3f} s", f"{r['peak_mb']:.0f}")
                 label = "latent-128" + (f", {r['label'][len('autoencoder ('):-1]}" if len(ae_dirs) > 1 else "")
-                r = bench_latent_sampling(ae_dir, bf16, 10, args.repeats)
-                add(label, p, "sample 10 steps, guidance 1.5", f"{r['s_per_clip']:.2f} s/clip", f"{r['peak_mb']:.0f}")
-        if not args.no_tiny:
-            pixel = write_synthetic_dataset(tmp / "data64", episodes=4, frames=16, size=64)
-            for bf16 in precisions:
-                p = "bf16" if bf16 else "fp32"
-                r = bench_training("tiny", pixel, bf16, args.train_steps, 4)
-                add("tiny", p, "train b4", f"{1 / r['s_per_step']:.2f} steps/s", f"{r['peak_mb']:.0f}")
-                r = bench_sampling("tiny", bf16, 10, True, args.repeats)
-                add("tiny", p, "sample 10 steps, guidance 1.5", f"{r['s_per_clip']:.2f} s/clip", f"{r['peak_mb']:.0f}")
+                entries.append((label, *sampling_pipeline("latent-128", bf16, autoencoder=ae_dir)))
+            if pixel is not None:
+                entries.append(("tiny", *sampling_pipeline("tiny", bf16)))
+            _reset_peak_rss()
+            for label, s in bench_sampling_round_robin(entries, 10, args.repeats).items():
+                add(label, p, "sample 10 steps, guidance 1.5 (in turns)", f"{s:.2f} s/clip", f"{_peak_rss_mb():.0f}")
     header = ("model", "precision", "what", "speed", "peak RSS MB")
     print()
     print_table(header, rows)

@@ -54,29 +54,40 @@ def bench_training(preset_name: str, data: Path, bf16: bool, steps: int, batch_s
         return {"s_per_step": statistics.median(times), "peak_mb": _peak_rss_mb()}
 
 
-def bench_sampling(preset_name: str, bf16: bool, steps: int, guided: bool, repeats: int) -> dict:
+def sampling_pipeline(preset_name: str, bf16: bool, autoencoder: Path | None = None):
+    """A pipeline of the preset with random transformer weights (a latent preset decodes with
+    ``autoencoder``), warmed up, and a random first frame: what the sampling rows time."""
     import torch
 
-    from tesseract4d.model.model_space import ModelSpace
     from tesseract4d.model.build import build_codec, build_text_encoder, build_transformer
+    from tesseract4d.model.model_space import ModelSpace
     from tesseract4d.model.pipeline import RGBDNPipeline, make_scheduler
     from tesseract4d.model.presets import get_preset
 
     preset = get_preset(preset_name)
-    codec = build_codec(preset)
+    codec = build_codec(preset, autoencoder=autoencoder) if autoencoder is not None else build_codec(preset)
     torch.manual_seed(0)
-    model = build_transformer(preset, codec)
-    pipe = RGBDNPipeline(model, make_scheduler(), codec, build_text_encoder(preset), preset,
+    pipe = RGBDNPipeline(build_transformer(preset, codec), make_scheduler(), codec, build_text_encoder(preset), preset,
                          ModelSpace(preset.near_m, preset.far_m), bf16=bf16)
     first = torch.rand(1, 7, preset.height, preset.width) * 2 - 1
-    kw = dict(num_inference_steps=steps, text_guidance=preset.text_guidance if guided else 1.0, image_guidance=1.0)
     pipe(first, ["pick up the red cube"], num_inference_steps=1)  # warm-up
+    return pipe, first
+
+
+def time_clip(pipe, first, steps: int, guided: bool, seed: int) -> float:
+    """Seconds for one clip at ``steps`` steps, with the preset's text guidance or without."""
+    import torch
+
+    kw = dict(num_inference_steps=steps, text_guidance=pipe.preset.text_guidance if guided else 1.0, image_guidance=1.0)
+    t0 = time.perf_counter()
+    pipe(first, ["pick up the red cube"], generator=torch.Generator().manual_seed(seed), **kw)
+    return time.perf_counter() - t0
+
+
+def bench_sampling(preset_name: str, bf16: bool, steps: int, guided: bool, repeats: int) -> dict:
+    pipe, first = sampling_pipeline(preset_name, bf16)
     _reset_peak_rss()
-    times = []
-    for r in range(repeats):
-        t0 = time.perf_counter()
-        pipe(first, ["pick up the red cube"], generator=torch.Generator().manual_seed(r), **kw)
-        times.append(time.perf_counter() - t0)
+    times = [time_clip(pipe, first, steps, guided, r) for r in range(repeats)]
     return {"s_per_clip": statistics.median(times), "peak_mb": _peak_rss_mb()}
 
 
