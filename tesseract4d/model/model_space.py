@@ -88,7 +88,7 @@ def renormalize_normals(x: torch.Tensor) -> torch.Tensor:
     shorter than ``MIN_NORMAL_LENGTH`` become 0 (no hit). Differentiable where the length is kept."""
     s = channel_slices()["normal"]
     n = x[..., s, :, :]  # (..., 3, h, w)
-    # Not n.norm(dim=-3): a norm across the channel stride is about 100x slower on a CPU (a third
+    # Not n.norm(dim=-3): a norm across the channel stride is about 100x slower on a CPU (a fifth
     # of a 16-frame decode); the clamp before the root keeps the gradient finite at zero length.
     length = n.square().sum(dim=-3, keepdim=True).clamp_min(1e-12).sqrt()
     unit = torch.where(length >= MIN_NORMAL_LENGTH, n / length, torch.zeros_like(n))
