@@ -43,7 +43,7 @@ def bench_autoencoder_codec(ae_dir: Path, bf16: bool, repeats: int) -> dict:
         enc = median_seconds(lambda: codec.encode(x), repeats)
         dec = median_seconds(lambda: codec.decode(z), repeats)
     return {"encode_s": enc, "decode_s": dec, "peak_mb": _peak_rss_mb(),
-            "label": f"autoencoder ({cfg.decoder_layers + 1}-resnet decoder blocks)"}
+            "decoder": f"{cfg.decoder_layers + 1}-resnet decoder blocks"}
 
 
 def bench_autoencoder_training(data: Path, preset: str, bf16: bool, steps: int) -> dict:
@@ -138,9 +138,9 @@ def main(argv: list[str] | None = None) -> int:
             entries = []
             for ae_dir in ae_dirs:
                 r = bench_autoencoder_codec(ae_dir, bf16, args.repeats)
-                add(r["label"], p, "encode 16-frame 128² clip", f"{r['encode_s']:.3f} s", f"{r['peak_mb']:.0f}")
-                add(r["label"], p, "decode 16-frame 128² clip", f"{r['decode_s']:.3f} s", f"{r['peak_mb']:.0f}")
-                label = "latent-128" + (f", {r['label'][len('autoencoder ('):-1]}" if len(ae_dirs) > 1 else "")
+                add(f"autoencoder ({r['decoder']})", p, "encode 16-frame 128² clip", f"{r['encode_s']:.3f} s", f"{r['peak_mb']:.0f}")
+                add(f"autoencoder ({r['decoder']})", p, "decode 16-frame 128² clip", f"{r['decode_s']:.3f} s", f"{r['peak_mb']:.0f}")
+                label = f"latent-128, {r['decoder']}" if len(ae_dirs) > 1 else "latent-128"
                 entries.append((label, *sampling_pipeline("latent-128", bf16, autoencoder=ae_dir)))
             if pixel is not None:
                 entries.append(("tiny", *sampling_pipeline("tiny", bf16)))

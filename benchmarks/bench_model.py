@@ -65,7 +65,7 @@ def sampling_pipeline(preset_name: str, bf16: bool, autoencoder: Path | None = N
     from tesseract4d.model.presets import get_preset
 
     preset = get_preset(preset_name)
-    codec = build_codec(preset, autoencoder=autoencoder) if autoencoder is not None else build_codec(preset)
+    codec = build_codec(preset, autoencoder=autoencoder)
     torch.manual_seed(0)
     pipe = RGBDNPipeline(build_transformer(preset, codec), make_scheduler(), codec, build_text_encoder(preset), preset,
                          ModelSpace(preset.near_m, preset.far_m), bf16=bf16)

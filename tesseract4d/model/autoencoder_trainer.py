@@ -317,10 +317,10 @@ class AutoencoderTrainer:
             raise UserError(f"--init {folder} is a {saved.height}x{saved.width} autoencoder with latents "
                             f"{tuple(saved.latent_shape)}, not preset {self.cfg.preset!r} "
                             f"({mine.height}x{mine.width}, {tuple(mine.latent_shape)}); pass the matching --preset")
-        state = {k: v.float() for k, v in load_file(str(Path(folder) / WEIGHTS_FILE)).items()}
         if mine.decoder_layers > saved.decoder_layers:
             raise UserError(f"--init {folder} has a decoder of {saved.decoder_layers} layers per block; a fine-tune "
                             f"can keep or drop layers, not add them (--decoder-layers-per-block {mine.decoder_layers})")
+        state = {k: v.float() for k, v in load_file(str(Path(folder) / WEIGHTS_FILE)).items()}
         # A lighter decoder keeps the init's first resnets of each up block; the others are residual
         # (output = input + correction), so dropping them leaves a decoder that already roughly works.
         own = self.model.state_dict().keys()
