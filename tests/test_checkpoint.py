@@ -37,7 +37,7 @@ def test_shipped_checkpoints_are_the_current_version_with_their_scheduler(checkp
 def test_the_default_is_a_one_pass_per_step_student_of_v2():
     cfg = ck.read_inference_config(SHIPPED_CHECKPOINT)
     teacher = ck.read_inference_config(V2_CHECKPOINT)
-    from tesseract4d.model.reflow import weights_digest
+    from tesseract4d.model.checkpoint import weights_digest
 
     assert cfg["distilled_from"]["teacher_digest"] == weights_digest(V2_CHECKPOINT)
     assert cfg["preset"]["text_guidance"] == cfg["preset"]["image_guidance"] == 1.0  # no guidance: one pass

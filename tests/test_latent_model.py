@@ -195,6 +195,45 @@ def test_bad_inputs_are_user_errors(tmp_path):
         Trainer(_config(data, tmp_path / "run3", ae, prediction="eps"))
 
 
+def test_init_fine_tunes_a_checkpoint_in_its_own_latent_space(tmp_path):
+    """`train --init CKPT`: the new run starts from the checkpoint's transformer weights (float16 ones
+    too) with its own schedule, uses the autoencoder inside the checkpoint, names what it started from,
+    and refuses another preset, another target, or an autoencoder with other latents."""
+    from safetensors.torch import load_file
+
+    from tesseract4d import cli
+    from tesseract4d.model.checkpoint import weights_digest
+    from tesseract4d.model.trainer import Trainer
+
+    data = write_segmented_dataset(tmp_path / "data", episodes=1)
+    ae = _autoencoder(tmp_path / "ae", data=data)
+    Trainer(_config(data, tmp_path / "first", ae, max_steps=3)).train()
+    assert cli.main(["train", "--export", str(tmp_path / "first"), "--to", str(tmp_path / "ckpt"), "--half"]) == 0
+    ckpt = tmp_path / "ckpt"
+    start = load_file(str(ckpt / "transformer" / "diffusion_pytorch_model.safetensors"))
+
+    trainer = Trainer(_config(data, tmp_path / "more", None, init=ckpt, max_steps=2))
+    assert trainer.cfg.autoencoder == ckpt / "autoencoder"  # the checkpoint's own, hash-checked
+    for name, value in trainer.ema.model.state_dict().items():
+        assert torch.equal(value, start[name].float()), name
+    assert trainer.step == 0 and trainer.optimizer.state_dict()["state"] == {}
+    final = trainer.train()
+    training = json.loads((final / "tesseract4d_config.json").read_text())["training"]
+    assert training["init"] == str(ckpt) and training["init_digest"] == weights_digest(ckpt)
+    after = load_file(str(final / "transformer" / "diffusion_pytorch_model.safetensors"))
+    assert any(not torch.equal(after[k], start[k].float()) for k in start)  # it trained from there
+
+    with pytest.raises(UserError, match="--prediction x0"):
+        Trainer(_config(data, tmp_path / "r1", None, init=ckpt, prediction="velocity"))
+    with pytest.raises(UserError, match="makes other latents"):
+        Trainer(_config(data, tmp_path / "r2", _autoencoder(tmp_path / "other", seed=7), init=ckpt))
+    with pytest.raises(UserError, match="--preset micro-latent"):
+        Trainer(_config(data, tmp_path / "r3", None, init=ckpt, preset="latent-128"))
+    with pytest.raises(UserError, match="the input"):
+        Trainer(_config(data, ckpt / "inside", None, init=ckpt))
+    assert not (tmp_path / "r1").exists() and not (ckpt / "inside").exists()
+
+
 def test_a_latent_teacher_distils_into_a_few_step_student_that_carries_its_autoencoder(tmp_path):
     """`distill` of a latent checkpoint: the student trains in the teacher's latent space with the
     autoencoder copied inside the teacher (hash-checked), keeps the teacher's target, sees clean first

@@ -13,8 +13,9 @@ from synthetic_scene import write_synthetic_dataset
 
 from tesseract4d.cli import main
 from tesseract4d.errors import UserError
+from tesseract4d.model.checkpoint import weights_digest
 from tesseract4d.model.reflow import (
-    PairsConfig, ReflowPairs, generate_pairs, model_space_psnr, weights_digest,
+    PairsConfig, ReflowPairs, generate_pairs, model_space_psnr,
 )
 from tesseract4d.model.trainer import TrainConfig, Trainer
 

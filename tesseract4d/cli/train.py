@@ -4,6 +4,8 @@
   tesseract4d train --data data/skills data/tasks --autoencoder runs/ae/autoencoder --out runs/v2   # two datasets
   tesseract4d train --preset tiny --data data/train --out runs/tiny --max-minutes 60
   tesseract4d train --out runs/tiny --resume --data data/train      # continue exactly where it stopped
+  tesseract4d train --init tesseract4d/checkpoints/v2 --data data/skills --out runs/v2-more --lr 1.5e-4
+                                                                     # fine-tune a checkpoint (new schedule)
   tesseract4d train --export runs/tiny --to checkpoints/mine        # inference folder (EMA weights)
   tesseract4d train --export runs/v2 --to checkpoints/v2 --half     # the same in float16 (half the size)
 
@@ -33,6 +35,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--autoencoder", type=Path,
                         help="RGB-D-N autoencoder folder for latent presets (RUN/autoencoder of `tesseract4d train-autoencoder`); "
                              "the dataset is encoded once into DATA/latent_cache/")
+    parser.add_argument("--init", type=Path, metavar="CKPT",
+                        help="start from this inference checkpoint's transformer weights (e.g. tesseract4d/checkpoints/v2 "
+                             "or RUN/final) with a fresh optimiser and learning-rate schedule; a latent preset then uses "
+                             "the checkpoint's autoencoder unless --autoencoder names one with the same encoder")
     parser.add_argument("--condition-noise", type=float, default=d.condition_noise,
                         help="max std of noise on the conditioning first frame in training (default %(default)s)")
     parser.add_argument("--moving-weight", type=float, default=d.moving_weight,
@@ -87,7 +93,7 @@ def run(args: argparse.Namespace) -> int:
         precision=args.precision, resume=args.resume, val_every=args.val_every, ckpt_every=args.ckpt_every, seed=args.seed,
         camera=args.camera, progress=not args.no_progress, loss_weights=weights, autoencoder=args.autoencoder,
         condition_noise=args.condition_noise, moving_weight=args.moving_weight, object_weight=args.object_weight,
-        prediction=args.prediction, text_dropout=args.text_dropout,
+        prediction=args.prediction, text_dropout=args.text_dropout, init=args.init,
     )
     final = Trainer(cfg).train()
     print(f"inference checkpoint: {final}")

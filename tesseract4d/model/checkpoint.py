@@ -64,6 +64,18 @@ def weights_to_half(weights: Path) -> None:
     save_file(tensors, str(weights), metadata=metadata)
 
 
+def weights_digest(checkpoint: str | os.PathLike) -> str:
+    """SHA-256 (first 16 hex digits) of a checkpoint's transformer weights: what a run started from
+    (``train --init``) or distilled (reflow pairs) names it by."""
+    import hashlib
+
+    h = hashlib.sha256()
+    with open(Path(checkpoint) / TRANSFORMER_DIR / WEIGHTS_FILE, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()[:16]
+
+
 def read_inference_config(checkpoint: str | os.PathLike) -> dict:
     """INFERENCE_CONFIG_FILE of a checkpoint folder, checked for format and version; UserError
     with the fix when the folder is not a (readable) inference checkpoint."""

@@ -21,7 +21,6 @@ written whole (temporary file, then rename), so an interrupted run resumes at th
 from __future__ import annotations
 
 import dataclasses
-import hashlib
 import json
 import os
 from dataclasses import dataclass
@@ -30,6 +29,7 @@ from pathlib import Path
 import torch
 
 from tesseract4d.errors import UserError
+from tesseract4d.model.checkpoint import weights_digest
 from tesseract4d.model.trainer import TrainConfig, Trainer
 
 MANIFEST = "reflow_pairs.json"
@@ -55,17 +55,6 @@ class PairsConfig:
         from tesseract4d.configs import config_dict
 
         return config_dict(self)
-
-
-def weights_digest(checkpoint: str | os.PathLike) -> str:
-    """SHA-256 (first 16 hex digits) of a checkpoint's transformer weights: pairs name their teacher."""
-    from tesseract4d.model.checkpoint import TRANSFORMER_DIR, WEIGHTS_FILE
-
-    h = hashlib.sha256()
-    with open(Path(checkpoint) / TRANSFORMER_DIR / WEIGHTS_FILE, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()[:16]
 
 
 def _shard_path(out: Path, index: int) -> Path:
@@ -229,17 +218,9 @@ class ReflowTrainer(Trainer):
         # copy inside the teacher checkpoint, hash-checked); it sees the clean first frame, as at sampling.
         recipe = self.teacher_config.get("recipe") or {}
         config = dataclasses.replace(config, text_dropout=0.0, image_dropout=0.0, condition_noise=0.0,
-                                     prediction=recipe.get("prediction", "x0"),
-                                     autoencoder=config.autoencoder or self._teacher_autoencoder(config.teacher),
+                                     prediction=recipe.get("prediction", "x0"), init=config.teacher,
                                      pretrained=config.pretrained or self.teacher_config.get("pretrained_dir"))
         super().__init__(config)
-
-    def _teacher_autoencoder(self, teacher: Path) -> Path | None:
-        """The autoencoder folder inside a latent teacher checkpoint (None for other presets)."""
-        from tesseract4d.model.latent_checkpoint import checkpoint_autoencoder
-
-        entry = self.teacher_config.get("autoencoder")
-        return None if entry is None else checkpoint_autoencoder(Path(teacher), entry)
 
     def _resolve_preset(self, config: TrainConfig):
         from tesseract4d.model.presets import PRESETS, preset_from_dict
@@ -260,17 +241,6 @@ class ReflowTrainer(Trainer):
             raise UserError(f"{cfg.data} holds {tuple(pairs.first.shape[-2:])} first frames; the teacher predicts "
                             f"{(p.height, p.width)}")
         return pairs
-
-    def _init_weights(self, model: torch.nn.Module) -> None:
-        from safetensors.torch import load_file
-
-        from tesseract4d.model.checkpoint import TRANSFORMER_DIR, WEIGHTS_FILE
-
-        path = Path(self.cfg.teacher) / TRANSFORMER_DIR / WEIGHTS_FILE
-        try:
-            model.load_state_dict(load_file(str(path)))
-        except RuntimeError as e:
-            raise UserError(f"{path} does not match the teacher's preset: {str(e).splitlines()[0]}") from e
 
     def compute_loss(self, step: int) -> tuple[torch.Tensor, dict[str, float]]:
         g = self._step_generator(step)

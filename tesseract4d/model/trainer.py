@@ -84,6 +84,9 @@ class TrainConfig:
     progress: bool = True
     # Latent presets: the RGB-D-N autoencoder folder (RUN/autoencoder of `tesseract4d train-autoencoder`).
     autoencoder: Path | None = None
+    # An inference checkpoint whose transformer weights start a new run (a fine-tune: fresh optimiser
+    # and learning-rate schedule); a latent preset then defaults to the checkpoint's own autoencoder.
+    init: Path | None = None
     # Recipe levers (model/recipe.py): each a switch whose effect benchmarks/ablate_latent.py measures.
     condition_noise: float = 0.0  # max std of Gaussian noise on the conditioning first frame (per sample U(0, max))
     moving_weight: float = 1.0  # loss weight of moving cells (differ from the first frame) relative to static ones
@@ -297,7 +300,7 @@ class Trainer:
 
     def __init__(self, config: TrainConfig):
         self.preset = self._resolve_preset(config)
-        self.cfg = config.resolved(self.preset)
+        self.cfg = self._check_init(config.resolved(self.preset))
         cfg = self.cfg
         if not cfg.data_folders:
             raise UserError("pass --data DIR (a dataset folder written by `tesseract4d datagen`)")
@@ -314,7 +317,7 @@ class Trainer:
                             f"drop --resume to start a new run")
         from tesseract4d.outputs import claim_folder, release_new_folder
 
-        fresh = claim_folder(self.out, self.command, inputs=[*cfg.data_folders, cfg.pretrained],
+        fresh = claim_folder(self.out, self.command, inputs=[*cfg.data_folders, cfg.pretrained, cfg.init],
                              legacy_marker="train_config.json")
         try:
             self._setup(cfg, existing)
@@ -335,8 +338,55 @@ class Trainer:
         return load_training_data(cfg, self.preset, self.model_space, self.codec,
                                   progress=cfg.progress and self.accelerator.is_main_process)
 
+    def _check_init(self, cfg: TrainConfig) -> TrainConfig:
+        """With ``init``: refuse a checkpoint of another preset or prediction target, or a latent one
+        whose autoencoder makes other latents than ``--autoencoder``; default to its autoencoder."""
+        self.init_digest = None
+        if cfg.init is None:
+            return cfg
+        from tesseract4d.model.checkpoint import read_inference_config, weights_digest
+        from tesseract4d.model.presets import AUTOENCODER
+
+        saved = read_inference_config(cfg.init)
+        self.init_digest = weights_digest(cfg.init)
+        name = saved["preset"]["name"]
+        if name != self.preset.name:
+            raise UserError(f"--init {cfg.init} is a {name!r} checkpoint but this run's preset is "
+                            f"{self.preset.name!r}; pass --preset {name}")
+        target = (saved.get("recipe") or {}).get("prediction", "x0")
+        if target != cfg.prediction:
+            raise UserError(f"--init {cfg.init} predicts {target!r} but --prediction is {cfg.prediction!r}; "
+                            f"pass --prediction {target}")
+        entry = saved.get("autoencoder")
+        if self.preset.space != AUTOENCODER or entry is None:
+            return cfg
+        from tesseract4d.model.autoencoder import load_autoencoder
+        from tesseract4d.model.latent_checkpoint import checkpoint_autoencoder, encoder_differences
+
+        own = checkpoint_autoencoder(Path(cfg.init), entry)
+        if cfg.autoencoder is None:
+            return dataclasses.replace(cfg, autoencoder=own)
+        differs = encoder_differences(load_autoencoder(own), load_autoencoder(cfg.autoencoder))
+        if differs:
+            raise UserError(f"--autoencoder {cfg.autoencoder} makes other latents than the one --init {cfg.init} "
+                            f"was trained on ({'; '.join(differs[:3])}); leave --autoencoder out to use "
+                            f"{own}")
+        return cfg
+
     def _init_weights(self, model: torch.nn.Module) -> None:
-        """Called on a new run's freshly built model, before the EMA copy (default: keep the init)."""
+        """Called on a new run's freshly built model, before the EMA copy: ``init``'s transformer
+        weights (stored in float16 or float32), or the random initialisation."""
+        if self.cfg.init is None:
+            return
+        from safetensors.torch import load_file
+
+        from tesseract4d.model.checkpoint import TRANSFORMER_DIR, WEIGHTS_FILE
+
+        path = Path(self.cfg.init) / TRANSFORMER_DIR / WEIGHTS_FILE
+        try:
+            model.load_state_dict(load_file(str(path)))
+        except RuntimeError as e:
+            raise UserError(f"{path} does not fit preset {self.preset.name!r}: {str(e).splitlines()[0]}") from e
 
     def _setup(self, cfg: "TrainConfig", existing: list[Path]) -> None:
         from accelerate import Accelerator
@@ -464,8 +514,15 @@ class Trainer:
                       "episodes": len(self.data), "batch_size": self.cfg.batch_size, "lr": self.cfg.lr,
                       "precision": self.precision.name, "ema_decay": self.cfg.ema_decay, "last_loss": self.last_loss,
                       "loss_weights": self.cfg.loss_weights, "seed": self.cfg.seed,
-                      "autoencoder": str(self.cfg.autoencoder) if self.cfg.autoencoder else None},
+                      "autoencoder": str(self.cfg.autoencoder) if self.cfg.autoencoder else None,
+                      **self._init_record()},
             codec=self.codec, recipe=self.cfg.recipe())
+
+    def _init_record(self) -> dict:
+        """What the run started from, for the inference config (nothing for a random start)."""
+        if self.cfg.init is None:
+            return {}
+        return {"init": str(self.cfg.init), "init_digest": self.init_digest}
 
     def save_checkpoint(self) -> Path:
         self.accelerator.wait_for_everyone()
