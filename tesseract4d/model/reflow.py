@@ -213,7 +213,6 @@ class ReflowTrainer(Trainer):
             raise UserError(f"--student-steps must be at least 1, got {config.student_steps}")
         check_not_input(config.out, [config.teacher], "--out")
         self.teacher_config = read_inference_config(config.teacher)
-        self.teacher_digest = weights_digest(config.teacher)
         # The student inherits the teacher's target and, for a latent preset, its autoencoder (the
         # copy inside the teacher checkpoint, hash-checked); it sees the clean first frame, as at sampling.
         recipe = self.teacher_config.get("recipe") or {}
@@ -221,6 +220,11 @@ class ReflowTrainer(Trainer):
                                      prediction=recipe.get("prediction", "x0"), init=config.teacher,
                                      pretrained=config.pretrained or self.teacher_config.get("pretrained_dir"))
         super().__init__(config)
+
+    @property
+    def teacher_digest(self) -> str:
+        """The teacher's weights digest: the run's start (``init``), hashed once by the trainer."""
+        return self.init_digest
 
     def _resolve_preset(self, config: TrainConfig):
         from tesseract4d.model.presets import PRESETS, preset_from_dict
