@@ -98,10 +98,12 @@ def test_pairs_from_several_dataset_folders(teacher, tmp_path):
     more = write_synthetic_dataset(tmp_path / "more", episodes=2, seed_start=100)
     argv = ["distill", "--pairs-only", "--teacher", str(ckpt), "--pairs", str(tmp_path / "p"), "--num-pairs", "4",
             "--teacher-steps", "2", "--pair-batch-size", "2", "--no-progress", "--data", str(data), str(more)]
-    assert main(argv) == 0
+    assert main([*argv, "--teacher-guidance", "2.5"]) == 0
     pairs = ReflowPairs(tmp_path / "p")
     assert len(pairs) == 4 and pairs.manifest["data"] == [str(data), str(more)]
-    assert main(argv) == 0  # complete: resumed as it is
+    assert pairs.manifest["text_guidance"] == 2.5
+    assert main([*argv, "--teacher-guidance", "2.5"]) == 0  # complete: resumed as it is
+    assert main(argv) == 2  # the teacher preset's guidance is another setting: refused
     # the same episodes twice is refused before any pair is made
     assert main([*argv[:5], str(tmp_path / "q"), *argv[6:], str(data)]) == 2 and not (tmp_path / "q").exists()
 

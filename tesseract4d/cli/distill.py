@@ -7,9 +7,9 @@
 
 Two stages, each resumable:
 1. pairs: the teacher samples --num-pairs clips with its full sampler (its preset's steps and
-   guidance, or --teacher-steps) from stored noise, first frames and instructions of --data, into
-   --pairs (shards written whole; a rerun continues at the first missing shard, and refuses a
-   folder made with other settings). Skipped when --data is not given and --pairs is complete.
+   guidance, or --teacher-steps and --teacher-guidance) from stored noise, first frames and
+   instructions of --data, into --pairs (shards written whole; a rerun continues at the first
+   missing shard, and refuses a folder made with other settings). Skipped when --data is not given and --pairs is complete.
 2. student: initialised with the teacher's weights, trained on the straight path between each
    pair's noise and the teacher's clip. RUN/final is an inference checkpoint whose preset samples
    in --student-steps steps without guidance, and which records the teacher it was distilled from.
@@ -34,6 +34,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--pairs-only", action="store_true", help="make the pairs and stop")
     parser.add_argument("--num-pairs", type=int, default=p.num_pairs, help="teacher clips to sample (default %(default)s)")
     parser.add_argument("--teacher-steps", type=int, help="the teacher's sampler steps (default: its preset's)")
+    parser.add_argument("--teacher-guidance", type=float, metavar="SCALE",
+                        help="the teacher's text guidance scale (default: its preset's); the student learns the "
+                             "guided clips, so this becomes the student's guidance at no cost")
     parser.add_argument("--pair-batch-size", type=int, default=p.batch_size,
                         help="teacher clips per sampler call (default %(default)s)")
     parser.add_argument("--student-steps", type=int, default=d.student_steps,
@@ -62,7 +65,8 @@ def run(args: argparse.Namespace) -> int:
     if args.data is not None:
         generate_pairs(PairsConfig(
             teacher=args.teacher, data=args.data[0] if len(args.data) == 1 else args.data, out=args.pairs, num_pairs=args.num_pairs,
-            batch_size=args.pair_batch_size, teacher_steps=args.teacher_steps, seed=args.seed, camera=args.camera,
+            batch_size=args.pair_batch_size, teacher_steps=args.teacher_steps,
+            text_guidance=args.teacher_guidance, seed=args.seed, camera=args.camera,
             precision=args.precision), progress=not args.no_progress)
         print(f"pairs: {args.pairs}")
     elif args.pairs_only or not (args.pairs / MANIFEST).is_file():
