@@ -119,6 +119,9 @@ def test_static_world_keeps_still_objects_but_follows_only_keep_still():
     contrast = contrast_by_group([(ep.group_id, b["contrast_entry"]) for ep, b in rows])
     assert contrast["share"] == pytest.approx(1 / 3)
     assert contrast["per_skill"] == {"keep_still": 1.0, "push": 0.0}
+    assert (contrast["still_right"], contrast["still_instructions"]) == (1, 1)
+    # 1 of 3 right: Wilson 95 % (0.0615, 0.7923) (tests/test_intervals.py has the formula worked by hand)
+    assert contrast["wilson95"] == pytest.approx([0.0615, 0.7923], abs=1e-4)
 
 
 def test_wrong_object_and_restless_keep_still_are_wrong():
@@ -127,6 +130,7 @@ def test_wrong_object_and_restless_keep_still_are_wrong():
     rows = _group_entries(lambda ep: gt[0])
     contrast = contrast_by_group([(ep.group_id, b["contrast_entry"]) for ep, b in rows])
     assert [r["right"] for r in contrast["per_group"]["Synthetic-v0/seed_100000"]] == [True, False, False]
+    assert (contrast["still_right"], contrast["still_instructions"]) == (0, 1)
 
 
 def test_version1_episode_has_no_contrast_entry_and_gripper_skills_are_left_out():
@@ -202,7 +206,10 @@ def test_single_checkpoint_keeps_the_report_keys(two_checkpoints):
     report = evaluate_heldout(HeldoutConfig(checkpoint=a, data=heldout, num_steps=2), progress=False)
     assert list(report["methods"]) == ["model", "model_raw", "static"]
     assert {"model", "model_raw", "static"} <= set(report["summary"]) and "model" in report["instruction_following"]
-    assert "model + consistency" in format_markdown(report)
+    md = format_markdown(report)
+    assert "model + consistency" in md
+    ci = report["contrast"]["model"]["wilson95"]
+    assert f"({ci[0]:.2f}–{ci[1]:.2f})" in md and '"keep still" right' in md
 
 
 @pytest.fixture(scope="module")

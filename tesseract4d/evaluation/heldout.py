@@ -436,6 +436,18 @@ def write_heldout_report(report: dict, out: str | os.PathLike) -> None:
     df.atomic_write_text(out / "report.md", format_markdown(report) + "\n")
 
 
+def _interval(contrast: dict | None) -> str:
+    """" (low–high)": the 95 % Wilson interval of a contrast share, when the report has it."""
+    ci = (contrast or {}).get("wilson95")
+    return f" ({ci[0]:.2f}–{ci[1]:.2f})" if ci else ""
+
+
+def _still(contrast: dict | None) -> str:
+    """"right / judged" of the "keep still" instructions."""
+    c = contrast or {}
+    return f"{c['still_right']} / {c['still_instructions']}" if "still_instructions" in c else "–"
+
+
 def _mark(key: str, value) -> str:
     from tesseract4d.evaluation.heldout_believability import goal_met
 
@@ -475,11 +487,16 @@ def format_markdown(report: dict) -> str:
         ("edge_sharpness", f"edge sharpness vs ground truth (goal ≥ {EDGE_SHARPNESS_GOAL:g})", "ground-truth edges"),
         ("motion", "motion: mean |RGB change| from the first predicted frame", "all"),
     )
+    contrast = report.get("contrast") or {}
     for key, label, region in believe:
         if not any(key in summary[m] for m in methods):
             continue
         lines.append(f"| {label} | {region} | "
-                     + " | ".join(_fmt(summary[m].get(key), "") + _mark(key, summary[m].get(key)) for m in methods) + " |")
+                     + " | ".join(_fmt(summary[m].get(key), "") + _mark(key, summary[m].get(key))
+                                  + (_interval(contrast.get(m)) if key == "contrast" else "") for m in methods) + " |")
+        if key == "contrast" and any(contrast.get(m, {}).get("still_instructions") for m in methods):
+            lines.append("| instruction contrast: \"keep still\" right | held-out groups | "
+                         + " | ".join(_still(contrast.get(m)) for m in methods) + " |")
     first = methods[0]
     n = follow[first].get("episodes", 0)
     lines.append("")
@@ -495,14 +512,15 @@ def format_markdown(report: dict) -> str:
             + "; the first frame is resized to the model's resolution and the prediction back "
               "(tesseract4d/resize.py); every metric is taken at the data's resolution but the token grid, which is "
               "measured on the prediction at the model's own resolution and token size.")
-    contrast = report.get("contrast")
     if contrast and contrast[first].get("instructions"):
         gt = contrast.get("ground_truth", {})
         lines.append(f"Instruction contrast over {contrast[first].get('instructions', 0)} instructions in "
                      f"{contrast[first].get('groups', 0)} groups (the ground truth itself scores "
                      f"{_fmt(gt.get('share'), '')}): an instruction is right when the tracked instructed object moves "
                      f"with cos > {RIGHT_WAY_COSINE:g} to its commanded image displacement; \"keep still\" when the "
-                     f"clip's motion is at most {STILL_SHARE:.0%} of the group's active instructions'.")
+                     f"clip's motion is at most {STILL_SHARE:.0%} of the group's active instructions'. In brackets: "
+                     f"the 95 % Wilson interval of the share (a difference between two models well inside both "
+                     f"intervals is within what the sample of instructions can show).")
     for by in ("per_skill", "per_task"):
         table, n_eps = report.get(by), report.get("episodes_" + by, {})
         if not table:

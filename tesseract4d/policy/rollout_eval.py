@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import math
 import os
 import time
 import uuid
@@ -27,25 +26,11 @@ import numpy as np
 
 from tesseract4d import dataset_format as df
 from tesseract4d.errors import UserError
+from tesseract4d.intervals import wilson_interval
 from tesseract4d.policy.loop import EpisodeResult, LoopConfig, Trace, observation_episode
 
 ARMS = ("motion_planner", "oracle_future", "world_model", "behavior_cloning")
-Z_95 = 1.959963984540054  # two-sided 95 % normal quantile
 VIDEO_SCALE = 4
-
-
-def wilson_interval(successes: int, trials: int, z: float = Z_95) -> tuple[float, float]:
-    """Wilson score interval of a binomial proportion; (0, 1) when there are no trials."""
-    if trials <= 0:
-        return 0.0, 1.0
-    if not 0 <= successes <= trials:
-        raise ValueError(f"successes must be within 0..{trials}, got {successes}")
-    p = successes / trials
-    z2 = z * z
-    denom = 1 + z2 / trials
-    centre = (p + z2 / (2 * trials)) / denom
-    half = z / denom * math.sqrt(p * (1 - p) / trials + z2 / (4 * trials * trials))
-    return max(0.0, centre - half), min(1.0, centre + half)
 
 
 @dataclass
