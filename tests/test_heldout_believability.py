@@ -199,6 +199,38 @@ def test_evaluate_scores_several_checkpoints_side_by_side(two_checkpoints, tmp_p
     assert "| keep_still | 1 |" in md and "| Synthetic-v0 | 3 |" in md
 
 
+def test_several_noise_seeds_pool_the_single_seed_scores(two_checkpoints, tmp_path):
+    """`--sample-seed 0 1` scores one row per episode and seed: its means are the means of the two
+    single-seed runs, its contrast counts are their sums, and the static world is the same in both."""
+    from tesseract4d import cli
+    from tesseract4d.evaluation.heldout import HeldoutConfig, evaluate_heldout
+
+    a, _, heldout = two_checkpoints
+    single = [evaluate_heldout(HeldoutConfig(checkpoint=a, data=heldout, num_steps=2, precision="fp32", sample_seed=s),
+                               progress=False) for s in (0, 1)]
+    out = tmp_path / "seeds"
+    assert cli.main(["evaluate", "--heldout", str(heldout), "--checkpoint", str(a), "--steps", "2", "--precision", "fp32",
+                     "--sample-seed", "0", "1", "--out", str(out)]) == 0
+    both = json.loads((out / "report.json").read_text())
+    assert both["episodes"] == single[0]["episodes"] == len(GROUP) and both["sample_seeds"] == [0, 1]
+    assert [r["sample_seed"] for r in both["rows"]] == [0, 1] * len(GROUP)
+    assert both["episodes_per_skill"] == single[0]["episodes_per_skill"]
+    for key, value in both["summary"]["model_raw"].items():
+        one, two = (r["summary"]["model_raw"][key] for r in single)
+        if value is not None and one is not None and two is not None:
+            assert value == pytest.approx((one + two) / 2, rel=1e-6, abs=1e-9), key
+    for m in ("model", "model_raw", "static", "ground_truth"):
+        assert both["contrast"][m]["instructions"] == sum(r["contrast"][m]["instructions"] for r in single)
+        assert both["contrast"][m]["right"] == sum(r["contrast"][m]["right"] for r in single)
+    assert both["contrast"]["static"]["groups"] == 2 * single[0]["contrast"]["static"]["groups"]
+    for r0, r1 in zip(both["rows"][0::2], both["rows"][1::2]):
+        assert r0["episode"] == r1["episode"] and r0["metrics"]["static"] == r1["metrics"]["static"]
+    md = (out / "report.md").read_text()
+    assert "2 noise seeds" in md and f"{len(GROUP)} instructions in 1 groups" in md
+    # Seeds must be distinct.
+    assert cli.main(["evaluate", "--heldout", str(heldout), "--checkpoint", str(a), "--sample-seed", "1", "1"]) == 2
+
+
 def test_single_checkpoint_keeps_the_report_keys(two_checkpoints):
     from tesseract4d.evaluation.heldout import HeldoutConfig, evaluate_heldout, format_markdown
 

@@ -15,14 +15,16 @@ model with the reconstruction's consistency step, the model without it, and the 
 counterfactual groups, token grid and edge sharpness, per skill and per task. Several
 --checkpoint options score several models side by side in the same run, also when their
 resolutions differ from the data's by a whole factor (the first frame is resized to each model's
-resolution and its prediction back; every metric is taken at the data's resolution). Writes
+resolution and its prediction back; every metric is taken at the data's resolution). Several
+--sample-seed values predict every episode once per noise seed and pool the scores: one noise
+draw decides much of an instruction's outcome, so compare checkpoints on several. Writes
 report.json and report.md (the README's results table) to --out.
 
 Examples:
   tesseract4d evaluate out/recon --gt data/test/episodes/PickCube-v1/seed_100000.h5 --json out/report.json
   tesseract4d evaluate --heldout data/heldout --out outputs/heldout_eval      # the shipped default (v2-2step)
   tesseract4d evaluate --heldout data/heldout_groups --checkpoint tesseract4d/checkpoints/v2 \
-      --checkpoint tesseract4d/checkpoints/v2-2step --out outputs/heldout_compare
+      --checkpoint tesseract4d/checkpoints/v2-2step --sample-seed 0 1 2 --out outputs/heldout_compare
 """
 
 from __future__ import annotations
@@ -64,7 +66,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     held.add_argument("--steps", type=int, help="sampler steps (default: the checkpoint preset's)")
     held.add_argument("--text-guidance", type=float, metavar="SCALE",
                       help="text guidance scale of the sampler (default: each checkpoint preset's; 1 = no guidance)")
-    held.add_argument("--sample-seed", type=int, default=0, help="diffusion noise seed (default %(default)s)")
+    held.add_argument("--sample-seed", type=int, nargs="+", default=[0], metavar="SEED",
+                      help="diffusion noise seed (default 0); several (e.g. 0 1 2) predict every episode once per "
+                           "seed and pool the scores: one noise draw decides much of an instruction's outcome, so "
+                           "compare checkpoints on several")
     held.add_argument("--max-per-task", type=int, help="episodes per task at most (default: all)")
     held.add_argument("--batch-size", type=int, metavar="N",
                       help="scenes per network call (default: predict_scenes' DEFAULT_SCENE_BATCH); each scene gets "
@@ -101,8 +106,9 @@ def run_heldout(args: argparse.Namespace) -> int:
     checkpoints = args.checkpoint if isinstance(args.checkpoint, list) else [args.checkpoint]
     output = None if args.out is None else OutputDir(args.out, "evaluate", inputs=[*checkpoints, args.heldout],
                                                      overwrite=args.overwrite)
-    cfg = HeldoutConfig(checkpoint=checkpoints[0] if len(checkpoints) == 1 else checkpoints, data=args.heldout, out=None, camera=args.camera,
-                        num_steps=args.steps, sample_seed=args.sample_seed, max_episodes=args.max_per_task,
+    seeds = args.sample_seed[0] if len(args.sample_seed) == 1 else args.sample_seed
+    cfg = HeldoutConfig(checkpoint=checkpoints[0] if len(checkpoints) == 1 else checkpoints, data=args.heldout, out=None,
+                        camera=args.camera, num_steps=args.steps, sample_seed=seeds, max_episodes=args.max_per_task,
                         max_depth_m=args.max_depth, precision=args.precision, batch_size=args.batch_size,
                         text_guidance=args.text_guidance)
     report = evaluate_heldout(cfg)

@@ -227,11 +227,12 @@ def breakdown(rows: list[dict], methods, by: str) -> dict:
 
 
 def counts(rows: list[dict], by: str) -> dict:
-    """Number of episodes per value of ``row[by]``."""
-    out: dict = {}
-    for r in rows:
-        out[r[by]] = out.get(r[by], 0) + 1
-    return dict(sorted(out.items()))
+    """Number of episodes per value of ``row[by]`` (an episode scored with several noise seeds, one
+    row each, counts once)."""
+    seen: dict = {}
+    for i, r in enumerate(rows):
+        seen.setdefault(r[by], set()).add(r.get("episode", i))
+    return {k: len(v) for k, v in sorted(seen.items())}
 
 
 def goal_met(key: str, value) -> bool | None:
