@@ -334,12 +334,25 @@ def test_a_prediction_comes_back_at_the_data_resolution_from_the_data_first_fram
                                                       "data_resolution": [2 * SIZE, 2 * SIZE]}
 
 
+def test_every_scene_draws_its_own_noise_and_a_group_shares_it():
+    from tesseract4d.evaluation.heldout import scene_noise_seed
+
+    group = scene_noise_seed(0, "Tesseract4dTabletop-v1", 100000)
+    assert group == scene_noise_seed(0, "Tesseract4dTabletop-v1", 100000)  # every instruction of the group
+    others = {scene_noise_seed(0, "Tesseract4dTabletop-v1", 100001), scene_noise_seed(0, "PushCube-v1", 100000),
+              scene_noise_seed(1, "Tesseract4dTabletop-v1", 100000)}
+    assert group not in others and len(others) == 3
+    seeds = {scene_noise_seed(s, env, k) for s in range(3) for env in ("PushCube-v1", "PullCube-v1") for k in range(100)}
+    assert len(seeds) == 600 and all(0 <= x < 1 << 62 for x in seeds)
+
+
 def test_same_resolution_is_predicted_as_one_scene_at_a_time_and_batching_changes_nothing(two_checkpoints):
     """At the data's resolution nothing is resized: with one scene per call the raw model scores
-    exactly what predict_episode's prediction scores (what the evaluation did one episode at a
-    time); several scenes per call give the same numbers up to the rounding of batched fp32 maths."""
+    exactly what predict_episode's prediction with the scene's noise seed scores (what the evaluation
+    did one episode at a time); several scenes per call give the same numbers up to the rounding of
+    batched fp32 maths."""
     from tesseract4d.evaluation.episode import evaluate_episode
-    from tesseract4d.evaluation.heldout import HeldoutConfig, evaluate_heldout, select_episodes
+    from tesseract4d.evaluation.heldout import HeldoutConfig, evaluate_heldout, scene_noise_seed, select_episodes
     from tesseract4d.evaluation.metrics import moving_region_mask
     from tesseract4d.model.predict import load_pipeline, predict_episode
 
@@ -352,7 +365,8 @@ def test_same_resolution_is_predicted_as_one_scene_at_a_time_and_batching_change
     for path, row in zip(select_episodes(heldout, None), one["rows"]):
         gt = df.read_episode(path)
         first = df.read_episode(path, cameras=["close"], frames=slice(0, 1))
-        pred = predict_episode(pipe, first, gt.instruction, num_frames=FRAMES, seed=3, num_steps=2)
+        pred = predict_episode(pipe, first, gt.instruction, num_frames=FRAMES, num_steps=2,
+                               seed=scene_noise_seed(3, gt.env_id, gt.seed))
         alone = evaluate_episode(pred, gt, camera="close", moving_mask=moving_region_mask(gt.cameras["close"]),
                                  max_depth_m=one["max_depth_m"])["mean"]
         for key, value in alone.items():

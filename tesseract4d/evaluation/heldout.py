@@ -44,9 +44,14 @@ the same checkpoint judged with two seeds agrees on about two thirds of the inst
 draw no noise, are the same in each); every mean, breakdown and the contrast then pool over the
 seeds, each seed's groups judged on their own.
 
-Scenes are predicted several per network call (:func:`tesseract4d.model.predict.predict_scenes`,
-``batch_size``), each from the noise that predicting it alone with ``sample_seed`` draws, so the
-numbers do not depend on the batch size (up to the rounding of batched maths).
+Every scene draws its own noise (:func:`scene_noise_seed` of ``sample_seed``, the env and the
+scene seed), shared by the instructions of its counterfactual group so that their futures differ
+only by their words. (Until the evaluation's format version 4 every episode of a run drew the same
+noise, so a run was one draw for the whole set: a noise that made the arm flail did so in every
+episode at once.) Scenes are predicted several per network call
+(:func:`tesseract4d.model.predict.predict_scenes`, ``batch_size``), each from the noise that
+predicting it alone with its noise seed draws, so the numbers do not depend on the batch size (up
+to the rounding of batched maths).
 """
 
 from __future__ import annotations
@@ -55,6 +60,7 @@ import dataclasses
 import json
 import math
 import os
+import zlib
 from dataclasses import dataclass
 from fractions import Fraction
 from pathlib import Path
@@ -243,19 +249,30 @@ def at_resolution(episode: df.Episode, camera: str, hw: tuple[int, int]) -> df.E
     return dataclasses.replace(episode, cameras={camera: frames})
 
 
+def scene_noise_seed(sample_seed: int, env_id: str, scene_seed: int) -> int:
+    """The noise seed of one held-out scene for a run's ``sample_seed``: its own draw for every scene
+    (so the episodes of a run are independent draws, not one draw shared by all), and the same for
+    every instruction of a counterfactual group (one env and scene seed), so that a group's futures
+    differ only by their words."""
+    return (int(sample_seed) * 1_000_003 + zlib.crc32(env_id.encode()) * 7_919 + int(scene_seed)) % (1 << 62)
+
+
 def predict_at_data_resolution(pipeline, firsts: list[df.Episode], instructions: list[str], cameras: list[str],
                                num_frames: list[int], *, seed: int, num_steps: int,
-                               batch_size: int | None,
-                               text_guidance: float | None = None) -> list[tuple[df.Episode, np.ndarray]]:
+                               batch_size: int | None, text_guidance: float | None = None,
+                               noise_seeds: list[int] | None = None) -> list[tuple[df.Episode, np.ndarray]]:
     """One prediction per scene at its first frame's resolution, whatever the model's: a list of
     (prediction at the data's resolution, its RGB as the model made it (T, h, w, 3) uint8).
 
     ``firsts[i]``: the first-frame episode of scene i (frame 0 of camera ``cameras[i]``);
     ``num_frames[i]``: frames to predict. Scenes go ``batch_size`` per network call
-    (``predict_scenes``), each from the noise ``predict_episode(..., seed=seed)`` draws. A first
-    frame of another resolution than the model's is resized to it, and the prediction back
-    (:func:`at_resolution`); frame 0 is then the given first frame again.
+    (``predict_scenes``), scene i from the noise ``predict_episode(..., seed=noise_seeds[i])`` draws
+    (default: ``seed`` for every scene). A first frame of another resolution than the model's is
+    resized to it, and the prediction back (:func:`at_resolution`); frame 0 is then the given first
+    frame again.
     """
+    if noise_seeds is None:
+        noise_seeds = [seed] * len(firsts)
     from tesseract4d.model.predict import predict_scenes
 
     model_hw = tuple(pipeline.resolution)
@@ -265,7 +282,7 @@ def predict_at_data_resolution(pipeline, firsts: list[df.Episode], instructions:
         idx = [i for i, m in enumerate(num_frames) if m == n]
         preds = predict_scenes(pipeline, [inputs[i] for i in idx], [instructions[i] for i in idx],
                                batch_size=batch_size, num_frames=n, seed=seed, num_steps=num_steps,
-                               text_guidance=text_guidance, noise_seeds=[seed] * len(idx))
+                               text_guidance=text_guidance, noise_seeds=[noise_seeds[i] for i in idx])
         for i, pred in zip(idx, preds):
             model_rgb = pred.cameras[cameras[i]].rgb
             first = firsts[i].cameras[cameras[i]]
@@ -353,7 +370,8 @@ def evaluate_heldout(cfg: HeldoutConfig, progress: bool = True) -> dict:
         predictions = [[predict_at_data_resolution(pipeline, firsts, instructions, cameras, num_frames,
                                                    seed=seed, batch_size=batch_size,
                                                    num_steps=cfg.num_steps or pipeline.preset.num_steps,
-                                                   text_guidance=cfg.text_guidance)
+                                                   text_guidance=cfg.text_guidance,
+                                                   noise_seeds=[scene_noise_seed(seed, gt.env_id, gt.seed) for gt in gts])
                         for seed in seeds] for pipeline in pipelines]  # [checkpoint][seed][scene]
         for j, (path, gt, camera, first) in enumerate(zip(chunk, gts, cameras, firsts)):
             gt_cam = gt.cameras[camera]
@@ -434,7 +452,7 @@ def build_report(cfg, rows: list[dict], methods: list[str], labels: dict, scores
     config = {k: (str(v) if isinstance(v, Path) else [str(x) for x in v] if isinstance(v, (list, tuple)) else v)
               for k, v in dataclasses.asdict(cfg).items()}
     return {
-        "format": "tesseract4d-heldout-eval", "format_version": 3,
+        "format": "tesseract4d-heldout-eval", "format_version": 4,
         "config": config, "checkpoints": checkpoints, "token_patch_px": patch_px, "resolutions": resolutions or {},
         "episodes": len({r["episode"] for r in rows}), "sample_seeds": sorted({r.get("sample_seed", 0) for r in rows}),
         "tasks": tasks, "methods": {m: labels[m] for m in methods}, "max_depth_m": max_depth_m,
