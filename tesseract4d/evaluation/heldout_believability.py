@@ -28,6 +28,7 @@ from tesseract4d.evaluation.believability import (MIN_OBJECT_PIXELS, OBJECT_COLO
                                                   RIGHT_WAY_COSINE, STILL_SHARE, _dilate, _min_colour_distance,
                                                   edge_sharpness, instruction_contrast, objects_present, token_grid_ratio)
 from tesseract4d.evaluation.instruction_following import object_pixel_track
+from tesseract4d.intervals import wilson_interval
 
 PRESENCE_GOAL = 0.95  # issue: every visible object present in at least 95 % of frames
 CONTRAST_GOAL = 0.70  # issue: at least 70 % of a group's instructions right
@@ -181,7 +182,6 @@ def contrast_by_group(entries: list[tuple[str, dict]]) -> dict:
     instruction (its right/wrong is relative to them). ``wilson95`` is the share's 95 % Wilson
     interval: with a few dozen instructions a model's share is known to about ±0.15.
     """
-    from tesseract4d.intervals import wilson_interval
 
     groups: dict[str, list[dict]] = {}
     for gid, e in entries:
