@@ -30,7 +30,7 @@ import sys
 from pathlib import Path
 
 BASELINE = ["--preset", "latent-128", "--condition-noise", "0.1", "--moving-weight", "2", "--object-weight", "2",
-            "--prediction", "x0", "--text-dropout", "0.1"]
+            "--prediction", "x0", "--text-dropout", "0.1", "--time-shift", "1"]
 
 # variant -> (what changes, `tesseract4d train` arguments replacing the baseline's, or None to reuse the
 # baseline's weights, extra `tesseract4d evaluate` arguments)
@@ -41,6 +41,7 @@ VARIANTS: dict[str, tuple[str, list[str] | None, list[str]]] = {
     "weights_1": ("moving and object weight 1", ["--moving-weight", "1", "--object-weight", "1"], []),
     "velocity": ("velocity target", ["--prediction", "velocity"], []),
     "text_dropout_0.3": ("text dropout 0.3", ["--text-dropout", "0.3"], []),
+    "time_shift_3": ("diffusion times shifted to high noise (3)", ["--time-shift", "3"], []),
     "guidance_1": ("text guidance 1 (none)", None, ["--text-guidance", "1"]),
     "guidance_3": ("text guidance 3", None, ["--text-guidance", "3"]),
     "small_2_layers": ("2 layers, same minutes", ["--preset", "latent-128-small"], []),

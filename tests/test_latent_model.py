@@ -181,6 +181,31 @@ def test_velocity_prediction_trains_and_samples(tmp_path):
     assert torch.isfinite(out).all()
 
 
+def test_time_shift_draws_uniform_times_at_one_and_more_high_noise_above_it():
+    """--time-shift 1 draws exactly torch.rand's times (the old recipe's stream); a shift of 3 maps each
+    draw u monotonically to 3u / (1 + 2u) in [0, 1], so half the steps land above t = 0.75."""
+    from tesseract4d.model.recipe import sample_times
+
+    n = 20000
+    u = torch.rand(n, generator=torch.Generator().manual_seed(7))
+    assert torch.equal(sample_times(n, 1.0, torch.Generator().manual_seed(7)), u)
+    t = sample_times(n, 3.0, torch.Generator().manual_seed(7))
+    assert torch.allclose(t, 3 * u / (1 + 2 * u))
+    assert float(t.min()) >= 0.0 and float(t.max()) <= 1.0
+    assert (t[torch.argsort(u)].diff() >= -1e-6).all()  # order kept (to float rounding): a monotone map
+    # P(t > 0.75) = P(u > 0.5) = 0.5 at shift 3, against 0.25 uniform
+    assert abs(float((t > 0.75).float().mean()) - 0.5) < 0.02
+
+
+def test_time_shift_trains_and_is_recorded(tmp_path):
+    from tesseract4d.model.predict import load_pipeline
+    from tesseract4d.model.trainer import Trainer
+
+    data = write_segmented_dataset(tmp_path / "data", episodes=1)
+    final = Trainer(_config(data, tmp_path / "run", _autoencoder(tmp_path / "ae"), time_shift=3.0)).train()
+    assert load_pipeline(final).config["recipe"]["time_shift"] == 3.0
+
+
 def test_bad_inputs_are_user_errors(tmp_path):
     from tesseract4d.model.trainer import Trainer
 
@@ -193,6 +218,9 @@ def test_bad_inputs_are_user_errors(tmp_path):
         Trainer(_config(data, tmp_path / "run2", None))
     with pytest.raises(UserError, match="--prediction"):
         Trainer(_config(data, tmp_path / "run3", ae, prediction="eps"))
+    for shift in (0.0, float("nan")):
+        with pytest.raises(UserError, match="--time-shift"):
+            Trainer(_config(data, tmp_path / "run4", ae, time_shift=shift))
 
 
 def test_init_fine_tunes_a_checkpoint_in_its_own_latent_space(tmp_path):

@@ -47,6 +47,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="loss weight of robot/object cells, latent presets (default %(default)s)")
     parser.add_argument("--prediction", choices=("x0", "velocity"), default=d.prediction,
                         help="network target: clean clip (x0) or velocity (default %(default)s)")
+    parser.add_argument("--time-shift", type=float, default=d.time_shift,
+                        help="diffusion times t = s*u / (1 + (s-1)*u), u uniform: 1 = uniform, > 1 trains more at high "
+                             "noise (default %(default)s)")
     parser.add_argument("--text-dropout", type=float, help="share of steps without text, for guidance (default: the preset's)")
     parser.add_argument("--max-steps", type=int, default=d.max_steps,
                         help="training steps; the cosine learning-rate decay ends here (default %(default)s)")
@@ -93,7 +96,7 @@ def run(args: argparse.Namespace) -> int:
         precision=args.precision, resume=args.resume, val_every=args.val_every, ckpt_every=args.ckpt_every, seed=args.seed,
         camera=args.camera, progress=not args.no_progress, loss_weights=weights, autoencoder=args.autoencoder,
         condition_noise=args.condition_noise, moving_weight=args.moving_weight, object_weight=args.object_weight,
-        prediction=args.prediction, text_dropout=args.text_dropout, init=args.init,
+        prediction=args.prediction, text_dropout=args.text_dropout, init=args.init, time_shift=args.time_shift,
     )
     final = Trainer(cfg).train()
     print(f"inference checkpoint: {final}")

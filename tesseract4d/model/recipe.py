@@ -10,12 +10,18 @@
   the cached segmentation) is weighted up.
 - ``prediction``: the network's target. ``x0`` (the clean clip as "first frame + correction") or
   ``velocity`` (``noise - x0``, the same output read as a velocity after removing the first frame).
+- ``time_shift``: where training draws the diffusion time. ``t = s u / (1 + (s - 1) u)`` with
+  ``u ~ U(0, 1)`` (the resolution shift of SD3 / flow-matching video models): ``s = 1`` is uniform,
+  ``s > 1`` trains more at high noise, where the instruction decides the coarse motion, and less
+  near the clean clip, where the noisy sample already shows it. Sampling is unchanged.
 - ``text_dropout`` (TrainConfig) and the guidance scales (``tesseract4d predict``) already exist.
 
 Also here: which data a preset trains on (pixels, or a latent cache of an autoencoder).
 """
 
 from __future__ import annotations
+
+import math
 
 import torch
 
@@ -32,6 +38,8 @@ def check_recipe(cfg, preset: ModelPreset) -> None:
         raise UserError(f"--prediction must be one of {', '.join(PREDICTIONS)}, got {cfg.prediction!r}")
     if cfg.condition_noise < 0 or cfg.moving_weight <= 0 or cfg.object_weight <= 0:
         raise UserError("--condition-noise must be >= 0 and --moving-weight/--object-weight > 0")
+    if not (math.isfinite(cfg.time_shift) and cfg.time_shift > 0):
+        raise UserError(f"--time-shift must be a finite number > 0 (1 = uniform diffusion times), got {cfg.time_shift}")
     if preset.space == AUTOENCODER and cfg.autoencoder is None:
         raise UserError(f"preset {preset.name!r} works in an RGB-D-N autoencoder's latent space: pass --autoencoder DIR "
                         f"(RUN/autoencoder of `tesseract4d train-autoencoder --data DATA --out RUN`)")
@@ -82,6 +90,15 @@ def augment_condition(first: torch.Tensor, max_std: float, generator: torch.Gene
     std = torch.rand(b, generator=generator) * max_std
     noise = torch.randn(first.shape, generator=generator)
     return first + (std[:, None, None, None, None] * noise).to(first.device)
+
+
+def sample_times(b: int, shift: float, generator: torch.Generator) -> torch.Tensor:
+    """(b,) diffusion times in [0, 1]: ``s u / (1 + (s - 1) u)`` of ``u ~ U(0, 1)`` (``u`` itself when
+    ``shift`` is 1, so the uniform recipe draws exactly what it always drew)."""
+    u = torch.rand(b, generator=generator)
+    if shift == 1.0:
+        return u
+    return shift * u / (1.0 + (shift - 1.0) * u)
 
 
 def cell_weights(x0: torch.Tensor, objects: torch.Tensor | None, cfg) -> torch.Tensor | None:

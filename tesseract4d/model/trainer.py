@@ -92,6 +92,7 @@ class TrainConfig:
     moving_weight: float = 1.0  # loss weight of moving cells (differ from the first frame) relative to static ones
     object_weight: float = 1.0  # loss weight of robot/object cells (latent presets: from the cached segmentation)
     prediction: str = "x0"  # network target: "x0" (clean clip, first frame + correction) or "velocity"
+    time_shift: float = 1.0  # diffusion times t = s u / (1 + (s - 1) u), u ~ U(0, 1); > 1 trains more at high noise
 
     def resolved(self, preset: ModelPreset) -> "TrainConfig":
         out = dataclasses.replace(self)
@@ -140,7 +141,7 @@ class TrainConfig:
     def recipe(self) -> dict:
         """The recipe levers, saved in the inference config (sampling needs ``prediction``)."""
         return {k: getattr(self, k) for k in ("condition_noise", "moving_weight", "object_weight", "prediction",
-                                              "text_dropout")}
+                                              "text_dropout", "time_shift")}
 
 
 def lr_at(step: int, cfg: TrainConfig) -> float:
@@ -437,7 +438,7 @@ class Trainer:
         """The loss of training step ``step`` (its batch and noise depend only on seed and step)."""
         cfg = self.cfg
         g = self._step_generator(step)
-        from tesseract4d.model.recipe import augment_condition
+        from tesseract4d.model.recipe import augment_condition, sample_times
 
         objects = None
         if getattr(self.data, "encoded", False):  # a latent cache: the encoder never runs in a step
@@ -455,7 +456,7 @@ class Trainer:
         keep_image = (torch.rand(b, generator=g) >= cfg.image_dropout).float()
         text = (text * keep_text[:, None, None]).to(self.device)
         first = first * keep_image.to(self.device)[:, None, None, None, None]
-        t = torch.rand(b, generator=g)
+        t = sample_times(b, cfg.time_shift, g)
         noise = torch.randn(x0.shape, generator=g)
         return self.denoising_loss(x0, first, text, t, noise, objects)
 
