@@ -49,7 +49,8 @@ VARIANTS: dict[str, tuple[str, list[str] | None, list[str]]] = {
 }
 COLUMNS = (("rgb_psnr_db_moving", "PSNR moving (dB)", ".2f"), ("depth_abs_rel_moving", "AbsRel moving", ".3f"),
            ("normal_mean_deg_moving", "normals moving (°)", ".1f"), ("chamfer_l1_m_moving", "Chamfer moving (mm)", ".1f"),
-           ("objects_present", "objects present", ".3f"), ("contrast", "contrast", ".3f"))
+           ("objects_present", "objects present", ".3f"), ("contrast", "contrast", ".3f"),
+           ("contrast_whole", "contrast, found whole", ".3f"))
 
 
 def train_args(extra: list[str]) -> list[str]:

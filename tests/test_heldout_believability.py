@@ -124,6 +124,51 @@ def test_static_world_keeps_still_objects_but_follows_only_keep_still():
     assert contrast["wilson95"] == pytest.approx([0.0615, 0.7923], abs=1e-4)
 
 
+def _red_push_ending_as(paint):
+    """Predictions of the group: the ground truth, except that the red-cube push's last frame shows
+    the red cube as ``paint(frame)`` draws it on the ground truth's background."""
+    def pred_of(ep):
+        rgb = ep.cameras["close"].rgb.copy()
+        if ep.intent["target"] == "red_cube":
+            rgb[-1][ep.cameras["close"].segmentation[-1] == 18] = 60  # erase it (a grey of the plane)
+            paint(rgb[-1])
+        return rgb
+    return pred_of
+
+
+def test_a_smear_or_a_copy_moves_the_centroid_right_but_is_not_found_whole():
+    """The red cube (8 px, pushed 16 px right) drawn as a streak along its path, or twice (at its start
+    and its goal): the tracked centroid moves right (cos 1: "right"), but the object is not found whole.
+    The ground truth itself is found whole."""
+    from tesseract4d.evaluation.heldout_believability import find_object
+
+    truth = group_episode(0).cameras["close"]
+    found = find_object(truth.rgb[0], truth.segmentation[0] == 18, truth.rgb[-1])
+    assert found.whole and found.du == pytest.approx(16.0) and found.pixels_share == pytest.approx(1.0)
+    assert found.spread_ratio == pytest.approx(1.0)
+
+    def streak(frame):
+        frame[10:18, 6:30] = (220, 30, 30)
+
+    def copy(frame):
+        frame[10:18, 6:14] = (220, 30, 30)
+        frame[10:18, 22:30] = (220, 30, 30)
+
+    def faded(frame):  # a quarter of it left, where it should be
+        frame[10:12, 22:26] = (220, 30, 30)
+
+    for paint in (streak, copy, faded):
+        rows = _group_entries(_red_push_ending_as(paint))
+        contrast = contrast_by_group([(ep.group_id, b["contrast_entry"]) for ep, b in rows])
+        red = contrast["per_group"]["Synthetic-v0/seed_100000"][0]
+        assert red["right"] and not red["whole"] and not red["right_whole"], paint.__name__
+        assert (contrast["right"], contrast["right_whole"]) == (3, 2), paint.__name__
+        assert contrast["share_whole"] == pytest.approx(2 / 3)
+    truth_rows = _group_entries(lambda ep: ep.cameras["close"].rgb)
+    contrast = contrast_by_group([(ep.group_id, b["contrast_entry"]) for ep, b in truth_rows])
+    assert contrast["right_whole"] == contrast["right"] == 3  # "keep still" counts as judged
+
+
 def test_wrong_object_and_restless_keep_still_are_wrong():
     gt = {k: group_episode(k).cameras["close"].rgb for k in range(3)}
     # Every instruction gets the clip that pushes the red cube: right only for "push the red cube".
@@ -183,19 +228,22 @@ def test_evaluate_scores_several_checkpoints_side_by_side(two_checkpoints, tmp_p
     assert list(report["methods"]) == [names[0], names[0] + "_raw", "v2", "v2_raw", "static"]
     assert report["checkpoints"] == {names[0]: str(a), "v2": str(b)}
     for m in report["methods"]:
-        for key in ("rgb_psnr_db_moving", "objects_present", "token_grid_ratio", "edge_sharpness", "contrast"):
+        for key in ("rgb_psnr_db_moving", "objects_present", "token_grid_ratio", "edge_sharpness", "contrast",
+                    "contrast_whole"):
             assert key in report["summary"][m]
         assert set(report["per_skill"]) == {"push", "keep_still"} and m in report["per_skill"]["push"]
         assert m in report["per_task"]["Synthetic-v0"]
     # The static world follows only "keep still"; the ground truth follows all.
     assert report["summary"]["static"]["contrast"] == pytest.approx(1 / 3)
-    assert report["contrast"]["ground_truth"]["share"] == 1.0
+    assert report["contrast"]["ground_truth"]["share"] == report["contrast"]["ground_truth"]["share_whole"] == 1.0
+    assert report["format_version"] == 5
     assert report["contrast"]["static"]["per_skill"] == {"keep_still": 1.0, "push": 0.0}
     assert report["contrast"]["static"]["per_task"] == {"Synthetic-v0": pytest.approx(1 / 3)}
     md = (out / "report.md").read_text()
     for label in report["methods"].values():
         assert label in md
     assert "object permanence" in md and "instruction contrast" in md and "✗" in md and "per skill" in md
+    assert "the moved object found whole" in md
     assert "| keep_still | 1 |" in md and "| Synthetic-v0 | 3 |" in md
 
 
@@ -222,6 +270,7 @@ def test_several_noise_seeds_pool_the_single_seed_scores(two_checkpoints, tmp_pa
     for m in ("model", "model_raw", "static", "ground_truth"):
         assert both["contrast"][m]["instructions"] == sum(r["contrast"][m]["instructions"] for r in single)
         assert both["contrast"][m]["right"] == sum(r["contrast"][m]["right"] for r in single)
+        assert both["contrast"][m]["right_whole"] == sum(r["contrast"][m]["right_whole"] for r in single)
     assert both["contrast"]["static"]["groups"] == 2 * single[0]["contrast"]["static"]["groups"]
     for r0, r1 in zip(both["rows"][0::2], both["rows"][1::2]):
         assert r0["episode"] == r1["episode"] and r0["metrics"]["static"] == r1["metrics"]["static"]
@@ -447,7 +496,7 @@ def test_ground_truth_of_a_simulated_group_is_believed(tmp_path):
             assert still["metrics"]["objects_present"] == 1.0
         gt_entries.append((ep.group_id, truth["contrast_entry"]))
         static_entries.append((ep.group_id, still["contrast_entry"]))
-    assert contrast_by_group(gt_entries)["share"] == 1.0
+    assert contrast_by_group(gt_entries)["share"] == contrast_by_group(gt_entries)["share_whole"] == 1.0
     assert contrast_by_group(static_entries)["per_skill"] == {"keep_still": 1.0, "push": 0.0}
 
 

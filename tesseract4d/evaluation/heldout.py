@@ -450,10 +450,11 @@ def build_report(cfg, rows: list[dict], methods: list[str], labels: dict, scores
     contrast = {m: contrast_by_group(contrast_entries.get(m, [])) for m in methods + ["ground_truth"]}
     for m in methods:
         summary[m]["contrast"] = contrast[m]["share"]
+        summary[m]["contrast_whole"] = contrast[m]["share_whole"]
     config = {k: (str(v) if isinstance(v, Path) else [str(x) for x in v] if isinstance(v, (list, tuple)) else v)
               for k, v in dataclasses.asdict(cfg).items()}
     return {
-        "format": "tesseract4d-heldout-eval", "format_version": 4,
+        "format": "tesseract4d-heldout-eval", "format_version": 5,
         "config": config, "checkpoints": checkpoints, "token_patch_px": patch_px, "resolutions": resolutions or {},
         "episodes": len({r["episode"] for r in rows}), "sample_seeds": sorted({r.get("sample_seed", 0) for r in rows}),
         "tasks": tasks, "methods": {m: labels[m] for m in methods}, "max_depth_m": max_depth_m,
@@ -484,9 +485,9 @@ def write_heldout_report(report: dict, out: str | os.PathLike) -> None:
     df.atomic_write_text(out / "report.md", format_markdown(report) + "\n")
 
 
-def _interval(contrast: dict | None) -> str:
-    """" (low–high)": the 95 % Wilson interval of a contrast share, when the report has it."""
-    ci = (contrast or {}).get("wilson95")
+def _interval(contrast: dict | None, key: str = "wilson95") -> str:
+    """" (low–high)": the 95 % Wilson interval of a contrast share (``key``), when the report has it."""
+    ci = (contrast or {}).get(key)
     return f" ({ci[0]:.2f}–{ci[1]:.2f})" if ci else ""
 
 
@@ -530,6 +531,7 @@ def format_markdown(report: dict) -> str:
     believe = (
         ("objects_present", f"object permanence: frames with every object (goal ≥ {PRESENCE_GOAL:.0%})", "scene objects"),
         ("contrast", f"instruction contrast: instructions right (goal ≥ {CONTRAST_GOAL:.0%})", "held-out groups"),
+        ("contrast_whole", "instruction contrast, the moved object found whole", "held-out groups"),
         ("token_grid_ratio", f"token grid ratio (goal {TOKEN_GRID_GOAL[0]:g}–{TOKEN_GRID_GOAL[1]:g}; "
                              f"ground truth {_fmt(report.get('token_grid_ratio_gt'), '')})", "all"),
         ("edge_sharpness", f"edge sharpness vs ground truth (goal ≥ {EDGE_SHARPNESS_GOAL:g})", "ground-truth edges"),
@@ -541,7 +543,9 @@ def format_markdown(report: dict) -> str:
             continue
         lines.append(f"| {label} | {region} | "
                      + " | ".join(_fmt(summary[m].get(key), "") + _mark(key, summary[m].get(key))
-                                  + (_interval(contrast.get(m)) if key == "contrast" else "") for m in methods) + " |")
+                                  + (_interval(contrast.get(m)) if key == "contrast" else "")
+                                  + (_interval(contrast.get(m), "wilson95_whole") if key == "contrast_whole" else "")
+                                  for m in methods) + " |")
         if key == "contrast" and any(contrast.get(m, {}).get("still_instructions") for m in methods):
             lines.append("| instruction contrast: \"keep still\" right | held-out groups | "
                          + " | ".join(_still(contrast.get(m)) for m in methods) + " |")
@@ -576,7 +580,10 @@ def format_markdown(report: dict) -> str:
                      f"with cos > {RIGHT_WAY_COSINE:g} to its commanded image displacement; \"keep still\" when the "
                      f"clip's motion is at most {STILL_SHARE:.0%} of the group's active instructions'. In brackets: "
                      f"the 95 % Wilson interval of the share (a difference between two models well inside both "
-                     f"intervals is within what the sample of instructions can show).")
+                     f"intervals is within what the sample of instructions can show). \"Found whole\": a right active "
+                     f"instruction counts only if the tracker finds the object in the last frame as one object of "
+                     f"about its size (not a smear, fragments or a copy of its colour; the ground truth scores "
+                     f"{_fmt(gt.get('share_whole'), '')}).")
     for by in ("per_skill", "per_task"):
         table, n_eps = report.get(by), report.get("episodes_" + by, {})
         if not table:

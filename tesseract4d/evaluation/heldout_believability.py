@@ -13,7 +13,8 @@ Per episode and per method (a predicted clip against the episode's ground truth)
 - ``motion``: mean absolute RGB change from the first frame (0-255 units).
 - a contrast entry (:func:`contrast_entry`) when the episode has a structured intent: the
   commanded world displacement of the instructed object projected into the image with K and
-  T_world_cam, and the displacement :func:`track_object` finds in the prediction's last frame.
+  T_world_cam, the displacement :func:`find_object` finds in the prediction's last frame, and
+  whether it found the object there whole (not a smear, fragments or a copy of its colour).
 
 :func:`contrast_by_group` scores each counterfactual group (episodes sharing ``group_id``) with
 :func:`believability.instruction_contrast`; :func:`breakdown` averages any per-episode metric per
@@ -21,6 +22,8 @@ skill and per task.
 """
 
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -40,6 +43,13 @@ NOT_OBJECTS = ("background", "table", "ground", "panda_", "camera_", "goal")
 GRIPPER_ONLY_SKILLS = ("hover", "reach")
 # A tracked displacement shorter than this (pixels) is noise, not motion (as instruction_following).
 MIN_PREDICTED_PX = 1.0
+# find_object's "whole": matched pixels within this share range of the object's distinctive first-frame
+# pixels, and their RMS radius at most WHOLE_MAX_SPREAD x the first frame's + WHOLE_SPREAD_SLACK_PX. On
+# the ground truth's last frames of the held-out groups (128², 65 tracked objects; one lifted out of the
+# search window is not found at all) the share runs 0.65-2.25 and the radius 0.81-1.52x; a second copy of a 5 px cube 10 px away spreads it 2.6x.
+WHOLE_PIXELS = (0.3, 3.0)
+WHOLE_MAX_SPREAD = 1.6
+WHOLE_SPREAD_SLACK_PX = 1.0
 BELIEVABILITY_METRICS = ("objects_present", "token_grid_ratio", "edge_sharpness", "motion")
 
 
@@ -79,9 +89,20 @@ def commanded_px(intent: dict, start_xyz_world: np.ndarray, K: np.ndarray, T_wor
 SEARCH_FRACTION = 24 / 64  # the tracker's window half-size as a share of the image width (24 px at 64x64)
 
 
-def track_object(first_rgb: np.ndarray, object_mask: np.ndarray, target_rgb: np.ndarray,
-                 search_px: int | None = None) -> tuple[float, float] | None:
-    """Displacement (du, dv) of an object from the ground truth's first frame to ``target_rgb``.
+@dataclass
+class FoundObject:
+    """Where :func:`find_object` found an object in a target frame."""
+
+    du: float  # displacement of its centroid from the first frame's (pixels)
+    dv: float
+    whole: bool  # found as one object of about its size, not a smear, a fragment or a copy (see WHOLE_*)
+    pixels_share: float  # matched pixels / the object's distinctive pixels in the first frame
+    spread_ratio: float  # RMS radius of the matched pixels / the first frame's
+
+
+def find_object(first_rgb: np.ndarray, object_mask: np.ndarray, target_rgb: np.ndarray,
+                search_px: int | None = None) -> FoundObject | None:
+    """The object of ``object_mask`` (in the ground truth's first frame) found in ``target_rgb``.
 
     The colour tracker of :mod:`instruction_following` with the object's *distinctive* colours (as
     :func:`believability.objects_present`: its first-frame pixels unlike everything around it) in
@@ -89,8 +110,15 @@ def track_object(first_rgb: np.ndarray, object_mask: np.ndarray, target_rgb: np.
     those colours that lay outside the object in the first frame (a same-coloured goal or object)
     are left out, and only a window of ``search_px`` (default: ``SEARCH_FRACTION`` of the image
     width, at least 24 px, so the window covers the same part of the scene at any resolution)
-    around the start counts; the start is the
-    same estimator on the first frame, so a static clip measures zero motion.
+    around the start counts; the start is the same estimator on the first frame, so a static clip
+    measures zero motion.
+
+    The displacement is that of the matched pixels' centroid, which a smear of the object's colour
+    also moves. So the object also counts as found *whole* only when the matched pixels number
+    ``WHOLE_PIXELS`` (a share range) of its distinctive first-frame pixels and their RMS radius
+    around their centroid is at most ``WHOLE_MAX_SPREAD`` times the first frame's plus
+    ``WHOLE_SPREAD_SLACK_PX``: a streak, a cloud of fragments or a second copy spreads wider, a
+    fading object matches too few pixels, a flood of its colour too many.
     first_rgb, target_rgb: (H, W, 3) uint8; object_mask: (H, W) bool. None when the object is not
     visible (or not distinctive) in the first frame, or not found in the target.
     """
@@ -108,6 +136,7 @@ def track_object(first_rgb: np.ndarray, object_mask: np.ndarray, target_rgb: np.
         return None
     vs, us = np.nonzero(mask)
     start = np.array([us[keep].mean(), vs[keep].mean()])
+    spread0 = _rms_radius(us[keep], vs[keep])
     matches = lambda rgb: (_min_colour_distance(np.asarray(rgb, np.float32).reshape(-1, 3), palette)  # noqa: E731
                            .reshape(H, W) < OBJECT_COLOUR_TOL)
     distractors = matches(rgb0) & ~_dilate(mask, 1)
@@ -115,7 +144,25 @@ def track_object(first_rgb: np.ndarray, object_mask: np.ndarray, target_rgb: np.
     near = (np.abs(u - start[0]) < search_px) & (np.abs(v - start[1]) < search_px)
     if not near.any():
         return None
-    return float(u[near].mean() - start[0]), float(v[near].mean() - start[1])
+    u, v = u[near], v[near]
+    share = len(u) / len(palette)
+    spread_ratio = _rms_radius(u, v) / max(spread0, 1e-6)
+    whole = bool(WHOLE_PIXELS[0] <= share <= WHOLE_PIXELS[1]
+                 and _rms_radius(u, v) <= WHOLE_MAX_SPREAD * spread0 + WHOLE_SPREAD_SLACK_PX)
+    return FoundObject(float(u.mean() - start[0]), float(v.mean() - start[1]), whole, float(share), float(spread_ratio))
+
+
+def _rms_radius(u: np.ndarray, v: np.ndarray) -> float:
+    """Root mean square distance of pixels (u, v) from their centroid."""
+    return float(np.sqrt(((u - u.mean()) ** 2 + (v - v.mean()) ** 2).mean()))
+
+
+def track_object(first_rgb: np.ndarray, object_mask: np.ndarray, target_rgb: np.ndarray,
+                 search_px: int | None = None) -> tuple[float, float] | None:
+    """Displacement (du, dv) of an object from the ground truth's first frame to ``target_rgb``
+    (:func:`find_object`'s centroid displacement), or None where it finds nothing."""
+    found = find_object(first_rgb, object_mask, target_rgb, search_px)
+    return None if found is None else (found.du, found.dv)
 
 
 def contrast_entry(gt, camera: str, pred_rgb: np.ndarray) -> dict | None:
@@ -127,7 +174,7 @@ def contrast_entry(gt, camera: str, pred_rgb: np.ndarray) -> dict | None:
         return None
     entry = {"instruction": gt.instruction, "skill": intent.get("skill"), "variant": intent.get("variant"),
              "still": intent.get("skill") == "keep_still", "motion": clip_motion(pred_rgb),
-             "commanded_px": None, "predicted_px": (0.0, 0.0)}
+             "commanded_px": None, "predicted_px": (0.0, 0.0), "whole": False}
     if entry["still"]:
         return entry
     target = intent.get("target")
@@ -139,9 +186,11 @@ def contrast_entry(gt, camera: str, pred_rgb: np.ndarray) -> dict | None:
     entry["commanded_px"] = commanded_px(intent, gt.object_poses[target][0, :3], K0, T0)
     ids = [int(i) for i, n in cam.seg_id_to_name.items() if n == target]
     if cam.segmentation is not None and ids:
-        found = track_object(np.asarray(cam.rgb[0]), np.isin(cam.segmentation[0], ids), np.asarray(pred_rgb[-1]))
-        if found is not None and float(np.hypot(*found)) >= MIN_PREDICTED_PX:
-            entry["predicted_px"] = (float(found[0]), float(found[1]))
+        found = find_object(np.asarray(cam.rgb[0]), np.isin(cam.segmentation[0], ids), np.asarray(pred_rgb[-1]))
+        if found is not None:
+            entry["whole"] = found.whole
+            if float(np.hypot(found.du, found.dv)) >= MIN_PREDICTED_PX:
+                entry["predicted_px"] = (found.du, found.dv)
     return entry
 
 
@@ -177,10 +226,13 @@ def contrast_by_group(entries: list[tuple[str, dict]]) -> dict:
     """Score counterfactual groups. entries: (group_id, contrast entry) pairs of one method.
 
     Returns ``{"instructions", "right", "share", "wilson95": [low, high], "groups",
-    "still_instructions", "still_right", "per_skill": {skill: share}, "per_task": {env_id: share},
-    "per_group": {group_id: [rows]}}``; "keep still" is only judged in a group with an active
-    instruction (its right/wrong is relative to them). ``wilson95`` is the share's 95 % Wilson
-    interval: with a few dozen instructions a model's share is known to about ±0.15.
+    "still_instructions", "still_right", "right_whole", "share_whole", "wilson95_whole",
+    "per_skill": {skill: share}, "per_task": {env_id: share}, "per_group": {group_id: [rows]}}``;
+    "keep still" is only judged in a group with an active instruction (its right/wrong is relative
+    to them). ``wilson95`` is the share's 95 % Wilson interval: with a few dozen instructions a
+    model's share is known to about ±0.15. ``right_whole``: the right ones whose instructed object
+    was also found whole (:func:`find_object`; "keep still" as judged), so a smear of the object's
+    colour that moves the centroid the commanded way does not count.
     """
 
     groups: dict[str, list[dict]] = {}
@@ -192,7 +244,9 @@ def contrast_by_group(entries: list[tuple[str, dict]]) -> dict:
         for row, e in zip(result.per_instruction, group):
             row.update(skill=e.get("skill"), variant=e.get("variant"))
             if not e["still"]:
-                row.update(commanded_px=list(e["commanded_px"]), predicted_px=list(e["predicted_px"]))
+                row.update(commanded_px=list(e["commanded_px"]), predicted_px=list(e["predicted_px"]),
+                           whole=bool(e.get("whole", False)))
+            row["right_whole"] = bool(row["right"]) and (bool(e["still"]) or row["whole"])
         per_group[gid] = result.per_instruction
         rows += result.per_instruction
     per_skill: dict[str, list[bool]] = {}
@@ -202,9 +256,12 @@ def contrast_by_group(entries: list[tuple[str, dict]]) -> dict:
             per_skill.setdefault(r["skill"] or "?", []).append(r["right"])
             per_task.setdefault(gid.split("/")[0], []).append(r["right"])
     right = sum(bool(r["right"]) for r in rows)
+    right_whole = sum(r["right_whole"] for r in rows)
     still = [bool(r["right"]) for r in rows if r.get("still")]
     return {"instructions": len(rows), "right": right, "share": right / len(rows) if rows else float("nan"),
             "wilson95": list(wilson_interval(right, len(rows))), "groups": len(groups),
+            "right_whole": right_whole, "share_whole": right_whole / len(rows) if rows else float("nan"),
+            "wilson95_whole": list(wilson_interval(right_whole, len(rows))),
             "still_instructions": len(still), "still_right": sum(still), "per_skill": {s: float(np.mean(v)) for s, v in sorted(per_skill.items())},
             "per_task": {t: float(np.mean(v)) for t, v in sorted(per_task.items())},
             "per_group": per_group, "right_way_cosine": RIGHT_WAY_COSINE, "still_share": STILL_SHARE}
@@ -241,7 +298,7 @@ def goal_met(key: str, value) -> bool | None:
         return None
     if key == "objects_present":
         return value >= PRESENCE_GOAL
-    if key == "contrast":
+    if key in ("contrast", "contrast_whole"):
         return value >= CONTRAST_GOAL
     if key == "token_grid_ratio":
         return TOKEN_GRID_GOAL[0] <= value <= TOKEN_GRID_GOAL[1]
