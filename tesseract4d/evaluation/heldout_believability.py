@@ -46,7 +46,8 @@ MIN_PREDICTED_PX = 1.0
 # find_object's "whole": matched pixels within this share range of the object's distinctive first-frame
 # pixels, and their RMS radius at most WHOLE_MAX_SPREAD x the first frame's + WHOLE_SPREAD_SLACK_PX. On
 # the ground truth's last frames of the held-out groups (128², 65 tracked objects; one lifted out of the
-# search window is not found at all) the share runs 0.65-2.25 and the radius 0.81-1.52x; a second copy of a 5 px cube 10 px away spreads it 2.6x.
+# search window is not found at all) the share runs 0.65-2.25 and the radius 0.81-1.52x; a second
+# copy of a 5 px cube 10 px away spreads it 2.6x.
 WHOLE_PIXELS = (0.3, 3.0)
 WHOLE_MAX_SPREAD = 1.6
 WHOLE_SPREAD_SLACK_PX = 1.0
