@@ -485,7 +485,11 @@ def write_heldout_report(report: dict, out: str | os.PathLike) -> None:
     df.atomic_write_text(out / "report.md", format_markdown(report) + "\n")
 
 
-def _interval(contrast: dict | None, key: str = "wilson95") -> str:
+# A contrast share in the summary -> its Wilson interval in the report's contrast entry.
+INTERVAL_OF = {"contrast": "wilson95", "contrast_whole": "wilson95_whole"}
+
+
+def _interval(contrast: dict | None, key: str) -> str:
     """" (low–high)": the 95 % Wilson interval of a contrast share (``key``), when the report has it."""
     ci = (contrast or {}).get(key)
     return f" ({ci[0]:.2f}–{ci[1]:.2f})" if ci else ""
@@ -543,8 +547,7 @@ def format_markdown(report: dict) -> str:
             continue
         lines.append(f"| {label} | {region} | "
                      + " | ".join(_fmt(summary[m].get(key), "") + _mark(key, summary[m].get(key))
-                                  + (_interval(contrast.get(m)) if key == "contrast" else "")
-                                  + (_interval(contrast.get(m), "wilson95_whole") if key == "contrast_whole" else "")
+                                  + (_interval(contrast.get(m), INTERVAL_OF[key]) if key in INTERVAL_OF else "")
                                   for m in methods) + " |")
         if key == "contrast" and any(contrast.get(m, {}).get("still_instructions") for m in methods):
             lines.append("| instruction contrast: \"keep still\" right | held-out groups | "

@@ -147,10 +147,11 @@ def find_object(first_rgb: np.ndarray, object_mask: np.ndarray, target_rgb: np.n
         return None
     u, v = u[near], v[near]
     share = len(u) / len(palette)
-    spread_ratio = _rms_radius(u, v) / max(spread0, 1e-6)
+    spread = _rms_radius(u, v)
     whole = bool(WHOLE_PIXELS[0] <= share <= WHOLE_PIXELS[1]
-                 and _rms_radius(u, v) <= WHOLE_MAX_SPREAD * spread0 + WHOLE_SPREAD_SLACK_PX)
-    return FoundObject(float(u.mean() - start[0]), float(v.mean() - start[1]), whole, float(share), float(spread_ratio))
+                 and spread <= WHOLE_MAX_SPREAD * spread0 + WHOLE_SPREAD_SLACK_PX)
+    return FoundObject(float(u.mean() - start[0]), float(v.mean() - start[1]), whole, float(share),
+                       spread / max(spread0, 1e-6))
 
 
 def _rms_radius(u: np.ndarray, v: np.ndarray) -> float:
@@ -235,7 +236,6 @@ def contrast_by_group(entries: list[tuple[str, dict]]) -> dict:
     was also found whole (:func:`find_object`; "keep still" as judged), so a smear of the object's
     colour that moves the centroid the commanded way does not count.
     """
-
     groups: dict[str, list[dict]] = {}
     for gid, e in entries:
         groups.setdefault(gid, []).append(e)

@@ -93,11 +93,9 @@ def augment_condition(first: torch.Tensor, max_std: float, generator: torch.Gene
 
 
 def sample_times(b: int, shift: float, generator: torch.Generator) -> torch.Tensor:
-    """(b,) diffusion times in [0, 1]: ``s u / (1 + (s - 1) u)`` of ``u ~ U(0, 1)`` (``u`` itself when
-    ``shift`` is 1, so the uniform recipe draws exactly what it always drew)."""
+    """(b,) diffusion times in [0, 1]: ``s u / (1 + (s - 1) u)`` of ``u ~ U(0, 1)``. At ``shift`` 1 every
+    operation is exact in floating point, so the uniform recipe draws exactly what it always drew."""
     u = torch.rand(b, generator=generator)
-    if shift == 1.0:
-        return u
     return shift * u / (1.0 + (shift - 1.0) * u)
 
 
