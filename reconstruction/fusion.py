@@ -9,7 +9,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from tesseract4d.geometry import invert_pose
+from tesseract4d.geometry import depth_to_world_points, invert_pose
 
 # The automatic voxel is this many pixel footprints at the median depth (a footprint is the
 # width one pixel covers on a fronto-parallel surface).
@@ -86,7 +86,16 @@ def fuse_tsdf(
         color_img = o3d.t.geometry.Image(o3c.Tensor(np.ascontiguousarray(rgb[t], np.float32) / 255.0))
         intrinsic = o3c.Tensor(np.asarray(K[t], np.float64))
         extrinsic = o3c.Tensor(invert_pose(T_world_cam[t]))  # world -> camera
-        blocks = grid.compute_unique_block_coordinates(depth_img, intrinsic, extrinsic, 1.0, depth_max, trunc_voxel_multiplier=trunc_voxels)
+        try:
+            blocks = grid.compute_unique_block_coordinates(depth_img, intrinsic, extrinsic, 1.0, depth_max, trunc_voxel_multiplier=trunc_voxels)
+        except RuntimeError as err:
+            # Open3D looks for blocks only at every 4th pixel; a frame whose few valid pixels all
+            # lie between those finds none. Its blocks then come from all its valid pixels.
+            if "No block is touched" not in str(err):
+                raise
+            points_world, _ = depth_to_world_points(depth[t], K[t], T_world_cam[t])
+            cloud = o3d.t.geometry.PointCloud(o3c.Tensor(np.ascontiguousarray(points_world, np.float32)))
+            blocks = grid.compute_unique_block_coordinates(cloud, trunc_voxel_multiplier=trunc_voxels)
         grid.integrate(blocks, depth_img, color_img, intrinsic, intrinsic, extrinsic, 1.0, depth_max, trunc_voxel_multiplier=trunc_voxels)
     out = FusedSurface()
     pcd = grid.extract_point_cloud()

@@ -268,3 +268,23 @@ def test_moving_camera_static_scene():
     assert np.mean(np.concatenate(recon.dynamic)) < 0.05  # the camera's own motion is not "dynamic"
     assert recon.metadata["temporal_rows_static"] > 0.5 * recon.depth_m[1:].size
     assert out["improvement"] >= 0.30
+
+
+def test_fusion_takes_frames_with_only_a_few_valid_pixels():
+    # Open3D finds TSDF blocks only at every 4th pixel; a frame whose valid pixels all lie between
+    # those (a prediction with almost no depth in range) must still fuse, not abort.
+    from reconstruction.fusion import fuse_tsdf
+
+    T, H, W = 4, 32, 32  # the surface is extracted where 3 frames agree
+    K = np.tile(np.array([[32.0, 0, 16], [0, 32.0, 16], [0, 0, 1]]), (T, 1, 1))
+    poses = np.tile(np.eye(4), (T, 1, 1))
+    rgb = np.full((T, H, W, 3), 200, np.uint8)
+    depth = np.full((T, H, W), 1.0, np.float32)
+    depth[3] = 0.0
+    depth[3, 1, 1] = 0.9  # a single valid pixel off Open3D's sampling lattice
+    full = fuse_tsdf(depth, rgb, K, poses, np.ones((T, H, W), bool), voxel_size_m=0.02)
+    assert len(full.points) > 0 and np.all(np.isfinite(full.points))
+    lone = depth.copy()
+    lone[:3] = lone[3]
+    only_lone = fuse_tsdf(lone, rgb, K, poses, np.ones((T, H, W), bool), voxel_size_m=0.02)
+    assert np.all(np.isfinite(only_lone.points)) and only_lone.points.shape[1] == 3
