@@ -120,6 +120,8 @@ def test_static_world_keeps_still_objects_but_follows_only_keep_still():
     assert contrast["share"] == pytest.approx(1 / 3)
     assert contrast["per_skill"] == {"keep_still": 1.0, "push": 0.0}
     assert (contrast["still_right"], contrast["still_instructions"]) == (1, 1)
+    # Its third comes from "keep still" alone: none of the active instructions is right.
+    assert (contrast["active_right"], contrast["active_instructions"]) == (0, 2)
     # 1 of 3 right: Wilson 95 % (0.0615, 0.7923) (tests/test_intervals.py has the formula worked by hand)
     assert contrast["wilson95"] == pytest.approx([0.0615, 0.7923], abs=1e-4)
 
@@ -176,6 +178,7 @@ def test_wrong_object_and_restless_keep_still_are_wrong():
     contrast = contrast_by_group([(ep.group_id, b["contrast_entry"]) for ep, b in rows])
     assert [r["right"] for r in contrast["per_group"]["Synthetic-v0/seed_100000"]] == [True, False, False]
     assert (contrast["still_right"], contrast["still_instructions"]) == (0, 1)
+    assert (contrast["active_right"], contrast["active_instructions"]) == (1, 2)
 
 
 def test_version1_episode_has_no_contrast_entry_and_gripper_skills_are_left_out():
@@ -236,7 +239,7 @@ def test_evaluate_scores_several_checkpoints_side_by_side(two_checkpoints, tmp_p
     # The static world follows only "keep still"; the ground truth follows all.
     assert report["summary"]["static"]["contrast"] == pytest.approx(1 / 3)
     assert report["contrast"]["ground_truth"]["share"] == report["contrast"]["ground_truth"]["share_whole"] == 1.0
-    assert report["format_version"] == 5
+    assert report["format_version"] == 6
     assert report["contrast"]["static"]["per_skill"] == {"keep_still": 1.0, "push": 0.0}
     assert report["contrast"]["static"]["per_task"] == {"Synthetic-v0": pytest.approx(1 / 3)}
     md = (out / "report.md").read_text()
@@ -291,6 +294,7 @@ def test_single_checkpoint_keeps_the_report_keys(two_checkpoints):
     assert "model + consistency" in md
     ci = report["contrast"]["model"]["wilson95"]
     assert f"({ci[0]:.2f}–{ci[1]:.2f})" in md and '"keep still" right' in md
+    assert "active instructions right" in md
 
 
 @pytest.fixture(scope="module")

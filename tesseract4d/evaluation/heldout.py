@@ -454,7 +454,7 @@ def build_report(cfg, rows: list[dict], methods: list[str], labels: dict, scores
     config = {k: (str(v) if isinstance(v, Path) else [str(x) for x in v] if isinstance(v, (list, tuple)) else v)
               for k, v in dataclasses.asdict(cfg).items()}
     return {
-        "format": "tesseract4d-heldout-eval", "format_version": 5,
+        "format": "tesseract4d-heldout-eval", "format_version": 6,
         "config": config, "checkpoints": checkpoints, "token_patch_px": patch_px, "resolutions": resolutions or {},
         "episodes": len({r["episode"] for r in rows}), "sample_seeds": sorted({r.get("sample_seed", 0) for r in rows}),
         "tasks": tasks, "methods": {m: labels[m] for m in methods}, "max_depth_m": max_depth_m,
@@ -495,10 +495,10 @@ def _interval(contrast: dict | None, key: str) -> str:
     return f" ({ci[0]:.2f}–{ci[1]:.2f})" if ci else ""
 
 
-def _still(contrast: dict | None) -> str:
-    """"right / judged" of the "keep still" instructions."""
+def _right_of(contrast: dict | None, kind: str) -> str:
+    """"right / judged" of the "keep still" (``kind`` "still") or the active instructions."""
     c = contrast or {}
-    return f"{c['still_right']} / {c['still_instructions']}" if "still_instructions" in c else "–"
+    return f"{c[kind + '_right']} / {c[kind + '_instructions']}" if kind + "_instructions" in c else "–"
 
 
 def _mark(key: str, value) -> str:
@@ -551,7 +551,9 @@ def format_markdown(report: dict) -> str:
                                   for m in methods) + " |")
         if key == "contrast" and any(contrast.get(m, {}).get("still_instructions") for m in methods):
             lines.append("| instruction contrast: \"keep still\" right | held-out groups | "
-                         + " | ".join(_still(contrast.get(m)) for m in methods) + " |")
+                         + " | ".join(_right_of(contrast.get(m), "still") for m in methods) + " |")
+            lines.append("| instruction contrast: active instructions right | held-out groups | "
+                         + " | ".join(_right_of(contrast.get(m), "active") for m in methods) + " |")
     first = methods[0]
     seeds = report.get("sample_seeds") or [report.get("config", {}).get("sample_seed", 0)]
     ns = len(seeds)

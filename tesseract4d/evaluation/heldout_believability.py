@@ -228,10 +228,12 @@ def contrast_by_group(entries: list[tuple[str, dict]]) -> dict:
     """Score counterfactual groups. entries: (group_id, contrast entry) pairs of one method.
 
     Returns ``{"instructions", "right", "share", "wilson95": [low, high], "groups",
-    "still_instructions", "still_right", "right_whole", "share_whole", "wilson95_whole",
-    "per_skill": {skill: share}, "per_task": {env_id: share}, "per_group": {group_id: [rows]}}``;
-    "keep still" is only judged in a group with an active instruction (its right/wrong is relative
-    to them). ``wilson95`` is the share's 95 % Wilson interval: with a few dozen instructions a
+    "still_instructions", "still_right", "active_instructions", "active_right", "right_whole",
+    "share_whole", "wilson95_whole", "per_skill": {skill: share}, "per_task": {env_id: share},
+    "per_group": {group_id: [rows]}}``; "keep still" is only judged in a group with an active
+    instruction (its right/wrong is relative to them). ``active_right`` counts the active
+    instructions right: a model that never moves gets every "keep still" right and scores the
+    share of "keep still" instructions, so the two parts are reported apart as well. ``wilson95`` is the share's 95 % Wilson interval: with a few dozen instructions a
     model's share is known to about ±0.15. ``right_whole``: the right ones whose instructed object
     was also found whole (:func:`find_object`; "keep still" as judged), so a smear of the object's
     colour that moves the centroid the commanded way does not count.
@@ -259,11 +261,13 @@ def contrast_by_group(entries: list[tuple[str, dict]]) -> dict:
     right = sum(bool(r["right"]) for r in rows)
     right_whole = sum(r["right_whole"] for r in rows)
     still = [bool(r["right"]) for r in rows if r.get("still")]
+    active = [bool(r["right"]) for r in rows if not r.get("still")]
     return {"instructions": len(rows), "right": right, "share": right / len(rows) if rows else float("nan"),
             "wilson95": list(wilson_interval(right, len(rows))), "groups": len(groups),
             "right_whole": right_whole, "share_whole": right_whole / len(rows) if rows else float("nan"),
             "wilson95_whole": list(wilson_interval(right_whole, len(rows))),
-            "still_instructions": len(still), "still_right": sum(still), "per_skill": {s: float(np.mean(v)) for s, v in sorted(per_skill.items())},
+            "still_instructions": len(still), "still_right": sum(still),
+            "active_instructions": len(active), "active_right": sum(active), "per_skill": {s: float(np.mean(v)) for s, v in sorted(per_skill.items())},
             "per_task": {t: float(np.mean(v)) for t, v in sorted(per_task.items())},
             "per_group": per_group, "right_way_cosine": RIGHT_WAY_COSINE, "still_share": STILL_SHARE}
 
