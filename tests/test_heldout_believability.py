@@ -239,7 +239,7 @@ def test_evaluate_scores_several_checkpoints_side_by_side(two_checkpoints, tmp_p
     # The static world follows only "keep still"; the ground truth follows all.
     assert report["summary"]["static"]["contrast"] == pytest.approx(1 / 3)
     assert report["contrast"]["ground_truth"]["share"] == report["contrast"]["ground_truth"]["share_whole"] == 1.0
-    assert report["format_version"] == 6
+    assert report["format_version"] == 7
     assert report["contrast"]["static"]["per_skill"] == {"keep_still": 1.0, "push": 0.0}
     assert report["contrast"]["static"]["per_task"] == {"Synthetic-v0": pytest.approx(1 / 3)}
     md = (out / "report.md").read_text()
@@ -281,6 +281,32 @@ def test_several_noise_seeds_pool_the_single_seed_scores(two_checkpoints, tmp_pa
     assert "2 noise seeds" in md and f"{len(GROUP)} instructions in 1 groups" in md
     # Seeds must be distinct.
     assert cli.main(["evaluate", "--heldout", str(heldout), "--checkpoint", str(a), "--sample-seed", "1", "1"]) == 2
+
+
+def test_each_checkpoint_samples_with_its_own_steps(two_checkpoints, tmp_path):
+    # A 2-step student listed before its 10-step teacher: each keeps its own sampler, so the teacher
+    # scores exactly as it does alone (up to 1e-6: rounding of the batched maths).
+    from tesseract4d.evaluation.heldout import HeldoutConfig, evaluate_heldout
+
+    a, _, heldout = two_checkpoints
+    student = tmp_path / "student"
+    shutil.copytree(a, student)
+    config = json.loads((student / "tesseract4d_config.json").read_text())
+    teacher_steps = config["preset"]["num_steps"]
+    config["preset"]["num_steps"] = 2
+    config["preset"]["text_guidance"] = 1.0
+    (student / "tesseract4d_config.json").write_text(json.dumps(config))
+    both = evaluate_heldout(HeldoutConfig(checkpoint=[student, a], data=heldout), progress=False)
+    alone = evaluate_heldout(HeldoutConfig(checkpoint=a, data=heldout), progress=False)
+    assert teacher_steps != 2
+    assert both["sampler"] == {"student": {"num_steps": 2, "text_guidance": 1.0},
+                               a.name: {"num_steps": teacher_steps, "text_guidance": alone["sampler"]["model"]["text_guidance"]}}
+    for key in ("rgb_psnr_db_moving", "depth_abs_rel_moving", "chamfer_l1_m_moving"):
+        assert both["summary"][a.name][key] == pytest.approx(alone["summary"]["model"][key], rel=1e-6, abs=1e-6), key
+    assert both["summary"]["student"]["rgb_psnr_db"] != both["summary"][a.name]["rgb_psnr_db"]
+    # --steps still sets every checkpoint's steps.
+    forced = evaluate_heldout(HeldoutConfig(checkpoint=[student, a], data=heldout, num_steps=3), progress=False)
+    assert {v["num_steps"] for v in forced["sampler"].values()} == {3}
 
 
 def test_single_checkpoint_keeps_the_report_keys(two_checkpoints):

@@ -48,7 +48,9 @@ Every scene draws its own noise (:func:`scene_noise_seed` of ``sample_seed``, th
 scene seed), shared by the instructions of its counterfactual group so that their futures differ
 only by their words. (Until the evaluation's format version 4 every episode of a run drew the same
 noise, so a run was one draw for the whole set: a noise that made the arm flail did so in every
-episode at once.) Scenes are predicted several per network call
+episode at once. Until format 7, several checkpoints in one run all sampled with the first one's
+number of steps: a 10-step model listed after a 2-step student was scored at 2 steps. Each now
+samples with its own preset's steps and guidance, recorded under "sampler".) Scenes are predicted several per network call
 (:func:`tesseract4d.model.predict.predict_scenes`, ``batch_size``), each from the noise that
 predicting it alone with its noise seed draws, so the numbers do not depend on the batch size (up
 to the rounding of batched maths).
@@ -299,6 +301,14 @@ def predict_at_data_resolution(pipeline, firsts: list[df.Episode], instructions:
     return out
 
 
+def sampler_settings(cfg: HeldoutConfig, pipeline) -> dict:
+    """The steps and text guidance one checkpoint samples with: the config's where it sets them, else
+    the checkpoint preset's own (a 2-step student and its 10-step teacher each keep their sampler)."""
+    p = pipeline.preset
+    return {"num_steps": int(cfg.num_steps or p.num_steps),
+            "text_guidance": float(p.text_guidance if cfg.text_guidance is None else cfg.text_guidance)}
+
+
 def evaluate_heldout(cfg: HeldoutConfig, progress: bool = True) -> dict:
     """Run the evaluation; returns the report (also written to cfg.out when given).
 
@@ -347,8 +357,9 @@ def evaluate_heldout(cfg: HeldoutConfig, progress: bool = True) -> dict:
     static_patch_px = token_px_in_data(patch_px[0], factors[0])
     method_patch["static"] = static_patch_px
     method_patch.update({key: patch_px[i] for key, i in ceilings.items()})
-    num_steps = cfg.num_steps or pipelines[0].preset.num_steps
-    cfg = dataclasses.replace(cfg, num_steps=num_steps, batch_size=batch_size)  # resolved, for the report
+    # Each checkpoint samples with its own preset's steps and guidance unless the config sets them for all.
+    sampler = {with_c: sampler_settings(cfg, pipeline) for (with_c, _), pipeline in zip(keys, pipelines)}
+    cfg = dataclasses.replace(cfg, batch_size=batch_size)  # resolved, for the report
     max_depth_m = cfg.max_depth_m if cfg.max_depth_m is not None else float(pipelines[0].model_space.far_m)
     rows, scores = [], {m: [] for m in methods}
     contrast_entries: dict[str, list] = {m: [] for m in methods + ["ground_truth"]}
@@ -369,11 +380,9 @@ def evaluate_heldout(cfg: HeldoutConfig, progress: bool = True) -> dict:
         bar.set_postfix_str(f"{gts[0].env_id} seed {gts[0].seed}: predicting")
         instructions = [gt.instruction for gt in gts]
         predictions = [[predict_at_data_resolution(pipeline, firsts, instructions, cameras, num_frames,
-                                                   seed=seed, batch_size=batch_size,
-                                                   num_steps=cfg.num_steps or pipeline.preset.num_steps,
-                                                   text_guidance=cfg.text_guidance,
+                                                   seed=seed, batch_size=batch_size, **sampler[with_c],
                                                    noise_seeds=[scene_noise_seed(seed, gt.env_id, gt.seed) for gt in gts])
-                        for seed in seeds] for pipeline in pipelines]  # [checkpoint][seed][scene]
+                        for seed in seeds] for (with_c, _), pipeline in zip(keys, pipelines)]  # [checkpoint][seed][scene]
         for j, (path, gt, camera, first) in enumerate(zip(chunk, gts, cameras, firsts)):
             gt_cam = gt.cameras[camera]
             bar.set_postfix_str(f"{gt.env_id} seed {gt.seed}")
@@ -428,7 +437,8 @@ def evaluate_heldout(cfg: HeldoutConfig, progress: bool = True) -> dict:
     bar.close()
     report = build_report(cfg, rows, methods, labels, scores, contrast_entries, max_depth_m,
                           checkpoints=dict(zip([k[0] for k in keys], map(str, checkpoints))),
-                          patch_px=dict(zip([k[0] for k in keys], patch_px)), resolutions=resolutions)
+                          patch_px=dict(zip([k[0] for k in keys], patch_px)), resolutions=resolutions,
+                          sampler=sampler)
     report = json_safe(report)
     if cfg.out is not None:
         write_heldout_report(report, cfg.out)
@@ -436,9 +446,11 @@ def evaluate_heldout(cfg: HeldoutConfig, progress: bool = True) -> dict:
 
 
 def build_report(cfg, rows: list[dict], methods: list[str], labels: dict, scores: dict, contrast_entries: dict,
-                 max_depth_m: float, checkpoints: dict, patch_px: dict, resolutions: dict | None = None) -> dict:
+                 max_depth_m: float, checkpoints: dict, patch_px: dict, resolutions: dict | None = None,
+                 sampler: dict | None = None) -> dict:
     """The report of scored rows: summary, per task, per skill, instruction following, contrast.
-    ``resolutions``: per checkpoint method, its model and data resolution and how it was resized."""
+    ``resolutions``: per checkpoint method, its model and data resolution and how it was resized;
+    ``sampler``: per checkpoint method, the steps and text guidance it sampled with."""
     from tesseract4d.evaluation.heldout_believability import breakdown, contrast_by_group, counts, direction_breakdown
     from tesseract4d.evaluation.instruction_following import summarize
 
@@ -454,8 +466,9 @@ def build_report(cfg, rows: list[dict], methods: list[str], labels: dict, scores
     config = {k: (str(v) if isinstance(v, Path) else [str(x) for x in v] if isinstance(v, (list, tuple)) else v)
               for k, v in dataclasses.asdict(cfg).items()}
     return {
-        "format": "tesseract4d-heldout-eval", "format_version": 6,
-        "config": config, "checkpoints": checkpoints, "token_patch_px": patch_px, "resolutions": resolutions or {},
+        "format": "tesseract4d-heldout-eval", "format_version": 7,
+        "config": config, "checkpoints": checkpoints, "sampler": sampler or {}, "token_patch_px": patch_px,
+        "resolutions": resolutions or {},
         "episodes": len({r["episode"] for r in rows}), "sample_seeds": sorted({r.get("sample_seed", 0) for r in rows}),
         "tasks": tasks, "methods": {m: labels[m] for m in methods}, "max_depth_m": max_depth_m,
         "summary": summary, "per_task": breakdown(rows, methods, "task"), "per_skill": breakdown(rows, methods, "skill"),
@@ -565,6 +578,10 @@ def format_markdown(report: dict) -> str:
                  f"Chamfer metrics over pixels with true depth ≤ {report['max_depth_m']:g} m (the model's depth range); "
                  f"instruction following over the {n} of them whose target object the colour tracker can follow "
                  f"(tracker error on the ground truth: {_fmt(follow[first].get('tracker_px'), '')} px).")
+    sampler = report.get("sampler") or {}
+    if sampler:
+        lines.append("Samplers: " + "; ".join(f"{m} {v['num_steps']} steps, text guidance {v['text_guidance']:g}"
+                                              for m, v in sampler.items()) + ".")
     resized = {m: r for m, r in report.get("resolutions", {}).items() if r.get("resized")}
     if resized:
         lines.append("Resolutions: " + "; ".join(
