@@ -50,10 +50,10 @@ only by their words. (Until the evaluation's format version 4 every episode of a
 noise, so a run was one draw for the whole set: a noise that made the arm flail did so in every
 episode at once. Until format 7, several checkpoints in one run all sampled with the first one's
 number of steps: a 10-step model listed after a 2-step student was scored at 2 steps. Each now
-samples with its own preset's steps and guidance, recorded under "sampler".) Scenes are predicted several per network call
-(:func:`tesseract4d.model.predict.predict_scenes`, ``batch_size``), each from the noise that
-predicting it alone with its noise seed draws, so the numbers do not depend on the batch size (up
-to the rounding of batched maths).
+samples with its own preset's steps and guidance, recorded under "sampler".) Scenes are predicted
+several per network call (:func:`tesseract4d.model.predict.predict_scenes`, ``batch_size``), each
+from the noise that predicting it alone with its noise seed draws, so the numbers do not depend
+on the batch size (up to the rounding of batched maths).
 """
 
 from __future__ import annotations
