@@ -63,7 +63,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     held.add_argument("--heldout", type=Path,
                       help=f"held-out dataset folder (datagen --seed-start {HELDOUT_SEED_START} --instruction-split heldout)")
     held.add_argument("--out", type=Path, help="folder for report.json and report.md")
-    held.add_argument("--steps", type=int, help="sampler steps of every checkpoint (default: each checkpoint preset's own, e.g. 2 for a "
+    held.add_argument("--steps", type=int,
+                      help="sampler steps of every checkpoint (default: each checkpoint preset's own, e.g. 2 for a "
                            "distilled student beside 10 for its teacher)")
     held.add_argument("--text-guidance", type=float, metavar="SCALE",
                       help="text guidance scale of the sampler (default: each checkpoint preset's; 1 = no guidance)")
