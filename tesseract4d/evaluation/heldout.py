@@ -382,7 +382,8 @@ def evaluate_heldout(cfg: HeldoutConfig, progress: bool = True) -> dict:
         predictions = [[predict_at_data_resolution(pipeline, firsts, instructions, cameras, num_frames,
                                                    seed=seed, batch_size=batch_size, **sampler[with_c],
                                                    noise_seeds=[scene_noise_seed(seed, gt.env_id, gt.seed) for gt in gts])
-                        for seed in seeds] for (with_c, _), pipeline in zip(keys, pipelines)]  # [checkpoint][seed][scene]
+                        for seed in seeds]
+                       for (with_c, _), pipeline in zip(keys, pipelines)]  # [checkpoint][seed][scene]
         for j, (path, gt, camera, first) in enumerate(zip(chunk, gts, cameras, firsts)):
             gt_cam = gt.cameras[camera]
             bar.set_postfix_str(f"{gt.env_id} seed {gt.seed}")

@@ -233,10 +233,11 @@ def contrast_by_group(entries: list[tuple[str, dict]]) -> dict:
     "per_group": {group_id: [rows]}}``; "keep still" is only judged in a group with an active
     instruction (its right/wrong is relative to them). ``active_right`` counts the active
     instructions right: a model that never moves gets every "keep still" right and scores the
-    share of "keep still" instructions, so the two parts are reported apart as well. ``wilson95`` is the share's 95 % Wilson interval: with a few dozen instructions a
-    model's share is known to about ±0.15. ``right_whole``: the right ones whose instructed object
-    was also found whole (:func:`find_object`; "keep still" as judged), so a smear of the object's
-    colour that moves the centroid the commanded way does not count.
+    share of "keep still" instructions, so the two parts are reported apart as well. ``wilson95``
+    is the share's 95 % Wilson interval: with a few dozen instructions a model's share is known to
+    about ±0.15. ``right_whole``: the right ones whose instructed object was also found whole
+    (:func:`find_object`; "keep still" as judged), so a smear of the object's colour that moves the
+    centroid the commanded way does not count.
     """
     groups: dict[str, list[dict]] = {}
     for gid, e in entries:
@@ -267,7 +268,8 @@ def contrast_by_group(entries: list[tuple[str, dict]]) -> dict:
             "right_whole": right_whole, "share_whole": right_whole / len(rows) if rows else float("nan"),
             "wilson95_whole": list(wilson_interval(right_whole, len(rows))),
             "still_instructions": len(still), "still_right": sum(still),
-            "active_instructions": len(active), "active_right": sum(active), "per_skill": {s: float(np.mean(v)) for s, v in sorted(per_skill.items())},
+            "active_instructions": len(active), "active_right": sum(active),
+            "per_skill": {s: float(np.mean(v)) for s, v in sorted(per_skill.items())},
             "per_task": {t: float(np.mean(v)) for t, v in sorted(per_task.items())},
             "per_group": per_group, "right_way_cosine": RIGHT_WAY_COSINE, "still_share": STILL_SHARE}
 
