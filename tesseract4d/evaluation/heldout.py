@@ -301,6 +301,41 @@ def predict_at_data_resolution(pipeline, firsts: list[df.Episode], instructions:
     return out
 
 
+def instruction_discrimination(pipeline, files: list[Path], camera: str | None, seeds: list[int]) -> dict:
+    """The network's instruction discrimination (instruction_discrimination.py) over the counterfactual
+    groups of ``files``, each group judged once per sample seed from that seed's scene noise (the
+    sampler's initial noise for the scene). Episodes shorter than the preset's clip are left out."""
+    import torch
+
+    from tesseract4d.evaluation.instruction_discrimination import (discrimination_errors, own_closest,
+                                                                   summarize_discrimination)
+
+    groups: dict[str, list[Path]] = {}
+    for path in files:
+        groups.setdefault(df.read_episode_attrs(path)["group_id"], []).append(path)
+    p = pipeline.preset
+    shape = pipeline.latent_shape(1)
+    judged: list[tuple[bool, int]] = []
+    for paths in groups.values():
+        frames, texts = [], []
+        for path in paths:
+            ep = df.read_episode(path, cameras=[camera] if camera else None, frames=slice(0, p.num_frames))
+            cam = camera or next(iter(ep.cameras))
+            if ep.num_frames >= p.num_frames:
+                frames.append(at_resolution(ep, cam, tuple(pipeline.resolution)).cameras[cam])
+                texts.append(ep.instruction)
+        distinct = len(set(texts))
+        if distinct < 2:
+            continue
+        clips = torch.stack([pipeline.model_space.encode(f.rgb, f.depth_m, f.normal_cam) for f in frames]).float()
+        for seed in seeds:
+            noise = torch.randn(shape, generator=torch.Generator().manual_seed(
+                scene_noise_seed(seed, ep.env_id, ep.seed)))
+            errors = discrimination_errors(pipeline, clips, texts, noise)
+            judged += [(r, distinct) for r in own_closest(errors, texts) if r is not None]
+    return summarize_discrimination(judged)
+
+
 def sampler_settings(cfg: HeldoutConfig, pipeline) -> dict:
     """The steps and text guidance one checkpoint samples with: the config's where it sets them, else
     the checkpoint preset's own (a 2-step student and its 10-step teacher each keep their sampler)."""
@@ -436,10 +471,13 @@ def evaluate_heldout(cfg: HeldoutConfig, progress: bool = True) -> dict:
                 rows.append(row)
             bar.update(1)
     bar.close()
+    discrimination = {}
+    for (with_c, raw), pipeline in zip(keys, pipelines):  # one network: the same with and without consistency
+        discrimination[with_c] = discrimination[raw] = instruction_discrimination(pipeline, files, cfg.camera, seeds)
     report = build_report(cfg, rows, methods, labels, scores, contrast_entries, max_depth_m,
                           checkpoints=dict(zip([k[0] for k in keys], map(str, checkpoints))),
                           patch_px=dict(zip([k[0] for k in keys], patch_px)), resolutions=resolutions,
-                          sampler=sampler)
+                          sampler=sampler, discrimination=discrimination)
     report = json_safe(report)
     if cfg.out is not None:
         write_heldout_report(report, cfg.out)
@@ -448,10 +486,11 @@ def evaluate_heldout(cfg: HeldoutConfig, progress: bool = True) -> dict:
 
 def build_report(cfg, rows: list[dict], methods: list[str], labels: dict, scores: dict, contrast_entries: dict,
                  max_depth_m: float, checkpoints: dict, patch_px: dict, resolutions: dict | None = None,
-                 sampler: dict | None = None) -> dict:
+                 sampler: dict | None = None, discrimination: dict | None = None) -> dict:
     """The report of scored rows: summary, per task, per skill, instruction following, contrast.
     ``resolutions``: per checkpoint method, its model and data resolution and how it was resized;
-    ``sampler``: per checkpoint method, the steps and text guidance it sampled with."""
+    ``sampler``: per checkpoint method, the steps and text guidance it sampled with;
+    ``discrimination``: per checkpoint method, its network's instruction discrimination."""
     from tesseract4d.evaluation.heldout_believability import breakdown, contrast_by_group, counts, direction_breakdown
     from tesseract4d.evaluation.instruction_following import summarize
 
@@ -467,7 +506,7 @@ def build_report(cfg, rows: list[dict], methods: list[str], labels: dict, scores
     config = {k: (str(v) if isinstance(v, Path) else [str(x) for x in v] if isinstance(v, (list, tuple)) else v)
               for k, v in dataclasses.asdict(cfg).items()}
     return {
-        "format": "tesseract4d-heldout-eval", "format_version": 7,
+        "format": "tesseract4d-heldout-eval", "format_version": 8,
         "config": config, "checkpoints": checkpoints, "sampler": sampler or {}, "token_patch_px": patch_px,
         "resolutions": resolutions or {},
         "episodes": len({r["episode"] for r in rows}), "sample_seeds": sorted({r.get("sample_seed", 0) for r in rows}),
@@ -479,6 +518,7 @@ def build_report(cfg, rows: list[dict], methods: list[str], labels: dict, scores
         "instruction_following_per_task": direction_breakdown(rows, methods, "task"),
         "instruction_following_per_skill": direction_breakdown(rows, methods, "skill"),
         "contrast": contrast,
+        "discrimination": discrimination or {},
         "rows": rows,
     }
 
@@ -513,6 +553,13 @@ def _right_of(contrast: dict | None, kind: str) -> str:
     """"right / judged" of the "keep still" (``kind`` "still") or the active instructions."""
     c = contrast or {}
     return f"{c[kind + '_right']} / {c[kind + '_instructions']}" if kind + "_instructions" in c else "–"
+
+
+def _discriminated(entry: dict | None) -> str:
+    """"right / episodes (chance c)" of a network's instruction discrimination, "–" where none."""
+    if not entry or not entry.get("episodes"):
+        return "–"
+    return f"{entry['right']} / {entry['episodes']} (chance {entry['chance']:.2f})"
 
 
 def _mark(key: str, value) -> str:
@@ -568,6 +615,11 @@ def format_markdown(report: dict) -> str:
                          + " | ".join(_right_of(contrast.get(m), "still") for m in methods) + " |")
             lines.append("| instruction contrast: active instructions right | held-out groups | "
                          + " | ".join(_right_of(contrast.get(m), "active") for m in methods) + " |")
+    discrimination = report.get("discrimination") or {}
+    if any(discrimination.get(m, {}).get("episodes") for m in methods):
+        lines.append("| instruction discrimination: the network's one-step prediction from its own instruction "
+                     "closest to the true future | held-out groups | "
+                     + " | ".join(_discriminated(discrimination.get(m)) for m in methods) + " |")
     first = methods[0]
     seeds = report.get("sample_seeds") or [report.get("config", {}).get("sample_seed", 0)]
     ns = len(seeds)

@@ -1,0 +1,83 @@
+"""Instruction discrimination: does the network use the words, whatever its sampler makes of them?
+
+The instruction contrast judges sampled clips, so it mixes two failures: a network that ignores the
+instruction, and a sampler that loses what the network knew. This measure isolates the first. For a
+counterfactual group (one scene, several instructions, each with its true future), the network makes
+its one-step prediction of the clean clip from pure noise for every instruction of the group: exactly
+the sampler's first look at the scene (the initial noise of the scene's draw, first frame and words
+only, no guidance). An episode is *discriminated* when the prediction made from its own instruction
+is closer to its true future than the predictions made from each other instruction of the group.
+
+Closeness is the mean squared error in the network's space over the cells where the group's true
+futures disagree (the top :data:`DISAGREE_SHARE` of cells by the spread of the group's futures), so
+the arm's shared motion and the static background do not decide it. A network that ignores the words
+makes the same prediction for every instruction and discriminates nothing (ties are not wins); chance
+for a group of n distinct instructions is 1/n.
+"""
+
+from __future__ import annotations
+
+import torch
+
+# The share of the group's latent cells (frames x rows x columns) on which closeness is measured: the
+# cells where the group's true futures differ most.
+DISAGREE_SHARE = 0.10
+
+
+def disagreement_mask(x0: torch.Tensor, share: float = DISAGREE_SHARE) -> torch.Tensor:
+    """(1, t', 1, h, w) float mask of the ``share`` of cells where a group's true futures x0 (n, t', c, h, w)
+    spread most (their standard deviation over the group, averaged over channels)."""
+    spread = x0.float().std(0, keepdim=True).mean(2, keepdim=True)  # (1, t', 1, h, w)
+    threshold = torch.quantile(spread.flatten(), 1.0 - share)
+    return (spread >= threshold).float()
+
+
+@torch.no_grad()
+def one_step_predictions(pipeline, clips: torch.Tensor, instructions: list[str], noise: torch.Tensor) -> torch.Tensor:
+    """The network's clean-clip prediction from pure noise, without guidance, per instruction.
+
+    clips: (n, T, 7, H, W) model-space clips at the pipeline's resolution and clip length (their first
+    frames condition the prediction); noise: (1, t', c, h, w) network-space noise shared by the group.
+    Returns (n, t', c, h, w): prediction i from first frame i and ``instructions[i]``.
+    """
+    from tesseract4d.model.codec import make_condition
+
+    n = clips.shape[0]
+    first = pipeline.codec.encode(clips[:, :1].to(pipeline.device))  # (n, 1, c, h, w)
+    cond = make_condition(first, noise.shape[1], pipeline.preset.condition)
+    text = pipeline.text_encoder.encode(list(instructions)).to(pipeline.device)
+    x_t = noise.to(pipeline.device).expand(n, *noise.shape[1:])
+    return pipeline._predict_x0(x_t, 1.0, cond, torch.zeros_like(cond), text, torch.zeros_like(text), 1.0, 1.0)
+
+
+@torch.no_grad()
+def discrimination_errors(pipeline, clips: torch.Tensor, instructions: list[str], noise: torch.Tensor) -> torch.Tensor:
+    """(n, n) errors E[a, j]: mean squared error, over the group's disagreement cells, between the
+    one-step prediction made from instruction j and the true future of episode a (network space)."""
+    x0 = pipeline.codec.encode(clips.to(pipeline.device)).float()  # (n, t', c, h, w)
+    pred = one_step_predictions(pipeline, clips, instructions, noise).float()
+    mask = disagreement_mask(x0)
+    diff = (x0[:, None] - pred[None]) ** 2  # (a, j, t', c, h, w)
+    return (diff * mask[None]).sum((2, 3, 4, 5)) / (mask.sum() * x0.shape[2])
+
+
+def own_closest(errors: torch.Tensor, instructions: list[str]) -> list[bool | None]:
+    """Per episode a: is its own instruction's prediction strictly the closest to its true future among
+    the group's distinct instructions? None where the group has no other instruction than a's."""
+    out: list[bool | None] = []
+    for a, text in enumerate(instructions):
+        others = [j for j, other in enumerate(instructions) if other != text]
+        out.append(None if not others else bool(errors[a, a] < min(float(errors[a, j]) for j in others)))
+    return out
+
+
+def summarize_discrimination(judged: list[tuple[bool, int]]) -> dict:
+    """{"episodes", "right", "share", "chance", "wilson95"} over (right, distinct instructions in the
+    group) pairs; chance is the mean of 1 / distinct instructions."""
+    from tesseract4d.intervals import wilson_interval
+
+    n = len(judged)
+    right = sum(r for r, _ in judged)
+    return {"episodes": n, "right": right, "share": right / n if n else None,
+            "chance": sum(1.0 / k for _, k in judged) / n if n else None,
+            "wilson95": list(wilson_interval(right, n)) if n else None}
