@@ -34,6 +34,19 @@ def micro_preset():
         yield MICRO
 
 
+@pytest.fixture(scope="session")
+def micro_checkpoint(micro_preset, tmp_path_factory) -> Path:
+    """A micro checkpoint trained 10 steps on two synthetic episodes, for the tests that only read it."""
+    from synthetic_scene import write_synthetic_dataset
+
+    from tesseract4d.model.trainer import TrainConfig, Trainer
+
+    root = tmp_path_factory.mktemp("micro_checkpoint")
+    data = write_synthetic_dataset(root / "data", episodes=2)
+    return Trainer(TrainConfig(data=data, out=root / "run", preset=micro_preset.name, max_steps=10, val_every=0,
+                               ckpt_every=0, progress=False)).train()
+
+
 # The one simulator dataset of the run: a PickCube-v1 episode from `tesseract4d datagen` with
 # every option of the real thing (two cameras, randomised colours and lighting, camera jitter,
 # MP4 preview). Generated once, read by the datagen, reconstruction and dataset tests.

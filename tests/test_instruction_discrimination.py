@@ -7,11 +7,12 @@ import numpy as np
 import pytest
 import torch
 from model_fixtures import MICRO
-from synthetic_scene import synthetic_episode, write_synthetic_dataset
+from synthetic_scene import synthetic_episode
 
 from tesseract4d.evaluation.instruction_discrimination import (DISAGREE_SHARE, discrimination_errors, disagreement_mask,
                                                                one_step_predictions, own_closest,
                                                                summarize_discrimination)
+from tesseract4d.model.predict import load_pipeline
 
 
 def test_own_closest_is_a_strict_row_minimum_over_other_instructions():
@@ -56,15 +57,8 @@ def test_disagreement_mask_picks_the_cells_where_futures_differ():
 
 
 @pytest.fixture(scope="module")
-def pipe(micro_preset, tmp_path_factory):
-    from tesseract4d.model.predict import load_pipeline
-    from tesseract4d.model.trainer import TrainConfig, Trainer
-
-    root = tmp_path_factory.mktemp("discrimination")
-    data = write_synthetic_dataset(root / "data", episodes=2)
-    ckpt = Trainer(TrainConfig(data=data, out=root / "run", preset=MICRO.name, max_steps=6, val_every=0,
-                               ckpt_every=0, progress=False)).train()
-    return load_pipeline(ckpt, precision="fp32")
+def pipe(micro_checkpoint):
+    return load_pipeline(micro_checkpoint, precision="fp32")
 
 
 def _group(pipe, n: int = 3):

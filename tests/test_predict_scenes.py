@@ -6,22 +6,15 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from model_fixtures import MICRO
-from synthetic_scene import synthetic_episode, write_synthetic_dataset
+from synthetic_scene import synthetic_episode
 
 from tesseract4d.errors import UserError
 from tesseract4d.model.predict import load_pipeline, predict_counterfactuals, predict_episode, predict_scenes
 
 
 @pytest.fixture(scope="module")
-def pipe(micro_preset, tmp_path_factory):
-    from tesseract4d.model.trainer import TrainConfig, Trainer
-
-    root = tmp_path_factory.mktemp("predict_scenes")
-    data = write_synthetic_dataset(root / "data", episodes=2)
-    ckpt = Trainer(TrainConfig(data=data, out=root / "run", preset=MICRO.name, max_steps=10, val_every=0,
-                               ckpt_every=0, progress=False)).train()
-    return load_pipeline(ckpt, precision="fp32")
+def pipe(micro_checkpoint):
+    return load_pipeline(micro_checkpoint, precision="fp32")
 
 
 def test_scenes_do_not_depend_on_batch_size(pipe):
