@@ -50,7 +50,8 @@ only by their words. (Until the evaluation's format version 4 every episode of a
 noise, so a run was one draw for the whole set: a noise that made the arm flail did so in every
 episode at once. Until format 7, several checkpoints in one run all sampled with the first one's
 number of steps: a 10-step model listed after a 2-step student was scored at 2 steps. Each now
-samples with its own preset's steps and guidance, recorded under "sampler".) Scenes are predicted
+samples with its own preset's steps and guidance, recorded under "sampler". Format 8 added each
+network's instruction discrimination, :func:`instruction_discrimination`.) Scenes are predicted
 several per network call (:func:`tesseract4d.model.predict.predict_scenes`, ``batch_size``), each
 from the noise that predicting it alone with its noise seed draws, so the numbers do not depend
 on the batch size (up to the rounding of batched maths).
@@ -311,12 +312,15 @@ def instruction_discrimination(pipeline, files: list[Path], camera: str | None, 
                                                                    summarize_discrimination)
 
     groups: dict[str, list[Path]] = {}
+    scene: dict[str, tuple[str, int]] = {}  # group -> (env_id, scene seed), the key of its noise
     for path in files:
-        groups.setdefault(df.read_episode_attrs(path)["group_id"], []).append(path)
+        attrs = df.read_episode_attrs(path)
+        groups.setdefault(attrs["group_id"], []).append(path)
+        scene[attrs["group_id"]] = (attrs["env_id"], attrs["seed"])
     p = pipeline.preset
     shape = pipeline.latent_shape(1)
     judged: list[tuple[bool, int]] = []
-    for paths in groups.values():
+    for group, paths in groups.items():
         frames, texts = [], []
         for path in paths:
             ep = df.read_episode(path, cameras=[camera] if camera else None, frames=slice(0, p.num_frames))
@@ -329,8 +333,7 @@ def instruction_discrimination(pipeline, files: list[Path], camera: str | None, 
             continue
         clips = torch.stack([pipeline.model_space.encode(f.rgb, f.depth_m, f.normal_cam) for f in frames]).float()
         for seed in seeds:
-            noise = torch.randn(shape, generator=torch.Generator().manual_seed(
-                scene_noise_seed(seed, ep.env_id, ep.seed)))
+            noise = torch.randn(shape, generator=torch.Generator().manual_seed(scene_noise_seed(seed, *scene[group])))
             errors = discrimination_errors(pipeline, clips, texts, noise)
             judged += [(r, distinct) for r in own_closest(errors, texts) if r is not None]
     return summarize_discrimination(judged)
