@@ -205,6 +205,16 @@ def episode_stem(seed: int, variant: int | None = None) -> str:
     return f"seed_{int(seed):06d}" if variant is None else f"seed_{int(seed):06d}_k{int(variant)}"
 
 
+_GROUP_MEMBER_RE = re.compile(r"^(.+/seed_\d{6,})_k\d+$")
+
+
+def group_of_episode_id(episode_id: str) -> str | None:
+    """The counterfactual group (``<env_id>/seed_<seed>``) of an episode id ``<env_id>/seed_<seed>_k<k>``;
+    None for an episode that is not part of a group (``<env_id>/seed_<seed>``)."""
+    m = _GROUP_MEMBER_RE.match(episode_id)
+    return m.group(1) if m else None
+
+
 def episode_path(root: str | os.PathLike, env_id: str, seed: int, variant: int | None = None) -> Path:
     return Path(root) / EPISODES_DIR / safe_name(env_id, "env_id") / f"{episode_stem(seed, variant)}.h5"
 

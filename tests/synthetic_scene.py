@@ -14,6 +14,7 @@ Benchmarks import it the way they import ``model_fixtures`` (``tests/`` on ``sys
 from __future__ import annotations
 
 import copy
+import dataclasses
 from pathlib import Path
 
 import numpy as np
@@ -153,13 +154,30 @@ def write_synthetic_dataset(root: Path, episodes: int = 4, frames: int = 8, size
 SEGMENTS = {0: "background", 17: "ground", 18: "cube"}
 
 
+def _segment(ep: df.Episode) -> df.Episode:
+    cam = ep.cameras["close"]
+    cam.segmentation = np.where(np.isclose(cam.depth_m, 0.5), 18, 17).astype(np.int32)
+    cam.seg_id_to_name = dict(SEGMENTS)
+    return ep
+
+
 def write_segmented_dataset(root: Path, episodes: int = 3, frames: int = 8, size: int = 32) -> Path:
     """The synthetic moving-square dataset with a segmentation: square = 'cube', plane = 'ground'."""
     df.init_dataset(root, df.DatasetInfo(height=size, width=size, cameras=["close"]))
     for seed in range(episodes):
-        ep = synthetic_episode(seed, frames, size, direction=1 if seed % 2 == 0 else -1)
-        cam = ep.cameras["close"]
-        cam.segmentation = np.where(np.isclose(cam.depth_m, 0.5), 18, 17).astype(np.int32)
-        cam.seg_id_to_name = dict(SEGMENTS)
-        df.write_episode(root, ep)
+        df.write_episode(root, _segment(synthetic_episode(seed, frames, size, direction=1 if seed % 2 == 0 else -1)))
+    return root
+
+
+def write_grouped_dataset(root: Path, scenes: int = 2, frames: int = 8, size: int = 32, singles: int = 0) -> Path:
+    """Counterfactual groups of the segmented dataset: each scene (seed) twice, the square moving right
+    (variant 0) and left (variant 1) from the same first frame, each with its own instruction; plus
+    ``singles`` episodes outside any group (seeds after the scenes')."""
+    df.init_dataset(root, df.DatasetInfo(height=size, width=size, cameras=["close"]))
+    for seed in range(scenes):
+        for k, direction in enumerate((1, -1)):
+            df.write_episode(root, _segment(dataclasses.replace(synthetic_episode(seed, frames, size, direction),
+                                                                variant=k)))
+    for seed in range(scenes, scenes + singles):
+        df.write_episode(root, _segment(synthetic_episode(seed, frames, size)))
     return root

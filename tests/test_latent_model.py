@@ -206,6 +206,51 @@ def test_time_shift_trains_and_is_recorded(tmp_path):
     assert load_pipeline(final).config["recipe"]["time_shift"] == 3.0
 
 
+def test_group_batches_share_noise_and_time_per_scene_and_are_recorded(tmp_path, monkeypatch):
+    """``--group-batches``: the trainer's batches are whole counterfactual groups with one noise and one
+    diffusion time per group; the swap shows siblings' noisy samples; the recipe travels with the
+    checkpoint. A dataset without groups, or the group levers without group batches, is refused."""
+    from synthetic_scene import write_grouped_dataset
+
+    from tesseract4d.model.predict import load_pipeline
+    from tesseract4d.model.trainer import Trainer
+
+    data = write_grouped_dataset(tmp_path / "data", scenes=2, singles=1)
+    ae = _autoencoder(tmp_path / "ae")
+    trainer = Trainer(_config(data, tmp_path / "run", ae, batch_size=4, group_batches=True, difference_weight=3.0,
+                              counterfactual_swap=1.0))
+    seen = []
+    original = trainer.denoising_loss
+
+    def record(x0, first, text, t, noise, objects=None, *, leaders=None, shown=None):
+        seen.append((x0, t, noise, leaders, shown))
+        return original(x0, first, text, t, noise, objects, leaders=leaders, shown=shown)
+
+    monkeypatch.setattr(trainer, "denoising_loss", record)
+    for step in range(6):
+        trainer.compute_loss(step)
+    for x0, t, noise, leaders, shown in seen:
+        for k, leader in enumerate(leaders):
+            assert torch.equal(noise[k], noise[leader]) and t[k] == t[leader]
+            assert torch.equal(x0[k, 0], x0[leader, 0])  # one scene: the same first frame
+            j = shown[k]
+            assert leaders[j] == leader  # shown its own or a sibling's noisy sample
+    # Over a few steps some clip was shown a sibling (swap probability 1 at times >= SWAP_MIN_T).
+    assert any(j != k for *_, shown in seen for k, j in enumerate(shown))
+    final = trainer.train()
+    recipe = load_pipeline(final).config["recipe"]
+    assert recipe["group_batches"] is True and recipe["difference_weight"] == 3.0 and recipe["counterfactual_swap"] == 1.0
+
+    with pytest.raises(UserError, match="--group-batches"):
+        Trainer(_config(data, tmp_path / "run2", ae, difference_weight=3.0))
+    with pytest.raises(UserError, match="--counterfactual-swap"):
+        Trainer(_config(data, tmp_path / "run3", ae, group_batches=True, counterfactual_swap=1.5))
+    plain = write_segmented_dataset(tmp_path / "plain", episodes=2)
+    with pytest.raises(UserError, match="--instructions-per-scene"):
+        Trainer(_config(plain, tmp_path / "run4", ae, group_batches=True))
+    assert not (tmp_path / "run4").exists()  # refused while setting up: nothing left behind
+
+
 def test_bad_inputs_are_user_errors(tmp_path):
     from tesseract4d.model.trainer import Trainer
 

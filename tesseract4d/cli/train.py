@@ -22,6 +22,7 @@ from tesseract4d.model.presets import PRESETS
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+    from tesseract4d.model.recipe import SWAP_MIN_T
     from tesseract4d.model.trainer import TrainConfig
     from tesseract4d.precision import add_precision_argument
 
@@ -50,6 +51,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--time-shift", type=float, default=d.time_shift,
                         help="diffusion times t = s*u / (1 + (s-1)*u), u uniform: 1 = uniform, > 1 trains more at high "
                              "noise (default %(default)s)")
+    parser.add_argument("--group-batches", action="store_true",
+                        help="make every batch of whole counterfactual groups (one scene under several instructions, "
+                             "from `datagen --instructions-per-scene`) sharing one noise and diffusion time")
+    parser.add_argument("--difference-weight", type=float, default=d.difference_weight,
+                        help="with --group-batches: loss weight of the cells where a group's futures differ "
+                             "(default %(default)s)")
+    parser.add_argument("--counterfactual-swap", type=float, default=d.counterfactual_swap,
+                        help=f"with --group-batches: probability that a clip at noise >= {SWAP_MIN_T} is shown another "
+                             f"future of its group as its noisy sample and must still predict its own (default %(default)s)")
     parser.add_argument("--text-dropout", type=float, help="share of steps without text, for guidance (default: the preset's)")
     parser.add_argument("--max-steps", type=int, default=d.max_steps,
                         help="training steps; the cosine learning-rate decay ends here (default %(default)s)")
@@ -97,6 +107,8 @@ def run(args: argparse.Namespace) -> int:
         camera=args.camera, progress=not args.no_progress, loss_weights=weights, autoencoder=args.autoencoder,
         condition_noise=args.condition_noise, moving_weight=args.moving_weight, object_weight=args.object_weight,
         prediction=args.prediction, text_dropout=args.text_dropout, init=args.init, time_shift=args.time_shift,
+        group_batches=args.group_batches, difference_weight=args.difference_weight,
+        counterfactual_swap=args.counterfactual_swap,
     )
     final = Trainer(cfg).train()
     print(f"inference checkpoint: {final}")

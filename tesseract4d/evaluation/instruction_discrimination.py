@@ -19,17 +19,9 @@ from __future__ import annotations
 
 import torch
 
-# The share of the group's latent cells (frames x rows x columns) on which closeness is measured: the
-# cells where the group's true futures differ most.
-DISAGREE_SHARE = 0.10
-
-
-def disagreement_mask(x0: torch.Tensor, share: float = DISAGREE_SHARE) -> torch.Tensor:
-    """(1, t', 1, h, w) float mask of the ``share`` of cells where a group's true futures x0 (n, t', c, h, w)
-    spread most (their standard deviation over the group, averaged over channels)."""
-    spread = x0.float().std(0, keepdim=True).mean(2, keepdim=True)  # (1, t', 1, h, w)
-    threshold = torch.quantile(spread.flatten(), 1.0 - share)
-    return (spread >= threshold).float()
+# The cells where the group's true futures differ most (the share DISAGREE_SHARE of its latent cells):
+# one definition for this measure and for training (``train --difference-weight``, model/recipe.py).
+from tesseract4d.model.recipe import DISAGREE_SHARE, disagreement_mask  # noqa: F401
 
 
 @torch.no_grad()

@@ -75,6 +75,16 @@ class ClipDataset:
         src = self.sources[index]
         return src.frames[start:start + self.num_frames].float(), src.instruction
 
+    def frame_count(self, index: int) -> int:
+        return int(self.sources[index].frames.shape[0])
+
+    def sample_group_batch(self, batch_size: int, generator: torch.Generator) -> tuple[torch.Tensor, list[str], list[int]]:
+        """(b, T, 7, H, W) clips of whole counterfactual groups, their instructions and each clip's
+        group leader (see :func:`draw_group_batch`)."""
+        indices, starts, leaders = grouped_batch_plan(self, batch_size, generator)
+        pairs = [self.clip(i, s) for i, s in zip(indices, starts)]
+        return torch.stack([c for c, _ in pairs]), [t for _, t in pairs], leaders
+
     def sample_batch(self, batch_size: int, generator: torch.Generator) -> tuple[torch.Tensor, list[str]]:
         """(b, T, 7, H, W) float32 clips at random episodes and starts, plus their instructions."""
         idx = torch.randint(len(self.sources), (batch_size,), generator=generator).tolist()
@@ -90,6 +100,60 @@ class ClipDataset:
     def validation_indices(self, count: int) -> list[int]:
         """Up to ``count`` fixed episodes for validation videos, spread over the tasks."""
         return spread_over_tasks([s.episode_id for s in self.sources], count)
+
+
+def group_units(episode_ids: list[str]) -> list[list[int]]:
+    """The units of a grouped batch: the episodes of each counterfactual group (same scene, one
+    instruction each; ids ``<env>/seed_N_kK``), and every episode outside a group alone."""
+    units: dict[str, list[int]] = {}
+    for i, episode_id in enumerate(episode_ids):
+        units.setdefault(df.group_of_episode_id(episode_id) or f"#{i}", []).append(i)
+    return list(units.values())
+
+
+def draw_group_batch(units: list[list[int]], lengths: list[int], num_frames: int, batch_size: int,
+                     generator: torch.Generator) -> tuple[list[int], list[int], list[int]]:
+    """A batch of whole counterfactual groups: a group is drawn uniformly (so each episode, one clip
+    per draw of its group, is as likely as any other, in a group or alone, as in an ungrouped batch)
+    and joins whole, its episodes in random order with one clip start for all of them, until
+    ``batch_size`` clips (the last group is cut to fit). Returns the episode indices, the clip starts
+    and, for each clip, the batch position of its group's first clip (the index to share noise and
+    diffusion time by)."""
+    indices: list[int] = []
+    starts: list[int] = []
+    leaders: list[int] = []
+    while len(indices) < batch_size:
+        unit = units[int(torch.randint(len(units), (1,), generator=generator))]
+        order = torch.randperm(len(unit), generator=generator).tolist()
+        members = [unit[k] for k in order][:batch_size - len(indices)]
+        n = min(lengths[i] for i in members) - num_frames + 1
+        start = int(torch.randint(n, (1,), generator=generator))
+        leader = len(indices)
+        indices += members
+        starts += [start] * len(members)
+        leaders += [leader] * len(members)
+    return indices, starts, leaders
+
+
+def dataset_units(dataset) -> list[list[int]]:
+    """:func:`group_units` of a clip dataset (``ClipDataset`` or ``LatentClipDataset``), cached on it; a
+    UserError when it holds no counterfactual group."""
+    ids = [s.episode_id for s in dataset.sources]
+    if getattr(dataset, "_units_for", None) != ids:
+        dataset._units = group_units(ids)
+        dataset._units_for = ids
+    if all(len(u) == 1 for u in dataset._units):
+        raise UserError("--group-batches needs counterfactual groups (episodes seed_N_kK of one scene under several "
+                        "instructions) and the training data has none; generate some with `tesseract4d datagen "
+                        "--instructions-per-scene 4`")
+    return dataset._units
+
+
+def grouped_batch_plan(dataset, batch_size: int, generator: torch.Generator) -> tuple[list[int], list[int], list[int]]:
+    """:func:`draw_group_batch` over a clip dataset."""
+    units = dataset_units(dataset)
+    lengths = [dataset.frame_count(i) for i in range(len(dataset.sources))]
+    return draw_group_batch(units, lengths, dataset.num_frames, batch_size, generator)
 
 
 def merge_clip_datasets(datasets: list):

@@ -205,6 +205,19 @@ class LatentClipDataset:
         """Robot/object share per latent cell of one clip, (T, h, w) float32."""
         return self.sources[index].objects[start:start + self.num_frames].float()
 
+    def frame_count(self, index: int) -> int:
+        return int(self.sources[index].latents.shape[0])
+
+    def sample_group_batch(self, batch_size: int, generator: torch.Generator):
+        """(b, T, C, h, w) latent clips of whole counterfactual groups, their instructions, the
+        (b, T, h, w) robot/object shares and each clip's group leader (``clips.draw_group_batch``)."""
+        from tesseract4d.model.clips import grouped_batch_plan
+
+        indices, starts, leaders = grouped_batch_plan(self, batch_size, generator)
+        clips = torch.stack([self.clip(i, s)[0] for i, s in zip(indices, starts)])
+        objects = torch.stack([self.objects(i, s) for i, s in zip(indices, starts)])
+        return clips, [self.sources[i].instruction for i in indices], objects, leaders
+
     def sample_batch(self, batch_size: int, generator: torch.Generator,
                      with_objects: bool = False):
         """(b, T, C, h, w) latent clips at random episodes and starts, their instructions and, with

@@ -14,6 +14,19 @@
   ``u ~ U(0, 1)`` (the resolution shift of SD3 / flow-matching video models): ``s = 1`` is uniform,
   ``s > 1`` trains more at high noise, where the instruction decides the coarse motion, and less
   near the clean clip, where the noisy sample already shows it. Sampling is unchanged.
+- ``group_batches``: every batch is made of whole counterfactual groups (one scene under several
+  instructions, ``clips.draw_group_batch``) that share one noise and one diffusion time, so within a
+  group the only thing that tells the futures apart is the words.
+- ``difference_weight`` (with group batches): the loss of the cells where a group's futures differ
+  most from each other (the top ``DISAGREE_SHARE`` by their spread, the same cells on which
+  ``evaluate --heldout`` judges instruction discrimination) is weighted up: the cells the
+  instruction decides.
+- ``counterfactual_swap`` (with group batches): with this probability, a clip whose diffusion time is
+  at least ``SWAP_MIN_T`` is shown the noisy sample of another future of its group (same noise, same
+  time) and must still predict its own instruction's future. It trains the network to side with the
+  words where the noisy sample points elsewhere, as a sampler's intermediate samples do when they
+  drift back towards the first frame (README, "Where the instruction is lost"). Below ``SWAP_MIN_T``
+  the noisy sample pins the future, and the swap would ask for the impossible.
 - ``text_dropout`` (TrainConfig) and the guidance scales (``tesseract4d predict``) already exist.
 
 Also here: which data a preset trains on (pixels, or a latent cache of an autoencoder).
@@ -30,6 +43,8 @@ from tesseract4d.model.presets import AUTOENCODER, ModelPreset
 
 PREDICTIONS = ("x0", "velocity")
 MOVING_TOL = 0.1
+SWAP_MIN_T = 0.3
+DISAGREE_SHARE = 0.10  # the share of a group's cells that --difference-weight weights (where its futures differ most)
 
 
 def check_recipe(cfg, preset: ModelPreset) -> None:
@@ -40,6 +55,13 @@ def check_recipe(cfg, preset: ModelPreset) -> None:
         raise UserError("--condition-noise must be >= 0 and --moving-weight/--object-weight > 0")
     if not (math.isfinite(cfg.time_shift) and cfg.time_shift > 0):
         raise UserError(f"--time-shift must be a finite number > 0 (1 = uniform diffusion times), got {cfg.time_shift}")
+    if not (math.isfinite(cfg.difference_weight) and cfg.difference_weight > 0):
+        raise UserError(f"--difference-weight must be a finite number > 0, got {cfg.difference_weight}")
+    if not 0.0 <= cfg.counterfactual_swap <= 1.0:
+        raise UserError(f"--counterfactual-swap is a probability in [0, 1], got {cfg.counterfactual_swap}")
+    if not cfg.group_batches and (cfg.difference_weight != 1.0 or cfg.counterfactual_swap > 0):
+        raise UserError("--difference-weight and --counterfactual-swap compare the futures of a counterfactual group: "
+                        "add --group-batches")
     if preset.space == AUTOENCODER and cfg.autoencoder is None:
         raise UserError(f"preset {preset.name!r} works in an RGB-D-N autoencoder's latent space: pass --autoencoder DIR "
                         f"(RUN/autoencoder of `tesseract4d train-autoencoder --data DATA --out RUN`)")
@@ -99,16 +121,61 @@ def sample_times(b: int, shift: float, generator: torch.Generator) -> torch.Tens
     return shift * u / (1.0 + (shift - 1.0) * u)
 
 
-def cell_weights(x0: torch.Tensor, objects: torch.Tensor | None, cfg) -> torch.Tensor | None:
-    """(b, t, 1, h, w) loss weights of clean clips ``x0`` (b, t, c, h, w): moving and robot/object
-    cells count more; None when both weights are 1."""
-    if cfg.moving_weight == 1.0 and cfg.object_weight == 1.0:
+def share_within_groups(x: torch.Tensor, leaders: list[int] | None) -> torch.Tensor:
+    """``x`` (b, ...) with every clip's entry replaced by its group leader's (one noise, one time per
+    group); unchanged without groups."""
+    return x if leaders is None else x[torch.as_tensor(leaders, device=x.device)]
+
+
+def disagreement_mask(x0: torch.Tensor, share: float = DISAGREE_SHARE) -> torch.Tensor:
+    """(1, t', 1, h, w) float mask of the ``share`` of cells where a group's true futures x0 (n, t', c, h, w)
+    spread most (their standard deviation over the group, averaged over channels); never a cell where
+    they agree exactly, so futures that differ in fewer cells mark only those."""
+    spread = x0.float().std(0, keepdim=True).mean(2, keepdim=True)  # (1, t', 1, h, w)
+    threshold = torch.quantile(spread.flatten(), 1.0 - share)
+    return ((spread >= threshold) & (spread > 0)).float()
+
+
+def difference_cells(x0: torch.Tensor, leaders: list[int]) -> torch.Tensor:
+    """(b, t, 1, h, w): 1 on the cells where the clean clips of a clip's group differ most
+    (:func:`disagreement_mask`), else 0; 0 for a clip alone in its group."""
+    out = torch.zeros_like(x0[:, :, :1])
+    lead = torch.as_tensor(leaders)
+    for leader in sorted(set(leaders)):
+        members = torch.nonzero(lead == leader).flatten().tolist()
+        if len(members) >= 2:
+            out[members] = disagreement_mask(x0[members]).to(out)
+    return out
+
+
+def cell_weights(x0: torch.Tensor, objects: torch.Tensor | None, cfg,
+                 leaders: list[int] | None = None) -> torch.Tensor | None:
+    """(b, t, 1, h, w) loss weights of clean clips ``x0`` (b, t, c, h, w): moving, robot/object and
+    (with groups) group-difference cells count more; None when every weight is 1."""
+    difference = cfg.difference_weight if leaders is not None else 1.0
+    if cfg.moving_weight == 1.0 and cfg.object_weight == 1.0 and difference == 1.0:
         return None
     moving = ((x0 - x0[:, :1]).abs().mean(dim=2, keepdim=True) > MOVING_TOL).float()
     w = 1.0 + (cfg.moving_weight - 1.0) * moving
     if objects is not None and cfg.object_weight != 1.0:
         w = w + (cfg.object_weight - 1.0) * objects[:, :, None].to(w)
+    if difference != 1.0:
+        w = w + (difference - 1.0) * difference_cells(x0, leaders)
     return w
+
+
+def swap_sources(leaders: list[int], t: torch.Tensor, probability: float, generator: torch.Generator) -> list[int]:
+    """For each clip, the clip whose noisy sample it is shown: itself, or (with ``probability``, when
+    its diffusion time is at least ``SWAP_MIN_T`` and its group has another member) another member of
+    its group drawn uniformly. Draws the same random numbers whatever the outcome."""
+    u = torch.rand(len(leaders), generator=generator).tolist()
+    pick = torch.rand(len(leaders), generator=generator).tolist()
+    shown = list(range(len(leaders)))
+    for k, leader in enumerate(leaders):
+        siblings = [j for j, other in enumerate(leaders) if other == leader and j != k]
+        if siblings and u[k] < probability and float(t[k]) >= SWAP_MIN_T:
+            shown[k] = siblings[min(int(pick[k] * len(siblings)), len(siblings) - 1)]
+    return shown
 
 
 def recipe_loss(out: torch.Tensor, cond: torch.Tensor, x0: torch.Tensor, noise: torch.Tensor,

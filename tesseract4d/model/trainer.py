@@ -93,6 +93,9 @@ class TrainConfig:
     object_weight: float = 1.0  # loss weight of robot/object cells (latent presets: from the cached segmentation)
     prediction: str = "x0"  # network target: "x0" (clean clip, first frame + correction) or "velocity"
     time_shift: float = 1.0  # diffusion times t = s u / (1 + (s - 1) u), u ~ U(0, 1); > 1 trains more at high noise
+    group_batches: bool = False  # batches of whole counterfactual groups sharing one noise and one diffusion time
+    difference_weight: float = 1.0  # with group_batches: loss weight of cells where a group's futures differ
+    counterfactual_swap: float = 0.0  # with group_batches: probability of showing a clip a sibling's noisy sample
 
     def resolved(self, preset: ModelPreset) -> "TrainConfig":
         out = dataclasses.replace(self)
@@ -141,7 +144,8 @@ class TrainConfig:
     def recipe(self) -> dict:
         """The recipe levers, saved in the inference config (sampling needs ``prediction``)."""
         return {k: getattr(self, k) for k in ("condition_noise", "moving_weight", "object_weight", "prediction",
-                                              "text_dropout", "time_shift")}
+                                              "text_dropout", "time_shift", "group_batches", "difference_weight",
+                                              "counterfactual_swap")}
 
 
 def lr_at(step: int, cfg: TrainConfig) -> float:
@@ -408,6 +412,10 @@ class Trainer:
         self.model_space = ModelSpace(self.preset.near_m, self.preset.far_m)
         self.codec = build_codec(self.preset, cfg.pretrained, autoencoder=cfg.autoencoder).to(self.device)
         self.data = self._build_data(cfg)
+        if cfg.group_batches:
+            from tesseract4d.model.clips import dataset_units
+
+            dataset_units(self.data)  # refuses data without counterfactual groups before anything trains
         self.text_encoder = build_text_encoder(self.preset, cfg.pretrained)
         torch.manual_seed(cfg.seed)
         model = build_transformer(self.preset, self.codec, cfg.pretrained)
@@ -438,15 +446,22 @@ class Trainer:
         """The loss of training step ``step`` (its batch and noise depend only on seed and step)."""
         cfg = self.cfg
         g = self._step_generator(step)
-        from tesseract4d.model.recipe import augment_condition, sample_times
+        from tesseract4d.model.recipe import augment_condition, sample_times, share_within_groups, swap_sources
 
-        objects = None
-        if getattr(self.data, "encoded", False):  # a latent cache: the encoder never runs in a step
-            x0, texts, objects = self.data.sample_batch(cfg.batch_size, g, with_objects=True)  # (b, T, c, h, w)
+        objects = leaders = shown = None
+        encoded = getattr(self.data, "encoded", False)  # a latent cache: the encoder never runs in a step
+        if encoded and cfg.group_batches:
+            x0, texts, objects, leaders = self.data.sample_group_batch(cfg.batch_size, g)  # (b, T, c, h, w)
+        elif encoded:
+            x0, texts, objects = self.data.sample_batch(cfg.batch_size, g, with_objects=True)
+        elif cfg.group_batches:
+            clips, texts, leaders = self.data.sample_group_batch(cfg.batch_size, g)  # (b, T, 7, H, W)
+        else:
+            clips, texts = self.data.sample_batch(cfg.batch_size, g)
+        if encoded:
             x0 = x0.to(self.device)
             first = x0[:, :1]
         else:
-            clips, texts = self.data.sample_batch(cfg.batch_size, g)  # (b, T, 7, H, W)
             x0 = self.codec.encode(clips.to(self.device), generator=g)  # (b, t', c, h, w)
             first = self.codec.encode(clips[:, :1].to(self.device), generator=g)  # (b, 1, c, h, w)
         b = x0.shape[0]
@@ -456,16 +471,21 @@ class Trainer:
         keep_image = (torch.rand(b, generator=g) >= cfg.image_dropout).float()
         text = (text * keep_text[:, None, None]).to(self.device)
         first = first * keep_image.to(self.device)[:, None, None, None, None]
-        t = sample_times(b, cfg.time_shift, g)
-        noise = torch.randn(x0.shape, generator=g)
-        return self.denoising_loss(x0, first, text, t, noise, objects)
+        t = share_within_groups(sample_times(b, cfg.time_shift, g), leaders)
+        noise = share_within_groups(torch.randn(x0.shape, generator=g), leaders)
+        if leaders is not None and cfg.counterfactual_swap > 0:
+            shown = swap_sources(leaders, t, cfg.counterfactual_swap, g)
+        return self.denoising_loss(x0, first, text, t, noise, objects, leaders=leaders, shown=shown)
 
     def denoising_loss(self, x0: torch.Tensor, first: torch.Tensor, text: torch.Tensor, t: torch.Tensor,
-                       noise: torch.Tensor, objects: torch.Tensor | None = None) -> tuple[torch.Tensor, dict[str, float]]:
+                       noise: torch.Tensor, objects: torch.Tensor | None = None, *, leaders: list[int] | None = None,
+                       shown: list[int] | None = None) -> tuple[torch.Tensor, dict[str, float]]:
         """The weighted per-group loss of the recipe's target at ``x_t = (1 - t) x0 + t noise``. x0,
         noise: (b, t', c, h, w) network space; first: (b, 1, c, h, w) encoded first frame (zeros =
         dropped); text: (b, L, d) embeddings; t: (b,) in [0, 1]; objects: (b, t', h, w) robot/object
-        cells of a latent cache, or None."""
+        cells of a latent cache, or None. With group batches, ``leaders`` gives each clip's group (its
+        leader's batch position) and ``shown`` the clip whose clean sample builds each clip's ``x_t``
+        (recipe.swap_sources); the target stays the clip's own."""
         from tesseract4d.model.codec import make_condition
         from tesseract4d.model.recipe import cell_weights, recipe_loss
 
@@ -474,10 +494,11 @@ class Trainer:
         t, noise = t.to(self.device), noise.to(self.device)
         cond = make_condition(first, x0.shape[1], self.preset.condition)
         tt = t[:, None, None, None, None]
-        x_t = (1 - tt) * x0 + tt * noise
+        seen = x0 if shown is None else x0[torch.as_tensor(shown, device=x0.device)]
+        x_t = (1 - tt) * seen + tt * noise
         out = self.model(x_t, cond, text, t).float()
         channels = self.accelerator.unwrap_model(self.model).channel_slices()
-        weights = cell_weights(x0, objects, cfg)  # (b, t', 1, h, w) or None
+        weights = cell_weights(x0, objects, cfg, leaders)  # (b, t', 1, h, w) or None
         parts = recipe_loss(out, cond, x0, noise, channels, weights, cfg.prediction)
         # A joint latent group (not a modality) has weight 1.
         weight_of = {n: cfg.loss_weights.get(n, 0.0) if n in MODALITIES else 1.0 for n in parts}
