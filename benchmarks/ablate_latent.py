@@ -42,6 +42,11 @@ VARIANTS: dict[str, tuple[str, list[str] | None, list[str]]] = {
     "velocity": ("velocity target", ["--prediction", "velocity"], []),
     "text_dropout_0.3": ("text dropout 0.3", ["--text-dropout", "0.3"], []),
     "time_shift_3": ("diffusion times shifted to high noise (3)", ["--time-shift", "3"], []),
+    "group_batches": ("batches of whole counterfactual groups, one noise and time each", ["--group-batches"], []),
+    "difference_weight_4": ("group batches, weight 4 where a group's futures differ",
+                            ["--group-batches", "--difference-weight", "4"], []),
+    "counterfactual_swap_0.5": ("group batches, counterfactual swap 0.5",
+                                ["--group-batches", "--counterfactual-swap", "0.5"], []),
     "guidance_1": ("text guidance 1 (none)", None, ["--text-guidance", "1"]),
     "guidance_3": ("text guidance 3", None, ["--text-guidance", "3"]),
     "small_2_layers": ("2 layers, same minutes", ["--preset", "latent-128-small"], []),
@@ -54,10 +59,16 @@ COLUMNS = (("rgb_psnr_db_moving", "PSNR moving (dB)", ".2f"), ("depth_abs_rel_mo
 
 
 def train_args(extra: list[str]) -> list[str]:
-    """The baseline's arguments with the flags in ``extra`` replaced by theirs."""
+    """The baseline's arguments with the flags in ``extra`` replaced by theirs (a flag not followed by
+    a value, such as ``--group-batches``, is a switch and is added)."""
     args, i = list(BASELINE), 0
     while i < len(extra):
-        flag, value = extra[i], extra[i + 1]
+        flag = extra[i]
+        if i + 1 == len(extra) or extra[i + 1].startswith("--"):
+            args += [] if flag in args else [flag]
+            i += 1
+            continue
+        value = extra[i + 1]
         if flag in args:
             args[args.index(flag) + 1] = value
         else:
