@@ -239,11 +239,13 @@ def test_evaluate_scores_several_checkpoints_side_by_side(two_checkpoints, tmp_p
     # The static world follows only "keep still"; the ground truth follows all.
     assert report["summary"]["static"]["contrast"] == pytest.approx(1 / 3)
     assert report["contrast"]["ground_truth"]["share"] == report["contrast"]["ground_truth"]["share_whole"] == 1.0
-    assert report["format_version"] == 8
+    assert report["format_version"] == 9
     # One network per checkpoint, one judgment per episode of the group (three distinct instructions).
     disc = report["discrimination"][names[0]]
     assert disc == report["discrimination"][names[0] + "_raw"] and disc["episodes"] == 3
     assert disc["chance"] == pytest.approx(1 / 3) and "static" not in report["discrimination"]
+    words = disc["words_over_sample"]
+    assert words["pairs"] == 3 * 2 and 0 <= words["words"] <= words["pairs"] and words["t"] == 0.5
     assert report["contrast"]["static"]["per_skill"] == {"keep_still": 1.0, "push": 0.0}
     assert report["contrast"]["static"]["per_task"] == {"Synthetic-v0": pytest.approx(1 / 3)}
     md = (out / "report.md").read_text()
@@ -251,6 +253,7 @@ def test_evaluate_scores_several_checkpoints_side_by_side(two_checkpoints, tmp_p
         assert label in md
     assert "object permanence" in md and "instruction contrast" in md and "✗" in md and "per skill" in md
     assert "the moved object found whole" in md and "instruction discrimination" in md
+    assert "words over the noisy sample" in md
     assert "| keep_still | 1 |" in md and "| Synthetic-v0 | 3 |" in md
 
 

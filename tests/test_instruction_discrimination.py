@@ -11,7 +11,8 @@ from synthetic_scene import synthetic_episode
 
 from tesseract4d.evaluation.instruction_discrimination import (DISAGREE_SHARE, discrimination_errors, disagreement_mask,
                                                                one_step_predictions, own_closest,
-                                                               summarize_discrimination)
+                                                               sibling_sample_predictions, summarize_discrimination,
+                                                               summarize_words_over_sample, words_over_sample)
 from tesseract4d.model.predict import load_pipeline
 
 
@@ -107,3 +108,47 @@ def test_a_network_without_words_discriminates_nothing(pipe):
     errors = discrimination_errors(deaf, clips, texts, noise)
     assert torch.allclose(errors, errors[:, :1].expand_as(errors))
     assert own_closest(errors, texts) == [False, False]
+
+
+def test_sibling_sample_predictions_are_denoising_steps_from_each_others_noisy_samples(pipe):
+    """P[a, j]: episode a's first frame and words, shown j's noisy sample at t; the diagonal is the
+    ordinary denoising step, and an off-diagonal entry is the step a sampler would take had its sample
+    drifted to j's future."""
+    from tesseract4d.model.codec import make_condition
+
+    clips, texts, noise = _group(pipe)
+    t = 0.5
+    pred = sibling_sample_predictions(pipe, clips, texts, noise, t)
+    assert pred.shape[:2] == (3, 3)
+    x0 = pipe.codec.encode(clips)
+    cond = make_condition(pipe.codec.encode(clips[:, :1]), noise.shape[1], pipe.preset.condition)
+    text = pipe.text_encoder.encode(texts)
+    x_t = (1 - t) * x0[2:3] + t * noise  # episode 2's noisy sample, shown to episode 0
+    direct = pipe._predict_x0(x_t, t, cond[:1], torch.zeros_like(cond[:1]), text[:1], torch.zeros_like(text[:1]), 1.0, 1.0)
+    assert torch.allclose(pred[0, 2], direct[0], atol=1e-5)
+
+
+def test_a_network_without_words_never_sides_with_them(pipe):
+    """With the text projection zeroed, the words cannot make a's prediction from j's sample differ
+    from j's own denoising step: the prediction depends on the sample and the (shared) first frame
+    only."""
+    import copy
+
+    clips, texts, noise = _group(pipe, n=2)  # one scene, two futures
+    deaf = copy.copy(pipe)
+    deaf.transformer = copy.deepcopy(pipe.transformer)
+    with torch.no_grad():
+        for p in deaf.transformer.backbone.patch_embed.text_proj.parameters():
+            p.zero_()
+    pred = sibling_sample_predictions(deaf, clips, texts, noise)
+    assert torch.allclose(pred[0], pred[1], atol=1e-6)  # row a does not depend on a's words
+    judged = words_over_sample(deaf, clips, texts, noise)
+    assert len(judged) == 2
+    # Whatever the words say, the judgments come out the same: they are the sample's, not the words'.
+    assert words_over_sample(deaf, clips, ["stay where you are", "wave at the camera"], noise) == judged
+
+
+def test_words_over_sample_summary():
+    s = summarize_words_over_sample([True, False, False, True])
+    assert (s["pairs"], s["words"], s["share"], s["t"]) == (4, 2, 0.5, 0.5)
+    assert summarize_words_over_sample([])["share"] is None

@@ -14,7 +14,9 @@ model with the reconstruction's consistency step, the model without it, and the 
 (does the instructed object move the right way), object permanence, instruction contrast over
 counterfactual groups, instruction discrimination (does each network's one-step prediction from
 the scene's noise pick its own instruction's true future among its group's: the words used by the
-network, whatever its sampler makes of them), token grid and edge sharpness, per skill and per task. Several
+network, whatever its sampler makes of them) and words over the noisy sample (shown another
+instruction's future noised to t = 0.5, does the prediction from its own words still land nearer its
+own future?), token grid and edge sharpness, per skill and per task. Several
 --checkpoint options score several models side by side in the same run, also when their
 resolutions differ from the data's by a whole factor (the first frame is resized to each model's
 resolution and its prediction back; every metric is taken at the data's resolution). Several

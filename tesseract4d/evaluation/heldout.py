@@ -51,7 +51,8 @@ noise, so a run was one draw for the whole set: a noise that made the arm flail 
 episode at once. Until format 7, several checkpoints in one run all sampled with the first one's
 number of steps: a 10-step model listed after a 2-step student was scored at 2 steps. Each now
 samples with its own preset's steps and guidance, recorded under "sampler". Format 8 added each
-network's instruction discrimination, :func:`instruction_discrimination`.) Scenes are predicted
+network's instruction discrimination, :func:`instruction_discrimination`; format 9 its words over
+another future's noisy sample.) Scenes are predicted
 several per network call (:func:`tesseract4d.model.predict.predict_scenes`, ``batch_size``), each
 from the noise that predicting it alone with its noise seed draws, so the numbers do not depend
 on the batch size (up to the rounding of batched maths).
@@ -305,11 +306,13 @@ def predict_at_data_resolution(pipeline, firsts: list[df.Episode], instructions:
 def instruction_discrimination(pipeline, files: list[Path], camera: str | None, seeds: list[int]) -> dict:
     """The network's instruction discrimination (instruction_discrimination.py) over the counterfactual
     groups of ``files``, each group judged once per sample seed from that seed's scene noise (the
-    sampler's initial noise for the scene). Episodes shorter than the preset's clip are left out."""
+    sampler's initial noise for the scene), and under ``"words_over_sample"`` whether its words win
+    over another future's noisy sample. Episodes shorter than the preset's clip are left out."""
     import torch
 
     from tesseract4d.evaluation.instruction_discrimination import (discrimination_errors, own_closest,
-                                                                   summarize_discrimination)
+                                                                   summarize_discrimination,
+                                                                   summarize_words_over_sample, words_over_sample)
 
     groups: dict[str, list[Path]] = {}
     scene: dict[str, tuple[str, int]] = {}  # group -> (env_id, scene seed), the key of its noise
@@ -320,6 +323,7 @@ def instruction_discrimination(pipeline, files: list[Path], camera: str | None, 
     p = pipeline.preset
     shape = pipeline.latent_shape(1)
     judged: list[tuple[bool, int]] = []
+    words: list[bool] = []
     for group, paths in groups.items():
         frames, texts = [], []
         for path in paths:
@@ -336,7 +340,8 @@ def instruction_discrimination(pipeline, files: list[Path], camera: str | None, 
             noise = torch.randn(shape, generator=torch.Generator().manual_seed(scene_noise_seed(seed, *scene[group])))
             errors = discrimination_errors(pipeline, clips, texts, noise)
             judged += [(r, distinct) for r in own_closest(errors, texts) if r is not None]
-    return summarize_discrimination(judged)
+            words += words_over_sample(pipeline, clips, texts, noise)
+    return {**summarize_discrimination(judged), "words_over_sample": summarize_words_over_sample(words)}
 
 
 def sampler_settings(cfg: HeldoutConfig, pipeline) -> dict:
@@ -509,7 +514,7 @@ def build_report(cfg, rows: list[dict], methods: list[str], labels: dict, scores
     config = {k: (str(v) if isinstance(v, Path) else [str(x) for x in v] if isinstance(v, (list, tuple)) else v)
               for k, v in dataclasses.asdict(cfg).items()}
     return {
-        "format": "tesseract4d-heldout-eval", "format_version": 8,
+        "format": "tesseract4d-heldout-eval", "format_version": 9,
         "config": config, "checkpoints": checkpoints, "sampler": sampler or {}, "token_patch_px": patch_px,
         "resolutions": resolutions or {},
         "episodes": len({r["episode"] for r in rows}), "sample_seeds": sorted({r.get("sample_seed", 0) for r in rows}),
@@ -563,6 +568,12 @@ def _discriminated(entry: dict | None) -> str:
     if not entry or not entry.get("episodes"):
         return "–"
     return f"{entry['right']} / {entry['episodes']} (chance {entry['chance']:.2f})"
+
+
+def _words_won(entry: dict | None) -> str:
+    """"words / pairs" of a network's words-over-the-noisy-sample judgments, "–" where none."""
+    words = (entry or {}).get("words_over_sample") or {}
+    return f"{words['words']} / {words['pairs']}" if words.get("pairs") else "–"
 
 
 def _mark(key: str, value) -> str:
@@ -623,6 +634,10 @@ def format_markdown(report: dict) -> str:
         lines.append("| instruction discrimination: the network's one-step prediction from its own instruction "
                      "closest to the true future | held-out groups | "
                      + " | ".join(_discriminated(discrimination.get(m)) for m in methods) + " |")
+    if any((discrimination.get(m, {}).get("words_over_sample") or {}).get("pairs") for m in methods):
+        lines.append("| words over the noisy sample: shown another instruction's future noised to t = 0.5, the "
+                     "prediction from its own words closer to its own future | held-out groups | "
+                     + " | ".join(_words_won(discrimination.get(m)) for m in methods) + " |")
     first = methods[0]
     seeds = report.get("sample_seeds") or [report.get("config", {}).get("sample_seed", 0)]
     ns = len(seeds)

@@ -13,6 +13,12 @@ futures disagree (the top :data:`DISAGREE_SHARE` of cells by the spread of the g
 the arm's shared motion and the static background do not decide it. A network that ignores the words
 makes the same prediction for every instruction and discriminates nothing (ties are not wins); chance
 for a group of n distinct instructions is 1/n.
+
+*Words over the noisy sample* asks the next question, what a sampler's later steps do: shown the
+noisy sample of another future of its group (noise level :data:`SIBLING_T`, the group's noise), does
+the network's prediction from an episode's own words land closer to that episode's future than to the
+future it was shown? A denoiser that reads the future from its noisy sample and not from the words
+sides with the sample; the README's "Where the instruction is lost" has what v2 does.
 """
 
 from __future__ import annotations
@@ -22,6 +28,10 @@ import torch
 # The cells where the group's true futures differ most (the share DISAGREE_SHARE of its latent cells):
 # one definition for this measure and for training (``train --difference-weight``, model/recipe.py).
 from tesseract4d.model.recipe import DISAGREE_SHARE, disagreement_mask  # noqa: F401
+
+# The noise level at which words_over_sample shows an episode another future's noisy sample: the
+# middle of sampling, where v2's samplers were seen to pull the instructed object back.
+SIBLING_T = 0.5
 
 
 @torch.no_grad()
@@ -51,6 +61,56 @@ def discrimination_errors(pipeline, clips: torch.Tensor, instructions: list[str]
     mask = disagreement_mask(x0)
     diff = (x0[:, None] - pred[None]) ** 2  # (a, j, t', c, h, w)
     return (diff * mask[None]).sum((2, 3, 4, 5)) / (mask.sum() * x0.shape[2])
+
+
+@torch.no_grad()
+def sibling_sample_predictions(pipeline, clips: torch.Tensor, instructions: list[str], noise: torch.Tensor,
+                               t: float = SIBLING_T) -> torch.Tensor:
+    """(n, n, t', c, h, w): P[a, j] is the network's unguided clean-clip prediction from episode a's
+    first frame and instruction, shown episode j's noisy sample ``(1 - t) x0_j + t noise`` (network
+    space; noise (1, t', c, h, w) shared by the group). P[a, a] is an ordinary denoising step."""
+    from tesseract4d.model.codec import make_condition
+
+    n = clips.shape[0]
+    x0 = pipeline.codec.encode(clips.to(pipeline.device)).float()  # (n, t', c, h, w)
+    first = pipeline.codec.encode(clips[:, :1].to(pipeline.device))  # (n, 1, c, h, w)
+    cond = make_condition(first, noise.shape[1], pipeline.preset.condition)
+    text = pipeline.text_encoder.encode(list(instructions)).to(pipeline.device)
+    x_t = (1 - t) * x0 + t * noise.to(pipeline.device)
+    rows = []
+    for a in range(n):
+        c = cond[a:a + 1].expand(n, *cond.shape[1:])
+        e = text[a:a + 1].expand(n, *text.shape[1:])
+        rows.append(pipeline._predict_x0(x_t, t, c, torch.zeros_like(c), e, torch.zeros_like(e), 1.0, 1.0).float())
+    return torch.stack(rows)
+
+
+def words_over_sample(pipeline, clips: torch.Tensor, instructions: list[str], noise: torch.Tensor,
+                      t: float = SIBLING_T) -> list[bool]:
+    """Per ordered pair (a, j) of a group's episodes with different instructions: shown j's noisy
+    sample, is the prediction from a's words strictly closer to a's true future than to j's (squared
+    error over the group's disagreement cells)? A network that follows the noisy sample over the words
+    scores none; one that follows the words over it, all."""
+    x0 = pipeline.codec.encode(clips.to(pipeline.device)).float()
+    pred = sibling_sample_predictions(pipeline, clips, instructions, noise, t)
+    mask = disagreement_mask(x0)[0]
+    out = []
+    for a, own in enumerate(instructions):
+        for j, other in enumerate(instructions):
+            if other != own:
+                e_own = float(((pred[a, j] - x0[a]) ** 2 * mask).sum())
+                e_shown = float(((pred[a, j] - x0[j]) ** 2 * mask).sum())
+                out.append(e_own < e_shown)
+    return out
+
+
+def summarize_words_over_sample(judged: list[bool], t: float = SIBLING_T) -> dict:
+    """{"pairs", "words", "share", "t", "wilson95"} of :func:`words_over_sample` judgments."""
+    from tesseract4d.intervals import wilson_interval
+
+    n, k = len(judged), sum(judged)
+    return {"pairs": n, "words": k, "share": k / n if n else None, "t": t,
+            "wilson95": list(wilson_interval(k, n)) if n else None}
 
 
 def own_closest(errors: torch.Tensor, instructions: list[str]) -> list[bool | None]:
