@@ -73,6 +73,18 @@ def _group(pipe, n: int = 3):
     return clips, texts, noise
 
 
+def _without_words(pipe):
+    """A copy of the pipeline whose network has its text projection zeroed: it sees every instruction alike."""
+    import copy
+
+    deaf = copy.copy(pipe)
+    deaf.transformer = copy.deepcopy(pipe.transformer)
+    with torch.no_grad():
+        for p in deaf.transformer.backbone.patch_embed.text_proj.parameters():
+            p.zero_()
+    return deaf
+
+
 def test_one_step_prediction_is_the_samplers_one_step_clip(pipe):
     """The measure looks at what the sampler's first step sees: one unguided Euler step from the
     scene's noise lands exactly on the network's prediction."""
@@ -97,14 +109,8 @@ def test_errors_compare_every_prediction_with_every_true_future(pipe):
 def test_a_network_without_words_discriminates_nothing(pipe):
     """With the text projection zeroed the network sees every instruction alike: no episode is
     discriminated, whatever the futures."""
-    import copy
-
     clips, texts, noise = _group(pipe, n=2)  # one scene (the same first frame), two futures
-    deaf = copy.copy(pipe)
-    deaf.transformer = copy.deepcopy(pipe.transformer)
-    with torch.no_grad():
-        for p in deaf.transformer.backbone.patch_embed.text_proj.parameters():
-            p.zero_()
+    deaf = _without_words(pipe)
     errors = discrimination_errors(deaf, clips, texts, noise)
     assert torch.allclose(errors, errors[:, :1].expand_as(errors))
     assert own_closest(errors, texts) == [False, False]
@@ -132,14 +138,8 @@ def test_a_network_without_words_never_sides_with_them(pipe):
     """With the text projection zeroed, the words cannot make a's prediction from j's sample differ
     from j's own denoising step: the prediction depends on the sample and the (shared) first frame
     only."""
-    import copy
-
     clips, texts, noise = _group(pipe, n=2)  # one scene, two futures
-    deaf = copy.copy(pipe)
-    deaf.transformer = copy.deepcopy(pipe.transformer)
-    with torch.no_grad():
-        for p in deaf.transformer.backbone.patch_embed.text_proj.parameters():
-            p.zero_()
+    deaf = _without_words(pipe)
     pred = sibling_sample_predictions(deaf, clips, texts, noise)
     assert torch.allclose(pred[0], pred[1], atol=1e-6)  # row a does not depend on a's words
     judged = words_over_sample(deaf, clips, texts, noise)
