@@ -65,14 +65,16 @@ def discrimination_errors(pipeline, clips: torch.Tensor, instructions: list[str]
 
 @torch.no_grad()
 def sibling_sample_predictions(pipeline, clips: torch.Tensor, instructions: list[str], noise: torch.Tensor,
-                               t: float = SIBLING_T) -> torch.Tensor:
+                               t: float = SIBLING_T, x0: torch.Tensor | None = None) -> torch.Tensor:
     """(n, n, t', c, h, w): P[a, j] is the network's unguided clean-clip prediction from episode a's
     first frame and instruction, shown episode j's noisy sample ``(1 - t) x0_j + t noise`` (network
-    space; noise (1, t', c, h, w) shared by the group). P[a, a] is an ordinary denoising step."""
+    space; noise (1, t', c, h, w) shared by the group). P[a, a] is an ordinary denoising step.
+    ``x0``: the clips already encoded, when the caller has them."""
     from tesseract4d.model.codec import make_condition
 
     n = clips.shape[0]
-    x0 = pipeline.codec.encode(clips.to(pipeline.device)).float()  # (n, t', c, h, w)
+    if x0 is None:
+        x0 = pipeline.codec.encode(clips.to(pipeline.device)).float()  # (n, t', c, h, w)
     first = pipeline.codec.encode(clips[:, :1].to(pipeline.device))  # (n, 1, c, h, w)
     cond = make_condition(first, noise.shape[1], pipeline.preset.condition)
     text = pipeline.text_encoder.encode(list(instructions)).to(pipeline.device)
@@ -92,7 +94,7 @@ def words_over_sample(pipeline, clips: torch.Tensor, instructions: list[str], no
     error over the group's disagreement cells)? A network that follows the noisy sample over the words
     scores none; one that follows the words over it, all."""
     x0 = pipeline.codec.encode(clips.to(pipeline.device)).float()
-    pred = sibling_sample_predictions(pipeline, clips, instructions, noise, t)
+    pred = sibling_sample_predictions(pipeline, clips, instructions, noise, t, x0=x0)
     mask = disagreement_mask(x0)[0]
     out = []
     for a, own in enumerate(instructions):

@@ -135,25 +135,32 @@ def draw_group_batch(units: list[list[int]], lengths: list[int], num_frames: int
     return indices, starts, leaders
 
 
+def _group_plan(dataset) -> tuple[list[list[int]], list[int]]:
+    """The group units and episode lengths of a clip dataset, worked out once per list of episodes (a
+    merge of datasets makes a new list) rather than in every training step."""
+    key = (id(dataset.sources), len(dataset.sources))
+    if getattr(dataset, "_group_plan_key", None) != key:
+        dataset._group_plan = (group_units([s.episode_id for s in dataset.sources]),
+                               [dataset.frame_count(i) for i in range(len(dataset.sources))])
+        dataset._group_plan_key = key
+    return dataset._group_plan
+
+
 def dataset_units(dataset) -> list[list[int]]:
-    """:func:`group_units` of a clip dataset (``ClipDataset`` or ``LatentClipDataset``), cached on it; a
-    UserError when it holds no counterfactual group."""
-    ids = [s.episode_id for s in dataset.sources]
-    if getattr(dataset, "_units_for", None) != ids:
-        dataset._units = group_units(ids)
-        dataset._units_for = ids
-    if all(len(u) == 1 for u in dataset._units):
+    """:func:`group_units` of a clip dataset (``ClipDataset`` or ``LatentClipDataset``); a UserError when
+    it holds no counterfactual group."""
+    units, _ = _group_plan(dataset)
+    if all(len(u) == 1 for u in units):
         raise UserError("--group-batches needs counterfactual groups (episodes seed_N_kK of one scene under several "
                         "instructions) and the training data has none; generate some with `tesseract4d datagen "
                         "--instructions-per-scene 4`")
-    return dataset._units
+    return units
 
 
 def grouped_batch_plan(dataset, batch_size: int, generator: torch.Generator) -> tuple[list[int], list[int], list[int]]:
     """:func:`draw_group_batch` over a clip dataset."""
     units = dataset_units(dataset)
-    lengths = [dataset.frame_count(i) for i in range(len(dataset.sources))]
-    return draw_group_batch(units, lengths, dataset.num_frames, batch_size, generator)
+    return draw_group_batch(units, _group_plan(dataset)[1], dataset.num_frames, batch_size, generator)
 
 
 def merge_clip_datasets(datasets: list):
