@@ -3,13 +3,14 @@ student that follows its guided multi-step teacher in a few unguided steps."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 
 import pytest
 import torch
 from model_fixtures import MICRO
-from synthetic_scene import write_synthetic_dataset
+from synthetic_scene import write_grouped_dataset, write_synthetic_dataset
 
 from tesseract4d.cli import main
 from tesseract4d.errors import UserError
@@ -129,3 +130,95 @@ def test_distill_resumes_and_refuses_an_existing_run(teacher, tmp_path):
     state = json.loads((tmp_path / "run" / "checkpoint-000004" / "trainer_state.json").read_text())
     assert state["step"] == 4 and state["inference_config"]["distilled_from"]["teacher_steps"] == 2
     assert json.loads((tmp_path / "run" / ".tesseract4d-output.json").read_text())["command"] == "distill"
+
+
+def test_group_pairs_share_first_frame_and_noise(teacher, tmp_path):
+    """--group-pairs draws whole counterfactual groups: a group's pairs share the first frame and the
+    noise and differ by the words; the shards resume to the same pairs; data without groups is refused."""
+    ckpt, data = teacher
+    groups = write_grouped_dataset(tmp_path / "groups", scenes=3, singles=1)
+
+    def cfg(out, n):
+        return PairsConfig(teacher=ckpt, data=groups, out=out, num_pairs=n, shard_size=4, batch_size=2,
+                           teacher_steps=2, groups=True)
+
+    whole = ReflowPairs(generate_pairs(cfg(tmp_path / "a", 8), progress=False))
+    assert whole.grouped and whole.manifest["groups"] is True
+    units = whole.group_units()
+    assert sorted(i for u in units for i in u) == list(range(8))
+    for unit in units:
+        for i in unit[1:]:
+            assert torch.equal(whole.noise[i], whole.noise[unit[0]])
+            assert torch.equal(whole.first[i], whole.first[unit[0]])
+            assert whole.instructions[i] != whole.instructions[unit[0]]
+    assert any(len(u) == 2 for u in units)
+    generate_pairs(cfg(tmp_path / "b", 4), progress=False)  # interrupted after one shard
+    resumed = ReflowPairs(generate_pairs(cfg(tmp_path / "b", 8), progress=False))
+    assert resumed.group_of == whole.group_of and torch.equal(resumed.noise, whole.noise)
+    with pytest.raises(UserError, match="other settings"):  # the same folder without groups
+        generate_pairs(dataclasses.replace(cfg(tmp_path / "a", 8), groups=False), progress=False)
+    with pytest.raises(UserError, match="counterfactual groups"):
+        generate_pairs(dataclasses.replace(cfg(tmp_path / "c", 4), data=data), progress=False)
+    assert not (tmp_path / "c").exists()
+    plain = ReflowPairs(generate_pairs(_pairs_cfg(ckpt, data, tmp_path / "d", 2), progress=False))
+    with pytest.raises(UserError, match="--group-pairs"):
+        plain.group_units()
+
+
+def test_group_batch_of_pairs_is_whole_groups(teacher, tmp_path):
+    ckpt, _ = teacher
+    groups = write_grouped_dataset(tmp_path / "groups", scenes=3, singles=1)
+    pairs = ReflowPairs(generate_pairs(PairsConfig(teacher=ckpt, data=groups, out=tmp_path / "p", num_pairs=8,
+                                                   shard_size=8, batch_size=4, teacher_steps=1, groups=True),
+                                       progress=False))
+    g = torch.Generator().manual_seed(0)
+    for _ in range(20):
+        first, noise, x0, texts, leaders = pairs.sample_group_batch(4, g)
+        assert len(texts) == first.shape[0] == noise.shape[0] == x0.shape[0] == len(leaders) == 4
+        for k, leader in enumerate(leaders):
+            assert leaders[leader] == leader and torch.equal(noise[k], noise[leader])
+            assert torch.equal(first[k], first[leader])
+
+
+def test_distill_with_counterfactual_swap(teacher, tmp_path, monkeypatch):
+    """The student trains in batches of whole groups, shown a sibling's noisy sample at t >= SWAP_MIN_T
+    (its target its own teacher clip), and records the recipe; pairs drawn one by one are refused."""
+    from tesseract4d.model.predict import load_pipeline
+    from tesseract4d.model.recipe import SWAP_MIN_T
+    from tesseract4d.model.reflow import ReflowTrainer
+
+    ckpt, data = teacher
+    groups = write_grouped_dataset(tmp_path / "groups", scenes=3)
+    seen = []
+    original = ReflowTrainer.denoising_loss
+
+    def spy(self, x0, first, text, t, noise, objects=None, *, leaders=None, shown=None):
+        seen.append((t.clone(), list(leaders), list(shown) if shown is not None else None))
+        return original(self, x0, first, text, t, noise, objects, leaders=leaders, shown=shown)
+
+    monkeypatch.setattr(ReflowTrainer, "denoising_loss", spy)
+    argv = ["distill", "--teacher", str(ckpt), "--data", str(groups), "--pairs", str(tmp_path / "p"), "--group-pairs",
+            "--num-pairs", "8", "--teacher-steps", "2", "--out", str(tmp_path / "run"), "--batch-size", "4",
+            "--max-steps", "12", "--val-every", "0", "--ckpt-every", "0", "--no-progress", "--counterfactual-swap", "1"]
+    assert main(argv) == 0
+    assert len(seen) == 12
+    swapped = 0
+    for t, leaders, shown in seen:
+        for k, leader in enumerate(leaders):
+            assert float(t[k]) == float(t[leader])  # one diffusion time per group
+            siblings = [j for j, other in enumerate(leaders) if other == leader and j != k]
+            if float(t[k]) >= SWAP_MIN_T and siblings:
+                assert shown[k] in siblings  # probability 1: always a sibling's sample
+                swapped += 1
+            else:
+                assert shown[k] == k
+    assert swapped > 0
+    student = load_pipeline(tmp_path / "run" / "final")
+    assert student.config["recipe"]["counterfactual_swap"] == 1.0 and student.config["recipe"]["group_batches"]
+    assert student.config["distilled_from"]["pair_groups"] is True
+    # Pairs drawn one by one cannot be swapped within a group.
+    plain = tmp_path / "plain"
+    generate_pairs(_pairs_cfg(ckpt, data, plain, 2), progress=False)
+    assert main(["distill", "--teacher", str(ckpt), "--pairs", str(plain), "--out", str(tmp_path / "r2"),
+                 "--counterfactual-swap", "0.5", "--no-progress"]) == 2
+    assert not (tmp_path / "r2").exists()

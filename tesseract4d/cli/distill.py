@@ -4,6 +4,8 @@
   tesseract4d distill --pairs-only --teacher tesseract4d/checkpoints/v2 --data data/train --pairs runs/pairs
   tesseract4d distill --teacher tesseract4d/checkpoints/v2 --pairs runs/pairs --out runs/student --resume
   tesseract4d train --export runs/student --to checkpoints/v2-2step --half   # the student in float16
+  tesseract4d distill --teacher CKPT --data data/groups --pairs runs/gpairs --group-pairs \
+      --counterfactual-swap 1.0 --out runs/student   # a student that keeps reading the future from the words
 
 Two stages, each resumable:
 1. pairs: the teacher samples --num-pairs clips with its full sampler (its preset's steps and
@@ -11,7 +13,9 @@ Two stages, each resumable:
    instructions of --data, into --pairs (shards written whole; a rerun continues at the first
    missing shard, and refuses a folder made with other settings). Skipped when --data is not given and --pairs is complete.
 2. student: initialised with the teacher's weights, trained on the straight path between each
-   pair's noise and the teacher's clip. RUN/final is an inference checkpoint whose preset samples
+   pair's noise and the teacher's clip (with --counterfactual-swap P, on --group-pairs pairs: in
+   batches of whole groups, and at noise >= 0.3 shown, with probability P, a sibling's noisy
+   sample while its target stays its own teacher clip, as `train --counterfactual-swap`). RUN/final is an inference checkpoint whose preset samples
    in --student-steps steps without guidance, and which records the teacher it was distilled from.
 """
 
@@ -37,10 +41,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--teacher-guidance", type=float, metavar="SCALE",
                         help="the teacher's text guidance scale (default: its preset's); the student learns the "
                              "guided clips, so this becomes the student's guidance at no cost")
+    parser.add_argument("--group-pairs", action="store_true",
+                        help="draw the pairs as whole counterfactual groups of --data (one scene under several "
+                             "instructions, `datagen --instructions-per-scene`), a group's pairs sharing one noise")
     parser.add_argument("--pair-batch-size", type=int, default=p.batch_size,
                         help="teacher clips per sampler call (default %(default)s)")
     parser.add_argument("--student-steps", type=int, default=d.student_steps,
                         help="the student's sampler steps, one network pass each (default %(default)s)")
+    parser.add_argument("--counterfactual-swap", type=float, default=d.counterfactual_swap, metavar="P",
+                        help="train the student in batches of whole groups (needs --group-pairs pairs) and show a "
+                             "pair at noise >= 0.3, with probability P, a sibling's noisy sample (default %(default)s)")
     parser.add_argument("--max-steps", type=int, default=d.max_steps,
                         help="training steps; the cosine learning-rate decay ends here (default %(default)s)")
     parser.add_argument("--max-minutes", type=float, help="stop with a checkpoint after this many minutes of this invocation")
@@ -67,7 +77,7 @@ def run(args: argparse.Namespace) -> int:
             teacher=args.teacher, data=args.data[0] if len(args.data) == 1 else args.data, out=args.pairs, num_pairs=args.num_pairs,
             batch_size=args.pair_batch_size, teacher_steps=args.teacher_steps,
             text_guidance=args.teacher_guidance, seed=args.seed, camera=args.camera,
-            precision=args.precision), progress=not args.no_progress)
+            precision=args.precision, groups=args.group_pairs), progress=not args.no_progress)
         print(f"pairs: {args.pairs}")
     elif args.pairs_only or not (args.pairs / MANIFEST).is_file():
         raise UserError(f"pass --data DIR: the pairs in {args.pairs} are made from a dataset folder")
@@ -77,7 +87,8 @@ def run(args: argparse.Namespace) -> int:
         data=args.pairs, out=args.out, teacher=args.teacher, student_steps=args.student_steps,
         max_steps=args.max_steps, max_minutes=args.max_minutes, batch_size=args.batch_size, lr=args.lr,
         precision=args.precision, resume=args.resume, val_every=args.val_every, ckpt_every=args.ckpt_every,
-        seed=args.seed, progress=not args.no_progress)
+        seed=args.seed, progress=not args.no_progress, group_batches=args.counterfactual_swap > 0,
+        counterfactual_swap=args.counterfactual_swap)
     final = ReflowTrainer(cfg).train()
     print(f"student checkpoint: {final} ({args.student_steps} steps, one network pass each)")
     return 0

@@ -5,16 +5,21 @@ Reflow ("Flow straight and fast", Liu et al. 2022) in two stages:
 1. **Pairs** (:func:`generate_pairs`): the teacher, a trained checkpoint, samples clips with its full
    sampler (its preset's steps and classifier-free guidance) from stored noise. Each
    (noise, first frame, instruction) -> teacher clip is one pair, kept in the network's space.
+   With ``groups``, pairs come as whole counterfactual groups (one scene under several
+   instructions) that share one noise, so a group's pairs differ only by the words.
 2. **Student** (``tesseract4d distill``, the trainer's reflow mode): initialised with the teacher's
    weights, it learns the straight path between the two ends of each pair,
    ``x_t = (1 - t) x_teacher + t noise`` with target ``x_teacher``, conditioned on the first frame
    and the text only. Straight paths are integrated almost exactly by a few Euler steps, and the
    target is the *guided* teacher's output, so the student samples in 1-4 steps without guidance:
-   one network pass per step instead of two.
+   one network pass per step instead of two. On grouped pairs the student can train with the
+   teacher's counterfactual swap (``recipe.swap_sources``): at diffusion time >= ``SWAP_MIN_T`` a
+   pair is shown, with probability ``counterfactual_swap``, a sibling's noisy sample and must still
+   reach its own teacher clip, so the student keeps reading the future from the words.
 
 A pairs folder holds ``pairs-XXXXX.safetensors`` shards (``first`` (n, 7, H, W) model space,
-``noise`` and ``x0`` (n, t', c, h, w) network space), a JSON sidecar per shard with its
-instructions, and ``reflow_pairs.json`` (the teacher, its sampler settings and the data). Shards are
+``noise`` and ``x0`` (n, t', c, h, w) network space; with groups also ``leader`` (n,): the shard
+position of each pair's group's first pair), a JSON sidecar per shard with its instructions, and ``reflow_pairs.json`` (the teacher, its sampler settings and the data). Shards are
 written whole (temporary file, then rename), so an interrupted run resumes at the next shard.
 """
 
@@ -50,6 +55,7 @@ class PairsConfig:
     seed: int = 0
     camera: str | None = None
     precision: str = "auto"
+    groups: bool = False  # whole counterfactual groups per draw, one noise per group
 
     def to_dict(self) -> dict:
         from tesseract4d.configs import config_dict
@@ -68,7 +74,8 @@ def _check_manifest(out: Path, manifest: dict) -> None:
             raise UserError(f"{out} exists and is not a reflow pairs folder; choose a new --out")
         return
     saved = json.loads(path.read_text())
-    keys = ("teacher_digest", "teacher_steps", "text_guidance", "image_guidance", "data", "seed", "shard_size")
+    keys = ("teacher_digest", "teacher_steps", "text_guidance", "image_guidance", "data", "seed", "shard_size",
+            "groups")
     differ = [k for k in keys if saved.get(k) != manifest.get(k)]
     if differ:
         raise UserError(f"{out} holds pairs made with other settings ({', '.join(differ)} differ); "
@@ -83,6 +90,7 @@ def generate_pairs(cfg: PairsConfig, progress: bool = True) -> Path:
     from tesseract4d.configs import folder_list, plain
     from tesseract4d.model.clips import ClipDataset, merge_clip_datasets
     from tesseract4d.model.predict import load_pipeline
+    from tesseract4d.model.recipe import share_within_groups
 
     if cfg.num_pairs < 1 or cfg.shard_size < 1 or cfg.batch_size < 1:
         raise UserError("--num-pairs, --shard-size and --batch-size must be at least 1")
@@ -94,11 +102,15 @@ def generate_pairs(cfg: PairsConfig, progress: bool = True) -> Path:
     data = merge_clip_datasets([ClipDataset(folder, num_frames=p.num_frames, height=p.height, width=p.width,
                                             model_space=pipe.model_space, camera=cfg.camera or pipe.camera_name)
                                 for folder in folder_list(cfg.data)])
+    if cfg.groups:
+        from tesseract4d.model.clips import dataset_units
+
+        dataset_units(data)  # refuses data without counterfactual groups
     out = Path(cfg.out)
     manifest = {"format": 1, "teacher": str(cfg.teacher), "teacher_digest": weights_digest(cfg.teacher),
                 "teacher_preset": p.to_dict(), "teacher_steps": steps, "text_guidance": text_g,
                 "image_guidance": image_g, "data": plain(cfg.data), "camera": data.camera, "seed": cfg.seed,
-                "shard_size": cfg.shard_size, "config": cfg.to_dict()}
+                "shard_size": cfg.shard_size, "groups": bool(cfg.groups), "config": cfg.to_dict()}
     _check_manifest(out, manifest)
     out.mkdir(parents=True, exist_ok=True)
     tmp = out / f".{MANIFEST}.tmp"
@@ -115,9 +127,13 @@ def generate_pairs(cfg: PairsConfig, progress: bool = True) -> Path:
             continue
         # Every shard's batch and noise depend only on (seed, shard): a resumed run makes the same pairs.
         g = torch.Generator().manual_seed(cfg.seed * 1_000_003 + s)
-        clips, texts = data.sample_batch(n, g)  # (n, T, 7, H, W)
+        leaders = None
+        if cfg.groups:
+            clips, texts, leaders = data.sample_group_batch(n, g)  # (n, T, 7, H, W), whole groups
+        else:
+            clips, texts = data.sample_batch(n, g)  # (n, T, 7, H, W)
         first = clips[:, 0]
-        noise = torch.randn(pipe.latent_shape(n), generator=g)
+        noise = share_within_groups(torch.randn(pipe.latent_shape(n), generator=g), leaders)
         x0 = []
         for i in range(0, n, cfg.batch_size):
             sl = slice(i, i + cfg.batch_size)
@@ -126,6 +142,8 @@ def generate_pairs(cfg: PairsConfig, progress: bool = True) -> Path:
             bar.update(len(texts[sl]))
         tensors = {"first": first.half().contiguous(), "noise": noise.contiguous(),
                    "x0": torch.cat(x0).float().contiguous()}
+        if leaders is not None:
+            tensors["leader"] = torch.tensor(leaders, dtype=torch.int64)
         tmp_st = path.with_name(f".{path.name}.tmp")
         save_file(tensors, str(tmp_st))
         tmp_js = path.with_name(f".{path.stem}.json.tmp")
@@ -139,7 +157,8 @@ def generate_pairs(cfg: PairsConfig, progress: bool = True) -> Path:
 class ReflowPairs:
     """The pairs of a folder written by :func:`generate_pairs`, in memory.
 
-    ``sample_batch(b, generator)`` returns (first (b, 7, H, W), noise, x0 (b, t', c, h, w), texts).
+    ``sample_batch(b, generator)`` returns (first (b, 7, H, W), noise, x0 (b, t', c, h, w), texts);
+    on grouped pairs ``sample_group_batch`` also each pair's group leader (its batch position).
     """
 
     def __init__(self, folder: str | os.PathLike):
@@ -163,6 +182,15 @@ class ReflowPairs:
         self.noise = torch.cat([p["noise"] for p in parts])
         self.x0 = torch.cat([p["x0"] for p in parts])
         self.camera = self.manifest.get("camera")
+        # Each pair's group as the index of its group's first pair (shard positions made global).
+        self.grouped = bool(self.manifest.get("groups")) and all("leader" in p for p in parts)
+        self.group_of: list[int] = []
+        offset = 0
+        for p in parts:
+            n = p["first"].shape[0]
+            leader = p["leader"].tolist() if "leader" in p else list(range(n))
+            self.group_of += [offset + k for k in leader]
+            offset += n
 
     def __len__(self) -> int:
         return len(self.instructions)
@@ -171,6 +199,26 @@ class ReflowPairs:
         idx = torch.randint(len(self), (batch_size,), generator=generator)
         texts = [self.instructions[i] for i in idx.tolist()]
         return self.first[idx].float(), self.noise[idx], self.x0[idx], texts
+
+    def group_units(self) -> list[list[int]]:
+        """The pairs of each group (a pair outside a group alone); a UserError for pairs made without groups."""
+        if not self.grouped:
+            raise UserError(f"{self.folder} holds pairs drawn one by one; the counterfactual swap needs pairs of whole "
+                            f"groups: make them with `tesseract4d distill --group-pairs` in a new --pairs folder")
+        units: dict[int, list[int]] = {}
+        for i, leader in enumerate(self.group_of):
+            units.setdefault(leader, []).append(i)
+        return list(units.values())
+
+    def sample_group_batch(self, batch_size: int, generator: torch.Generator):
+        """Like :meth:`sample_batch`, of whole groups (:func:`clips.draw_group_batch`), plus each pair's
+        group leader (its batch position)."""
+        from tesseract4d.model.clips import draw_group_batch
+
+        units = self.group_units()
+        idx, _, leaders = draw_group_batch(units, [1] * len(self), 1, batch_size, generator)
+        texts = [self.instructions[i] for i in idx]
+        return self.first[idx].float(), self.noise[idx], self.x0[idx], texts, leaders
 
 
 # --------------------------------------------------------------------------- the student
@@ -246,13 +294,25 @@ class ReflowTrainer(Trainer):
                             f"{(p.height, p.width)}")
         return pairs
 
+    def _check_group_data(self) -> None:
+        self.data.group_units()
+
     def compute_loss(self, step: int) -> tuple[torch.Tensor, dict[str, float]]:
+        from tesseract4d.model.recipe import share_within_groups, swap_sources
+
+        cfg = self.cfg
         g = self._step_generator(step)
-        first, noise, x0, texts = self.data.sample_batch(self.cfg.batch_size, g)
+        leaders = shown = None
+        if cfg.group_batches:
+            first, noise, x0, texts, leaders = self.data.sample_group_batch(cfg.batch_size, g)
+        else:
+            first, noise, x0, texts = self.data.sample_batch(cfg.batch_size, g)
         first_enc = self.codec.encode(first[:, None].to(self.device), generator=g)  # (b, 1, c, h, w)
         text = self.text_encoder.encode(texts)  # (b, L, d)
-        t = torch.rand(x0.shape[0], generator=g)
-        return self.denoising_loss(x0, first_enc, text, t, noise)
+        t = share_within_groups(torch.rand(x0.shape[0], generator=g), leaders)
+        if leaders is not None and cfg.counterfactual_swap > 0:
+            shown = swap_sources(leaders, t, cfg.counterfactual_swap, g)
+        return self.denoising_loss(x0, first_enc, text, t, noise, leaders=leaders, shown=shown)
 
     def _inference_config(self) -> dict:
         m = self.data.manifest
@@ -261,7 +321,7 @@ class ReflowTrainer(Trainer):
             "method": "rectified-flow reflow", "teacher": str(self.cfg.teacher), "teacher_digest": self.teacher_digest,
             "teacher_steps": m.get("teacher_steps"), "text_guidance": m.get("text_guidance"),
             "image_guidance": m.get("image_guidance"), "pairs": str(self.cfg.data), "num_pairs": len(self.data),
-            "student_steps": self.preset.num_steps}
+            "pair_groups": bool(m.get("groups")), "student_steps": self.preset.num_steps}
         return cfg
 
     def validation_indices(self) -> list[int]:

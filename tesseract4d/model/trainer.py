@@ -413,9 +413,7 @@ class Trainer:
         self.codec = build_codec(self.preset, cfg.pretrained, autoencoder=cfg.autoencoder).to(self.device)
         self.data = self._build_data(cfg)
         if cfg.group_batches:
-            from tesseract4d.model.clips import dataset_units
-
-            dataset_units(self.data)  # refuses data without counterfactual groups before anything trains
+            self._check_group_data()  # refuses data without counterfactual groups before anything trains
         self.text_encoder = build_text_encoder(self.preset, cfg.pretrained)
         torch.manual_seed(cfg.seed)
         model = build_transformer(self.preset, self.codec, cfg.pretrained)
@@ -436,6 +434,12 @@ class Trainer:
             self._resume(existing)
         if self.accelerator.is_main_process:
             (self.out / "train_config.json").write_text(json.dumps(self.cfg.to_dict(), indent=2))
+
+    def _check_group_data(self) -> None:
+        """UserError when the training data holds no counterfactual group (for --group-batches)."""
+        from tesseract4d.model.clips import dataset_units
+
+        dataset_units(self.data)
 
     # ------------------------------------------------------------------ loss
     def _step_generator(self, step: int) -> torch.Generator:
