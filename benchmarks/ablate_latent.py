@@ -17,8 +17,11 @@ re-evaluated, so the command can be run again after an interruption. The table i
 written to OUT/ablation.md (and OUT/ablation.json).
 
   .venv/bin/python benchmarks/ablate_latent.py --data data/v2_tabletop data/v2_tasks data/ae128 \\
-      --autoencoder runs/v2/ae_ft --heldout data/heldout_groups128 --max-per-task 16 \\
+      --autoencoder tesseract4d/checkpoints/v2/autoencoder --heldout data/heldout_groups128 --max-per-task 16 \\
       --out runs/ablation --minutes 9 [--variants baseline,velocity]
+
+(The README's table was made with v2's autoencoder before its decoder fine-tune, runs/v2/ae_ft: the
+same encoder, so the same latents, and an older decoder.)
 """
 
 from __future__ import annotations
