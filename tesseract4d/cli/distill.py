@@ -15,8 +15,9 @@ Two stages, each resumable:
 2. student: initialised with the teacher's weights, trained on the straight path between each
    pair's noise and the teacher's clip (with --counterfactual-swap P, on --group-pairs pairs: in
    batches of whole groups, and at noise >= 0.3 shown, with probability P, a sibling's noisy
-   sample while its target stays its own teacher clip, as `train --counterfactual-swap`). RUN/final is an inference checkpoint whose preset samples
-   in --student-steps steps without guidance, and which records the teacher it was distilled from.
+   sample while its target stays its own teacher clip, as `train --counterfactual-swap`). RUN/final
+   is an inference checkpoint whose preset samples in --student-steps steps without guidance, and
+   which records the teacher it was distilled from.
 """
 
 from __future__ import annotations

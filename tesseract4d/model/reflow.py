@@ -19,8 +19,9 @@ Reflow ("Flow straight and fast", Liu et al. 2022) in two stages:
 
 A pairs folder holds ``pairs-XXXXX.safetensors`` shards (``first`` (n, 7, H, W) model space,
 ``noise`` and ``x0`` (n, t', c, h, w) network space; with groups also ``leader`` (n,): the shard
-position of each pair's group's first pair), a JSON sidecar per shard with its instructions, and ``reflow_pairs.json`` (the teacher, its sampler settings and the data). Shards are
-written whole (temporary file, then rename), so an interrupted run resumes at the next shard.
+position of each pair's group's first pair), a JSON sidecar per shard with its instructions, and
+``reflow_pairs.json`` (the teacher, its sampler settings and the data). Shards are written whole
+(temporary file, then rename), so an interrupted run resumes at the next shard.
 """
 
 from __future__ import annotations
@@ -182,7 +183,8 @@ class ReflowPairs:
         self.noise = torch.cat([p["noise"] for p in parts])
         self.x0 = torch.cat([p["x0"] for p in parts])
         self.camera = self.manifest.get("camera")
-        # Each pair's group as the index of its group's first pair (shard positions made global).
+        # Each pair's group as the index of its group's first pair (shard positions made global), and
+        # the pairs of each group, worked out once rather than in every training step.
         self.grouped = bool(self.manifest.get("groups")) and all("leader" in p for p in parts)
         self.group_of: list[int] = []
         offset = 0
@@ -191,6 +193,10 @@ class ReflowPairs:
             leader = p["leader"].tolist() if "leader" in p else list(range(n))
             self.group_of += [offset + k for k in leader]
             offset += n
+        units: dict[int, list[int]] = {}
+        for i, leader in enumerate(self.group_of):
+            units.setdefault(leader, []).append(i)
+        self._units = list(units.values())
 
     def __len__(self) -> int:
         return len(self.instructions)
@@ -205,10 +211,7 @@ class ReflowPairs:
         if not self.grouped:
             raise UserError(f"{self.folder} holds pairs drawn one by one; the counterfactual swap needs pairs of whole "
                             f"groups: make them with `tesseract4d distill --group-pairs` in a new --pairs folder")
-        units: dict[int, list[int]] = {}
-        for i, leader in enumerate(self.group_of):
-            units.setdefault(leader, []).append(i)
-        return list(units.values())
+        return self._units
 
     def sample_group_batch(self, batch_size: int, generator: torch.Generator):
         """Like :meth:`sample_batch`, of whole groups (:func:`clips.draw_group_batch`), plus each pair's
