@@ -77,6 +77,25 @@ def test_time_limit_stops_with_checkpoint_and_export(dataset, tmp_path):
     assert (run / "logs").is_dir() and (run / "train_config.json").is_file()
 
 
+def test_stop_at_step_keeps_the_schedule_and_resume_goes_on(dataset, tmp_path):
+    # A run cut short of its schedule: it stops with a checkpoint at step 3 of a 6-step cosine schedule;
+    # --resume without the stop then ends with exactly the weights of an uninterrupted 6-step run (so the
+    # first 3 steps used the 6-step schedule's learning rates).
+    straight = Trainer(_config(dataset, tmp_path / "a", max_steps=6))
+    straight.train()
+    run = tmp_path / "b"
+    Trainer(_config(dataset, run, max_steps=6, stop_at_step=3)).train()
+    assert [c.name for c in list_checkpoints(run)] == ["checkpoint-000003"]
+    resumed = Trainer(_config(dataset, run, max_steps=6, resume=True))
+    assert resumed.step == 3
+    resumed.train()
+    assert resumed.step == 6
+    wa, wb = _weights(straight), _weights(resumed)
+    assert all(torch.equal(wa[k], wb[k]) for k in wa)
+    with pytest.raises(UserError, match="--stop-at-step must be between 1 and --max-steps"):
+        Trainer(_config(dataset, tmp_path / "c", max_steps=6, stop_at_step=7))
+
+
 def test_resume_refuses_other_preset_and_existing_run(dataset, tmp_path, monkeypatch):
     import dataclasses
 

@@ -64,6 +64,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--max-steps", type=int, default=d.max_steps,
                         help="training steps; the cosine learning-rate decay ends here (default %(default)s)")
     parser.add_argument("--max-minutes", type=float, help="stop with a checkpoint after this many minutes of this invocation")
+    parser.add_argument("--stop-at-step", type=int,
+                        help="stop with a checkpoint at this step; the learning-rate schedule still ends at --max-steps "
+                             "(a run cut short of its schedule, as the shipped v2's last stage; --resume goes on)")
     parser.add_argument("--batch-size", type=int, help="clips per step (default: the preset's)")
     parser.add_argument("--lr", type=float, help="peak learning rate (default: the preset's)")
     parser.add_argument("--warmup-steps", type=int, help="linear warm-up steps (default: the preset's)")
@@ -102,7 +105,8 @@ def run(args: argparse.Namespace) -> int:
         raise UserError(f"--loss-weights must look like rgb=1,depth=1,normal=1, got {args.loss_weights!r}") from e
     cfg = TrainConfig(
         data=args.data, out=args.out, preset=args.preset, pretrained=args.pretrained, max_steps=args.max_steps,
-        max_minutes=args.max_minutes, batch_size=args.batch_size, lr=args.lr, warmup_steps=args.warmup_steps,
+        max_minutes=args.max_minutes, stop_at_step=args.stop_at_step, batch_size=args.batch_size, lr=args.lr,
+        warmup_steps=args.warmup_steps,
         precision=args.precision, resume=args.resume, val_every=args.val_every, ckpt_every=args.ckpt_every, seed=args.seed,
         camera=args.camera, progress=not args.no_progress, loss_weights=weights, autoencoder=args.autoencoder,
         condition_noise=args.condition_noise, moving_weight=args.moving_weight, object_weight=args.object_weight,

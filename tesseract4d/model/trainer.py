@@ -63,6 +63,9 @@ class TrainConfig:
     pretrained: Path | None = None
     max_steps: int = 5000  # also the length of the cosine decay
     max_minutes: float | None = None  # stop (with a checkpoint) after this much time in this invocation
+    # Stop (with a checkpoint) at this step while the learning-rate schedule still ends at max_steps:
+    # a run cut short of its schedule, reproducible in one command (--resume goes on from there).
+    stop_at_step: int | None = None
     batch_size: int | None = None
     lr: float | None = None
     warmup_steps: int | None = None
@@ -129,6 +132,8 @@ class TrainConfig:
             raise UserError(f"--warmup-steps must be >= 0, got {self.warmup_steps}")
         if self.max_minutes is not None:
             finite("max_minutes", self.max_minutes, 0, low_ok=True)
+        if self.stop_at_step is not None and not 1 <= self.stop_at_step <= self.max_steps:
+            raise UserError(f"--stop-at-step must be between 1 and --max-steps ({self.max_steps}), got {self.stop_at_step}")
         for name in ("val_every", "ckpt_every"):
             if getattr(self, name) < 0:
                 raise UserError(f"--{name.replace('_', '-')} must be >= 0 (0 = never), got {getattr(self, name)}")
@@ -657,8 +662,9 @@ class Trainer:
         bar = tqdm(total=cfg.max_steps, initial=self.step, desc=f"train {self.preset.name}", unit="step",
                    disable=not (cfg.progress and acc.is_main_process), dynamic_ncols=True)
         smooth = None
+        last_step = cfg.max_steps if cfg.stop_at_step is None else cfg.stop_at_step
         try:
-            while self.step < cfg.max_steps and not self._stop_requested:
+            while self.step < last_step and not self._stop_requested:
                 logs = self.train_step()
                 self.elapsed_s = elapsed_before + time.monotonic() - start
                 smooth = logs["loss"] if smooth is None else 0.95 * smooth + 0.05 * logs["loss"]
