@@ -4,8 +4,8 @@
   tesseract4d distill --pairs-only --teacher tesseract4d/checkpoints/v2 --data data/train --pairs runs/pairs
   tesseract4d distill --teacher tesseract4d/checkpoints/v2 --pairs runs/pairs --out runs/student --resume
   tesseract4d train --export runs/student --to checkpoints/v2-2step --half   # the student in float16
-  tesseract4d distill --teacher CKPT --data data/groups --pairs runs/gpairs --group-pairs \
-      --counterfactual-swap 1.0 --out runs/student   # a student that keeps reading the future from the words
+  tesseract4d distill --teacher tesseract4d/checkpoints/v2 --data data/groups --pairs runs/gpairs --group-pairs \\
+      --counterfactual-swap 0.5 --out runs/student   # keeps reading the future from the words (as v2-2step)
 
 Two stages, each resumable:
 1. pairs: the teacher samples --num-pairs clips with its full sampler (its preset's steps and
