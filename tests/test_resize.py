@@ -6,7 +6,7 @@ from fractions import Fraction
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
+from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
 from tesseract4d.errors import UserError
@@ -22,15 +22,17 @@ def camera(h: int, w: int) -> np.ndarray:
 
 
 def plane_frame(h: int, w: int, tilt_deg: float, azimuth_deg: float, distance_m: float):
-    """A plane m·p = -c seen by camera(h, w): (rgb, depth_m, normal_cam, K, m, c). m faces the camera."""
+    """A plane m·p = -c seen by camera(h, w): (rgb, depth_m, normal_cam, K, m, c). m faces the camera.
+    Pixels whose ray misses the plane (above its horizon) have no measurement: depth 0, normal 0."""
     a, b = np.deg2rad(tilt_deg), np.deg2rad(azimuth_deg)
     m = np.array([np.sin(a) * np.cos(b), np.sin(a) * np.sin(b), -np.cos(a)])
     K = camera(h, w)
     u, v = pixel_grid(h, w)
     rays = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones_like(u)], -1)
-    depth = -distance_m / (rays @ m)
+    hit = rays @ m < 0
+    depth = np.where(hit, -distance_m / np.where(hit, rays @ m, -1.0), 0.0)
     rgb = np.random.default_rng(0).integers(0, 256, (h, w, 3), dtype=np.uint8)
-    normal = np.broadcast_to(m.astype(np.float32), (h, w, 3)).copy()
+    normal = np.where(hit[..., None], m, 0.0).astype(np.float32)
     return rgb, depth.astype(np.float32), normal, K, m, distance_m
 
 
@@ -79,23 +81,36 @@ def test_a_fronto_parallel_plane_keeps_its_depth_and_normal(h, w, k, up, distanc
 @settings(max_examples=60, deadline=None)
 @given(h=SIZES, w=SIZES, k=FACTORS, up=st.booleans(), tilt=st.floats(0.0, 45.0), azimuth=st.floats(0.0, 360.0),
        distance=st.floats(0.2, 3.0))
+@example(h=12, w=4, k=2, up=True, tilt=33.0, azimuth=250.0, distance=1.0)  # a footprint across the horizon
 def test_points_of_a_resized_plane_stay_on_it_within_a_pixel_footprint(h, w, k, up, tilt, azimuth, distance):
     """Every back-projected point of the resized frame lies on its pixel's ray between the plane's
-    nearest and farthest points over the footprint of one pixel of the coarser image around it."""
+    nearest and farthest points over the footprint of one pixel of the coarser image around it.
+
+    A tall frame of this camera sees up to 56° above its axis, so a tilted plane's horizon can cross
+    the image: a footprint with a corner whose ray misses the plane (depth <= 0) reaches infinitely far
+    along it and bounds nothing, so those pixels are left out (the others must still hold). Pixels
+    without a measurement come out without one (depth 0, normal 0); every other normal is the plane's."""
     src = (h, w) if up else (h * k, w * k)
     dst = (h * k, w * k) if up else (h, w)
     rgb, depth, normal, K, m, c = plane_frame(*src, tilt, azimuth, distance)
     _, depth2, normal2, K2 = resize_rgbdn(rgb, depth, normal, K, *dst)
     side = k if up else 1  # the coarse pixel, in output pixels
     u, v = pixel_grid(*dst)
-    corners = [plane_depth(m, c, K2, u + du * side / 2, v + dv * side / 2)[0] for du in (-1, 1) for dv in (-1, 1)]
-    lo, hi = np.min(corners, 0), np.max(corners, 0)
-    assert (depth2 >= lo * (1 - 1e-5)).all() and (depth2 <= hi * (1 + 1e-5)).all()
-    points = unproject_depth(depth2, K2).astype(np.float64)
+    corners = np.stack([plane_depth(m, c, K2, u + du * side / 2, v + dv * side / 2)[0]
+                        for du in (-1, 1) for dv in (-1, 1)])
+    bounded = (corners > 0).all(0)  # the footprint lies wholly below the plane's horizon
+    assert bounded.any()
+    lo, hi = corners.min(0)[bounded], corners.max(0)[bounded]
+    d = depth2[bounded]
+    assert (d >= lo * (1 - 1e-5)).all() and (d <= hi * (1 + 1e-5)).all()
+    points = unproject_depth(depth2, K2).astype(np.float64)[bounded]
     _, rays = plane_depth(m, c, K2, u, v)
     off_plane = np.abs(points @ m + c)
-    assert (off_plane <= (hi - lo) * np.abs(rays @ m) + 1e-5).all()
-    np.testing.assert_allclose(normal2, np.broadcast_to(m, normal2.shape), atol=1e-5)
+    assert (off_plane <= (hi - lo) * np.abs(rays[bounded] @ m) + 1e-5).all()
+    valid = depth2 > 0
+    assert valid[bounded].all()
+    np.testing.assert_allclose(normal2[valid], np.broadcast_to(m, normal2[valid].shape), atol=1e-5)
+    assert not normal2[~valid].any()
 
 
 @settings(max_examples=40, deadline=None)
