@@ -648,8 +648,8 @@ class Trainer:
 
     # ------------------------------------------------------------------ loop
     def train(self) -> Path:
-        """Train until max_steps or max_minutes (or SIGTERM/Ctrl-C); always ends with a checkpoint and
-        an export of the EMA weights to RUN/final. Returns that folder."""
+        """Train until max_steps, stop_at_step or max_minutes (or SIGTERM/Ctrl-C); always ends with a
+        checkpoint and an export of the EMA weights to RUN/final. Returns that folder."""
         from tqdm import tqdm
 
         cfg = self.cfg
