@@ -295,6 +295,11 @@ def test_init_fine_tunes_a_checkpoint_in_its_own_latent_space(tmp_path):
     assert training["init"] == str(ckpt) and training["init_digest"] == weights_digest(ckpt)
     after = load_file(str(final / "transformer" / "diffusion_pytorch_model.safetensors"))
     assert any(not torch.equal(after[k], start[k].float()) for k in start)  # it trained from there
+    # A resumed run keeps the record of its start: --init must hold the same weights as at the start.
+    assert cli.main(["train", "--export", str(tmp_path / "more"), "--to", str(tmp_path / "ckpt2"), "--half"]) == 0
+    with pytest.raises(UserError, match="started from .* resume with --init naming those weights"):
+        Trainer(_config(data, tmp_path / "more", None, init=tmp_path / "ckpt2", max_steps=3, resume=True))
+    assert Trainer(_config(data, tmp_path / "more", None, init=ckpt, max_steps=3, resume=True)).step == 2
 
     with pytest.raises(UserError, match="--prediction x0"):
         Trainer(_config(data, tmp_path / "r1", None, init=ckpt, prediction="velocity"))

@@ -549,6 +549,18 @@ class Trainer:
                       **self._init_record()},
             codec=self.codec, recipe=self.cfg.recipe())
 
+    def _check_same_start(self, ckpt: Path, state: dict) -> None:
+        """A resumed run keeps the record of what it started from: --init must name the same weights
+        (by digest) as when the run began, or the export would name another checkpoint as its start."""
+        started = (state.get("inference_config") or {}).get("training", {})
+        digest = started.get("init_digest")
+        if digest is not None and self.init_digest != digest:
+            now = f"--init {self.cfg.init} holds weights {self.init_digest}" if self.cfg.init else "no --init was given"
+            raise UserError(f"{ckpt.parent} started from {started.get('init')} with weights {digest}, but {now}; "
+                            f"resume with --init naming those weights (the same checkpoint as at the start)")
+        if "init" not in started and self.init_digest is not None:
+            raise UserError(f"{ckpt.parent} started from random weights; resume it without --init")
+
     def _init_record(self) -> dict:
         """What the run started from, for the inference config (nothing for a random start)."""
         if self.cfg.init is None:
@@ -602,6 +614,7 @@ class Trainer:
             diff = sorted(k for k in set(saved) | set(self.preset.to_dict()) if saved.get(k) != self.preset.to_dict().get(k))
             raise UserError(f"{ckpt} was trained with preset {saved.get('name')!r}, which differs from --preset "
                             f"{self.preset.name!r} in {', '.join(diff)}; resume with the same preset or use a new --out")
+        self._check_same_start(ckpt, state)
         model = self.accelerator.unwrap_model(self.model)
         for target, sub in ((model, TRANSFORMER_DIR), (self.ema.model, EMA_DIR)):
             weights = load_file(str(ckpt / sub / WEIGHTS_FILE))
