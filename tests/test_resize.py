@@ -27,10 +27,10 @@ def plane_frame(h: int, w: int, tilt_deg: float, azimuth_deg: float, distance_m:
     a, b = np.deg2rad(tilt_deg), np.deg2rad(azimuth_deg)
     m = np.array([np.sin(a) * np.cos(b), np.sin(a) * np.sin(b), -np.cos(a)])
     K = camera(h, w)
-    u, v = pixel_grid(h, w)
-    rays = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones_like(u)], -1)
+    with np.errstate(divide="ignore"):
+        plane, rays = plane_depth(m, distance_m, K, *pixel_grid(h, w))
     hit = rays @ m < 0
-    depth = np.where(hit, -distance_m / np.where(hit, rays @ m, -1.0), 0.0)
+    depth = np.where(hit, plane, 0.0)
     rgb = np.random.default_rng(0).integers(0, 256, (h, w, 3), dtype=np.uint8)
     normal = np.where(hit[..., None], m, 0.0).astype(np.float32)
     return rgb, depth.astype(np.float32), normal, K, m, distance_m
