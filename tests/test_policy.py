@@ -227,3 +227,71 @@ def test_rollout_bad_inputs(overfit, tmp_path, capsys):
     assert "downloaded assets" in capsys.readouterr().err
     assert main(["train-idm", "--data", str(tmp_path / "nothing"), "--out", str(tmp_path / "r6")]) == 2
     assert "no episodes" in capsys.readouterr().err
+
+
+def test_clip_starts_are_distinct_steps_inside_the_episode():
+    from tesseract4d.policy.predicted_pairs import clip_starts
+
+    assert clip_starts(90, 3) == [0, 30, 60]
+    assert clip_starts(2, 3) == [0, 1]  # more starts than steps: each step once
+    for steps in range(1, 40):
+        for n in range(1, 6):
+            starts = clip_starts(steps, n)
+            assert starts[0] == 0 and all(0 <= s < steps for s in starts) and len(set(starts)) == len(starts)
+
+
+@pytest.mark.sim
+def test_idm_trains_on_the_world_models_predicted_futures(episodes, text_encoder, tmp_path, monkeypatch):
+    """Pairs with predicted futures: per clip started at step s, predicted frame m is paired with
+    the true frame at s + (m - 1) G and the true actions to s + m G; a share of each batch is
+    taken from them; behaviour cloning refuses them."""
+    from tesseract4d import dataset_format as df
+    from tesseract4d.policy.idm import clip_gap
+    from tesseract4d.policy.idm_trainer import IDMTrainConfig, IDMTrainer
+    from tesseract4d.policy.predicted_pairs import clip_starts
+
+    def cfg(out, **kw):
+        return IDMTrainConfig(data=str(episodes), out=str(out), steps=2, batch_size=4, num_points=64, ckpt_every=0,
+                              progress=False, predicted_futures=str(SHIPPED_CHECKPOINT), predicted_starts=2,
+                              predicted_sample_steps=1, **kw)
+
+    trainer = IDMTrainer(cfg(tmp_path / "run"), text_encoder=text_encoder)
+    p = trainer.pairs
+    eps = [df.read_episode(f) for f in df.list_episode_files(episodes)]
+    expected = 0
+    for ep in eps:
+        steps, gap = len(ep.actions), clip_gap(len(ep.actions))
+        expected += sum(1 for s in clip_starts(steps, 2) for m in range(1, 16) if s + (m - 1) * gap < steps)
+    assert int(p.predicted.sum()) == expected > 0
+    # The first predicted pair: episode 0's first frame, its predicted frame 1, the true actions to G.
+    first = int(np.flatnonzero(p.predicted)[0])
+    ep0, gap0 = eps[0], clip_gap(len(eps[0].actions))
+    assert p.now[first] == 0 and p.next[first] >= sum(ep.num_frames for ep in eps)
+    np.testing.assert_allclose(p.target[first], encode_target(ep0.actions[:gap0], ep0.qpos[0], 8))
+    assert not np.array_equal(p.points[p.next[first]], p.points[gap0])  # a predicted cloud, not the true one
+    # Half of every batch of 4 comes from the predicted pairs.
+    from tesseract4d.policy import idm_trainer
+
+    batches = []
+    make_batch = idm_trainer.make_batch
+    monkeypatch.setattr(idm_trainer, "make_batch", lambda pairs, idx, *a: batches.append(idx) or make_batch(pairs, idx, *a))
+    trainer.train()
+    train_batches = batches[:2]  # the 2 steps' batches (the fit reports batch the pairs after them)
+    assert all(len(idx) == 4 and p.predicted[idx].sum() == 2 for idx in train_batches)
+    training = json.loads((tmp_path / "run" / "final" / "idm_config.json").read_text())["training"]
+    assert training["predicted_pairs"] == expected and training["predicted_futures"]["starts"] == 2
+    assert training["fit_predicted"]["pairs"] == expected
+    with pytest.raises(UserError, match="--no-future"):
+        IDMTrainer(cfg(tmp_path / "bc", use_future=False), text_encoder=text_encoder)
+    assert not (tmp_path / "bc").exists()  # a refused run leaves nothing behind
+
+
+@pytest.mark.sim
+def test_predicted_futures_need_episodes_rendered_at_every_step(episodes):
+    from tesseract4d import dataset_format as df
+    from tesseract4d.policy.predicted_pairs import PredictedFutures
+
+    ep = df.read_episode(df.list_episode_files(episodes)[0])
+    ep.frame_steps = ep.frame_steps * 2
+    with pytest.raises(UserError, match="--frames 0"):
+        PredictedFutures(str(SHIPPED_CHECKPOINT), sample_steps=1).pairs(ep, "close", 64, 8, np.random.default_rng(0))

@@ -4,11 +4,20 @@ or with --no-future its behaviour-cloning twin (current point cloud + instructio
   tesseract4d train-idm --data data/idm_train --out runs/idm --steps 1500
   tesseract4d train-idm --data data/idm_train --out runs/bc --steps 1500 --no-future
   tesseract4d train-idm --data data/idm_train --out runs/idm --steps 3000 --resume   # continue
+  tesseract4d train-idm --data data/idm_train128 --out runs/idm_pred --steps 1500 \
+      --predicted-futures tesseract4d/checkpoints/v2-2step          # also learn from predicted frames
 
 Training pairs are ground-truth frames of datagen episodes (best written with --frames 0, every
 step) about episode_steps/15 steps apart and the actions between them. Writes
 RUN/train_idm_config.json, RUN/checkpoint/ (resumable) and RUN/final/ (idm_config.json +
 model.safetensors, with the fit on the training pairs in its config).
+
+With --predicted-futures CHECKPOINT the world model predicts clips from frames of the training
+episodes (--predicted-starts per episode, from steps 0, L/n, 2L/n, ... as the policy loop does),
+and --predicted-share of every batch pairs a true frame with the predicted future and the true
+actions, so the IDM learns to act on generated frames as the world-model arm gives them. The
+dataset must be rendered at every step, at the checkpoint's camera and resolution (or a whole
+factor of it).
 """
 
 from __future__ import annotations
@@ -37,6 +46,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--noise-m", type=float, default=d.noise_m, help="that noise's std in metres (default %(default)s)")
     parser.add_argument("--gap-scales", default=",".join(str(g) for g in d.gap_scales),
                         help="future frames at these multiples of episode_steps/15 ahead (default %(default)s)")
+    parser.add_argument("--predicted-futures", metavar="CHECKPOINT",
+                        help="a world-model checkpoint: also train on its predicted futures (default: true futures only)")
+    parser.add_argument("--predicted-share", type=float, default=d.predicted_share,
+                        help="share of each batch with predicted futures (default %(default)s)")
+    parser.add_argument("--predicted-starts", type=int, default=d.predicted_starts,
+                        help="clips predicted per episode (default %(default)s)")
+    parser.add_argument("--predicted-steps", type=int,
+                        help="sampler steps per predicted clip (default: the checkpoint's own)")
     parser.add_argument("--ckpt-every", type=int, default=d.ckpt_every, help="checkpoint every K steps (default %(default)s)")
     parser.add_argument("--max-minutes", type=float, help="stop with a checkpoint after this many minutes")
     parser.add_argument("--seed", type=int, default=d.seed)
@@ -55,9 +72,16 @@ def run(args: argparse.Namespace) -> int:
         noise_frac=args.noise_frac, noise_m=args.noise_m,
         gap_scales=tuple(float(g) for g in args.gap_scales.split(",")), seed=args.seed, ckpt_every=args.ckpt_every,
         max_minutes=args.max_minutes, resume=args.resume, progress=not args.no_progress,
+        predicted_futures=args.predicted_futures, predicted_share=args.predicted_share,
+        predicted_starts=args.predicted_starts, predicted_sample_steps=args.predicted_steps,
     )
     trainer = IDMTrainer(cfg)
-    print(f"{len(trainer.pairs.episodes)} episodes, {len(trainer.pairs.now)} training pairs")
+    n_pred = int(trainer.pairs.predicted.sum())
+    print(f"{len(trainer.pairs.episodes)} episodes, {len(trainer.pairs.now) - n_pred} training pairs"
+          + (f" and {n_pred} with predicted futures" if n_pred else ""))
     final = trainer.train()
-    print(f"wrote {final}; fit on the training pairs: {json.dumps(trainer.model.config.training['fit'])}")
+    training = trainer.model.config.training
+    print(f"wrote {final}; fit on the training pairs: {json.dumps(training['fit'])}")
+    if "fit_predicted" in training:
+        print(f"fit on the pairs with predicted futures: {json.dumps(training['fit_predicted'])}")
     return 0

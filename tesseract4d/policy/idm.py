@@ -127,6 +127,15 @@ def chunk_indices(num_steps: int, chunk_len: int) -> np.ndarray:
     return np.clip(np.ceil(np.arange(1, chunk_len + 1) * num_steps / chunk_len).astype(np.int64) - 1, 0, num_steps - 1)
 
 
+CLIP_INTERVALS = 15  # a predicted clip is 16 frames = 15 intervals over the episode
+
+
+def clip_gap(num_steps: int, scale: float = 1.0) -> int:
+    """Env steps between two frames of a predicted clip over an episode of ``num_steps`` steps
+    (``scale`` times episode steps / 15, at least 1): the spacing of the IDM's training pairs."""
+    return max(1, int(round(scale * num_steps / CLIP_INTERVALS)))
+
+
 def encode_target(actions: np.ndarray, qpos_now: np.ndarray, chunk_len: int) -> np.ndarray:
     """The raw training target of the ``actions`` (n, A) between two frames, from joint positions
     ``qpos_now``: (chunk_len * A + 1,) = chunk with arm targets relative to qpos_now, log(n)."""

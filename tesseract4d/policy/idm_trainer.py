@@ -5,6 +5,9 @@ Training pairs come from ground truth: frame i of an episode, the frame about G 
 actions between them. Datasets written with ``--frames 0`` (every step) give a pair per step;
 16-frame datasets give 15 per episode. The future cloud is corrupted as TesserAct does for
 generated frames: ``noise_frac`` of its points get Gaussian noise of ``noise_m`` metres.
+With ``predicted_futures`` (a world-model checkpoint) the world model also predicts clips from the
+episodes' frames, and ``predicted_share`` of every batch pairs a true frame with the model's
+predicted future instead (``predicted_pairs.py``), so the IDM learns to read generated frames.
 
     RUN/train_idm_config.json     the resolved IDMTrainConfig
     RUN/checkpoint/               model.safetensors + idm_config.json + optimizer + rng + trainer_state.json
@@ -25,12 +28,9 @@ import torch
 from tesseract4d import dataset_format as df
 from tesseract4d.errors import UserError
 from tesseract4d.policy.idm import (
-    ARM_JOINTS, IDMConfig, InverseDynamics, encode_target, save_idm, sentence_embeddings,
+    ARM_JOINTS, IDMConfig, InverseDynamics, clip_gap, encode_target, save_idm, sentence_embeddings,
 )
 from tesseract4d.policy.points import frame_points
-
-CLIP_INTERVALS = 15  # a predicted clip is 16 frames = 15 intervals over the episode
-
 
 @dataclass
 class IDMTrainConfig:
@@ -53,6 +53,13 @@ class IDMTrainConfig:
     max_minutes: float | None = None
     resume: bool = False
     progress: bool = True
+    # A world-model checkpoint whose predictions from the episodes' frames serve as futures too
+    # (None: true futures only); the share of each batch taken from those pairs; clips per episode;
+    # sampler steps (None: the checkpoint's own).
+    predicted_futures: str | None = None
+    predicted_share: float = 0.5
+    predicted_starts: int = 3
+    predicted_sample_steps: int | None = None
 
 
 @dataclass
@@ -70,6 +77,11 @@ class PairSet:
     camera: str
     resolution: tuple[int, int]
     episodes: list[str]
+    predicted: np.ndarray | None = None  # (P,) bool: the future frame is the world model's prediction
+
+    def __post_init__(self) -> None:
+        if self.predicted is None:
+            self.predicted = np.zeros(len(self.now), bool)
 
 
 def pair_frames(frame_steps: np.ndarray, num_steps: int, gap_scales: tuple[float, ...] = (1.0,)) -> list[tuple[int, int]]:
@@ -79,7 +91,7 @@ def pair_frames(frame_steps: np.ndarray, num_steps: int, gap_scales: tuple[float
     steps = np.asarray(frame_steps, np.int64)
     pairs = []
     for scale in gap_scales:
-        gap = max(1, int(round(scale * num_steps / CLIP_INTERVALS)))
+        gap = clip_gap(num_steps, scale)
         for i in range(len(steps) - 1):
             j = i + 1 + int(np.argmin(np.abs(steps[i + 1:] - (steps[i] + gap))))
             pairs.append((i, j))
@@ -88,7 +100,9 @@ def pair_frames(frame_steps: np.ndarray, num_steps: int, gap_scales: tuple[float
 
 def load_pairs(data: str | Path, *, camera: str | None, num_points: int, chunk_len: int, tasks: list[str] | None,
                max_episodes_per_task: int, text_encoder, seed: int = 0, progress: bool = True,
-               gap_scales: tuple[float, ...] = (1.0,)) -> PairSet:
+               gap_scales: tuple[float, ...] = (1.0,), predicted=None) -> PairSet:
+    """The training pairs of a dataset; ``predicted`` (a ``PredictedFutures``) adds the pairs whose
+    future is the world model's prediction. Their clouds are stored after the true frames'."""
     from tqdm import tqdm
 
     files = df.list_episode_files(data)
@@ -104,6 +118,7 @@ def load_pairs(data: str | Path, *, camera: str | None, num_points: int, chunk_l
         by_task = {t: by_task[t] for t in tasks}
     chosen = [f for t in sorted(by_task) for f in (by_task[t][:max_episodes_per_task] if max_episodes_per_task else by_task[t])]
     points, qpos, text, now, nxt, target, names = [], [], [], [], [], [], []
+    pred_points, pred_now, pred_target = [], [], []
     meta: dict = {}
     offset = 0
     for path in tqdm(chosen, desc="load pairs", unit="ep", disable=not progress):
@@ -130,13 +145,26 @@ def load_pairs(data: str | Path, *, camera: str | None, num_points: int, chunk_l
             now.append(offset + i)
             nxt.append(offset + j)
             target.append(encode_target(ep.actions[s0:s1], ep.qpos[i], chunk_len))
+        if predicted is not None:
+            for pair in predicted.pairs(ep, cam_name, num_points, chunk_len, rng):
+                pred_now.append(offset + pair.now)
+                pred_points.append(pair.points.astype(np.float16))
+                pred_target.append(pair.target)
         offset += ep.num_frames
         names.append(ep.episode_id)
     if not now:
         raise UserError(f"{data}: no episode has actions and two frames")
-    return PairSet(np.stack(points), np.concatenate(qpos), np.concatenate(text).astype(np.float32),
-                   np.asarray(now), np.asarray(nxt), np.stack(target), meta["control_mode"], meta["action_dim"],
-                   meta["camera"], meta["resolution"], names)
+    qpos_all, text_all = np.concatenate(qpos), np.concatenate(text).astype(np.float32)
+    # Predicted clouds go after the true frames; their qpos/text rows (never read: a pair reads the
+    # current frame's) keep the frame arrays aligned.
+    frames = len(points)
+    pred_now_arr = np.asarray(pred_now, np.int64)
+    return PairSet(np.stack(points + pred_points), np.concatenate([qpos_all, qpos_all[pred_now_arr]]),
+                   np.concatenate([text_all, text_all[pred_now_arr]]),
+                   np.asarray(now + pred_now), np.asarray(nxt + list(range(frames, frames + len(pred_now)))),
+                   np.stack(target + pred_target), meta["control_mode"], meta["action_dim"],
+                   meta["camera"], meta["resolution"], names,
+                   predicted=np.arange(len(now) + len(pred_now)) >= len(now))
 
 
 def make_batch(pairs: PairSet, idx: np.ndarray, rng: np.random.Generator, noise_frac: float, noise_m: float) -> dict:
@@ -153,11 +181,14 @@ def make_batch(pairs: PairSet, idx: np.ndarray, rng: np.random.Generator, noise_
     }
 
 
-def fit_report(model: InverseDynamics, pairs: PairSet, max_pairs: int = 2048) -> dict:
-    """Errors of the model on (a fixed random subset of up to max_pairs of) the pairs, without noise:
-    arm joint targets (rad, mean and 95th percentile of |error|), gripper command sign agreement,
-    steps a chunk spans (relative error)."""
-    idx = np.sort(np.random.default_rng(0).permutation(len(pairs.now))[:max_pairs])
+def fit_report(model: InverseDynamics, pairs: PairSet, max_pairs: int = 2048, predicted: bool = False) -> dict:
+    """Errors of the model on (a fixed random subset of up to max_pairs of) the pairs with true
+    futures (``predicted``: with the world model's), without noise: arm joint targets (rad, mean and
+    95th percentile of |error|), gripper command sign agreement, steps a chunk spans (relative error)."""
+    candidates = np.flatnonzero(pairs.predicted == predicted)
+    if len(candidates) == 0:
+        raise ValueError(f"no pairs with {'predicted' if predicted else 'true'} futures")
+    idx = np.sort(candidates[np.random.default_rng(0).permutation(len(candidates))[:max_pairs]])
     errs, grip, steps_rel = [], [], []
     model.eval()
     with torch.no_grad():
@@ -204,11 +235,23 @@ class IDMTrainer:
         from tesseract4d.model.text_encoder import TextEncoder
 
         self.text_encoder = text_encoder or TextEncoder("minilm", max_tokens=32)
+        predicted = None
+        if cfg.predicted_futures:
+            from tesseract4d.policy.predicted_pairs import PredictedFutures
+
+            if not cfg.use_future:
+                raise UserError("--predicted-futures gives the IDM predicted future frames; behaviour cloning "
+                                "(--no-future) reads no future: drop one of them")
+            if not 0.0 < cfg.predicted_share <= 1.0:
+                raise UserError(f"--predicted-share must be in (0, 1], got {cfg.predicted_share}")
+            predicted = PredictedFutures(cfg.predicted_futures, starts=cfg.predicted_starts,
+                                         sample_steps=cfg.predicted_sample_steps, sample_seed=cfg.seed)
         self.pairs = load_pairs(cfg.data, camera=cfg.camera, num_points=cfg.num_points, chunk_len=cfg.chunk_len,
                                 tasks=cfg.tasks, max_episodes_per_task=cfg.max_episodes_per_task,
                                 text_encoder=self.text_encoder, seed=cfg.seed, progress=cfg.progress,
-                                gap_scales=tuple(cfg.gap_scales))
+                                gap_scales=tuple(cfg.gap_scales), predicted=predicted)
         p = self.pairs
+        self.true_idx, self.pred_idx = np.flatnonzero(~p.predicted), np.flatnonzero(p.predicted)
         self.idm_config = IDMConfig(
             use_future=cfg.use_future, num_points=cfg.num_points, chunk_len=cfg.chunk_len, action_dim=p.action_dim,
             qpos_dim=int(p.qpos.shape[1]), text_dim=int(p.text.shape[1]), control_mode=p.control_mode, camera=p.camera,
@@ -217,6 +260,10 @@ class IDMTrainer:
                       "batch_size": cfg.batch_size, "lr": cfg.lr, "noise_frac": cfg.noise_frac, "noise_m": cfg.noise_m, "gap_scales": list(cfg.gap_scales),
                       "tasks": sorted({e.split("/")[0] for e in p.episodes}), "seed": cfg.seed},
         )
+        if predicted is not None:
+            self.idm_config.training.update({"predicted_futures": predicted.describe(),
+                                             "predicted_pairs": int(len(self.pred_idx)),
+                                             "predicted_share": cfg.predicted_share})
         torch.manual_seed(cfg.seed)
         self.model = InverseDynamics(self.idm_config)
         std = p.target.std(0)
@@ -249,7 +296,11 @@ class IDMTrainer:
     def train_step(self) -> float:
         cfg, p = self.config, self.pairs
         rng = np.random.default_rng([cfg.seed, self.step])  # per-step draws: resume is exact
-        idx = rng.integers(0, len(p.now), cfg.batch_size)
+        if len(self.pred_idx):  # predicted_share of the batch from the predicted pairs, the rest true
+            n_pred = int(round(cfg.predicted_share * cfg.batch_size))
+            idx = np.concatenate([rng.choice(self.pred_idx, n_pred), rng.choice(self.true_idx, cfg.batch_size - n_pred)])
+        else:
+            idx = rng.integers(0, len(p.now), cfg.batch_size)
         b = make_batch(p, idx, rng, cfg.noise_frac, cfg.noise_m)
         for g in self.optimizer.param_groups:
             g["lr"] = self.lr_at(self.step)
@@ -295,6 +346,8 @@ class IDMTrainer:
         self.model.config.training.update({"trained_steps": self.step, "last_loss": self.last_loss,
                                            "minutes": round((time.monotonic() - t0) / 60, 2)})
         self.model.config.training["fit"] = fit_report(self.model, self.pairs)
+        if len(self.pred_idx):
+            self.model.config.training["fit_predicted"] = fit_report(self.model, self.pairs, predicted=True)
         final = save_idm(self.model, self.out / "final")
         return final
 
