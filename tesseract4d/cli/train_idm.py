@@ -4,7 +4,7 @@ or with --no-future its behaviour-cloning twin (current point cloud + instructio
   tesseract4d train-idm --data data/idm_train --out runs/idm --steps 1500
   tesseract4d train-idm --data data/idm_train --out runs/bc --steps 1500 --no-future
   tesseract4d train-idm --data data/idm_train --out runs/idm --steps 3000 --resume   # continue
-  tesseract4d train-idm --data data/idm_train128 --out runs/idm_pred --steps 1500 \
+  tesseract4d train-idm --data data/idm_train128 --out runs/idm_pred --steps 3000 \
       --predicted-futures tesseract4d/checkpoints/v2-2step          # also learn from predicted frames
 
 Training pairs are ground-truth frames of datagen episodes (best written with --frames 0, every
