@@ -1,5 +1,5 @@
 """Closed-loop policy: per-task success counts, action-chunk encoding, the IDM overfitting real
-datagen episodes, an oracle-future rollout that succeeds, resume, and bad inputs."""
+datagen episodes, an oracle-future rollout that succeeds, the static-world arm, resume, and bad inputs."""
 
 from __future__ import annotations
 
@@ -227,6 +227,35 @@ def test_rollout_bad_inputs(overfit, tmp_path, capsys):
     assert "downloaded assets" in capsys.readouterr().err
     assert main(["train-idm", "--data", str(tmp_path / "nothing"), "--out", str(tmp_path / "r6")]) == 2
     assert "no episodes" in capsys.readouterr().err
+    # the static world is an IDM arm: it needs --idm
+    assert main(["rollout", "--arms", "static_world", "--tasks", "PushCube-v1", "--out", str(tmp_path / "r7")]) == 2
+    assert "need --idm" in capsys.readouterr().err
+
+
+@pytest.mark.sim
+@pytest.mark.slow
+def test_static_world_arm_steers_toward_the_observation_it_replanned_from(overfit, text_encoder):
+    """The static-world arm runs the IDM with the frame observed at each replan as every future frame."""
+    from datagen.simulate import EpisodeSimulator, SimConfig
+    from tesseract4d.policy.idm import load_idm
+    from tesseract4d.policy.loop import LoopConfig, PolicyRunner, StaticFuture, Trace
+
+    _, out = overfit
+    cfg = LoopConfig(replan_every=4, max_steps=40)
+    sim = EpisodeSimulator("PushCube-v1", SimConfig(height=64, width=64, cameras=["close"], frames=0))
+    try:
+        trace = Trace()
+        result = PolicyRunner(sim, load_idm(out / "final"), text_encoder, cfg).run(100000, StaticFuture(cfg), trace)
+    finally:
+        sim.close()
+    assert result.arm == "static_world" and result.replans >= 1 and 0 < result.steps <= cfg.max_steps
+    for observed_at, clip in trace.replans:
+        assert clip.rgb.shape[0] == cfg.num_frames
+        # every target frame is the observation at the replan, bit for bit
+        assert all(np.array_equal(frame, trace.observed[observed_at].rgb) for frame in clip.rgb)
+        assert np.array_equal(clip.depth_m[-1], trace.observed[observed_at].depth_m)
+        targets = trace.targets[observed_at + 1:observed_at + 1 + cfg.replan_every]
+        assert targets and all(np.array_equal(t, trace.observed[observed_at].rgb) for t in targets)
 
 
 def test_clip_starts_are_distinct_steps_inside_the_episode():

@@ -34,7 +34,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--episodes", type=int, default=d.episodes, help="held-out seeds per task and arm (default %(default)s)")
     parser.add_argument("--seed-start", type=int, default=d.seed_start,
                         help="first held-out seed (default %(default)s; never a training seed)")
-    parser.add_argument("--arms", default=",".join(d.arms), help=f"comma-separated arms from {', '.join(ARMS)} (default: all)")
+    parser.add_argument("--arms", default=",".join(d.arms),
+                        help=f"comma-separated arms from {', '.join(ARMS)} (default: %(default)s; static_world feeds "
+                             f"the IDM the current frame repeated, the control for what the predicted frames add)")
     parser.add_argument("--idm", help="inverse dynamics model folder (train-idm RUN/final)")
     parser.add_argument("--bc", help="behaviour-cloning model folder (train-idm --no-future RUN/final)")
     parser.add_argument("--checkpoint", default=str(SHIPPED_CHECKPOINT),

@@ -3,8 +3,9 @@
 One episode in ManiSkill on the CPU:
 
 1. observe: render the camera (RGB-D-N) at the current state;
-2. predict: a 16-frame clip from the current frame and the instruction (``WorldModelFuture``), or
-   the true future of the motion planner's episode of the same seed (``OracleFuture``);
+2. predict: a 16-frame clip from the current frame and the instruction (``WorldModelFuture``), the
+   true future of the motion planner's episode of the same seed (``OracleFuture``), or the current
+   frame repeated (``StaticFuture``, the static world);
 3. reconstruct: back-project the current and the next clip frame into world point clouds;
 4. IDM: the action chunk between them and how many env steps it spans; execute it;
 5. observe again and go to 3 with the next clip frame; every ``replan_every`` clip frames go to 2.
@@ -172,8 +173,28 @@ class OracleFuture:
         return FutureClip(c.rgb[idx], c.depth_m[idx], c.K[idx], c.T_world_cam[idx])
 
 
+class StaticFuture:
+    """The static world: the current observation repeated as every frame of the clip, i.e. a world
+    model that predicts no motion. The IDM fed it acts on the observation and the instruction alone,
+    so its arm measures how much of the world-model arm's success the predicted frames bring."""
+
+    name = "static_world"
+
+    def __init__(self, config: LoopConfig):
+        self.config = config
+
+    def clip(self, frame, env_id: str, seed: int, instruction: str, step: int) -> FutureClip:
+        n = self.config.num_frames
+
+        def repeat(a):
+            return np.repeat(np.asarray(a)[None], n, axis=0)
+
+        return FutureClip(repeat(frame.rgb), repeat(frame.depth_m), repeat(frame.K), repeat(frame.T_world_cam))
+
+
 class PolicyRunner:
-    """Runs episodes of one arm ("oracle_future", "world_model" or "behavior_cloning") in one env."""
+    """Runs episodes of one arm ("oracle_future", "world_model", "static_world" or "behavior_cloning") in
+    one env."""
 
     def __init__(self, simulator, model: InverseDynamics, text_encoder, config: LoopConfig):
         self.sim = simulator

@@ -4,7 +4,9 @@ Arms, run the same way on the same seeds:
   motion_planner    ManiSkill's motion planner (the reference, and the source of the oracle future);
   oracle_future     the IDM fed the true future frames (the planner's episode of the same seed);
   world_model       the IDM fed the world model's predicted clips (the number that matters);
-  behavior_cloning  the same network without a future (observation + instruction -> action).
+  behavior_cloning  the same network without a future (observation + instruction -> action);
+  static_world      (on request) the IDM fed the current frame repeated: what the same IDM does when the
+                    future holds no motion, the control for what the world model's frames add.
 
 OUT/report.json + OUT/report.md (per task and mean), OUT/rollout_config.json, OUT/videos/<arm>/<env>/seed_*.mp4
 (left: what the robot saw after each chunk; right: the frame it was steering toward), and for the
@@ -29,7 +31,8 @@ from tesseract4d.errors import UserError
 from tesseract4d.intervals import wilson_interval
 from tesseract4d.policy.loop import EpisodeResult, LoopConfig, Trace, observation_episode
 
-ARMS = ("motion_planner", "oracle_future", "world_model", "behavior_cloning")
+DEFAULT_ARMS = ("motion_planner", "oracle_future", "world_model", "behavior_cloning")
+ARMS = DEFAULT_ARMS + ("static_world",)
 VIDEO_SCALE = 4
 
 
@@ -38,7 +41,7 @@ class RolloutConfig:
     tasks: list[str] = field(default_factory=lambda: ["PushCube-v1", "PullCube-v1", "PickCube-v1", "StackCube-v1"])
     seed_start: int = 100000
     episodes: int = 5  # per task and arm
-    arms: list[str] = field(default_factory=lambda: list(ARMS))
+    arms: list[str] = field(default_factory=lambda: list(DEFAULT_ARMS))
     idm: str | None = None
     bc: str | None = None
     checkpoint: str | None = None
@@ -173,7 +176,7 @@ def run_rollouts(cfg: RolloutConfig, progress: bool = True) -> dict:
     from datagen.tasks import get_task
     from tesseract4d.model.text_encoder import TextEncoder
     from tesseract4d.policy.idm import load_idm
-    from tesseract4d.policy.loop import OracleFuture, PolicyRunner, WorldModelFuture
+    from tesseract4d.policy.loop import OracleFuture, PolicyRunner, StaticFuture, WorldModelFuture
 
     if not cfg.out:
         raise UserError("pass --out DIR for the report, videos and viewer folders")
@@ -185,9 +188,10 @@ def run_rollouts(cfg: RolloutConfig, progress: bool = True) -> dict:
     lc = cfg.loop
     seeds = list(range(cfg.seed_start, cfg.seed_start + cfg.episodes))
     idm = bc = pipeline = None
-    if {"oracle_future", "world_model"} & set(cfg.arms):
+    if {"oracle_future", "world_model", "static_world"} & set(cfg.arms):
         if not cfg.idm:
-            raise UserError("the oracle_future and world_model arms need --idm (a folder from `tesseract4d train-idm`)")
+            raise UserError("the oracle_future, world_model and static_world arms need --idm (a folder from "
+                            "`tesseract4d train-idm`)")
         idm = load_idm(cfg.idm)
         if not idm.config.use_future:
             raise UserError(f"--idm {cfg.idm} is a behaviour-cloning model (no future input); pass it as --bc")
@@ -261,6 +265,8 @@ def run_rollouts(cfg: RolloutConfig, progress: bool = True) -> dict:
                         r = runners["idm"].run(seed, OracleFuture(planner.episode, lc), trace)
                     elif arm == "world_model":
                         r = runners["idm"].run(seed, WorldModelFuture(pipeline, lc), trace)
+                    elif arm == "static_world":
+                        r = runners["idm"].run(seed, StaticFuture(lc), trace)
                     else:
                         r = runners["bc"].run(seed, None, trace)
                     results[arm].append(r)
