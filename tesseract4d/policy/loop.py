@@ -29,7 +29,7 @@ import torch
 
 from tesseract4d import dataset_format as df
 from tesseract4d.errors import UserError
-from tesseract4d.policy.idm import InverseDynamics, check_compatible, expand_chunk, sentence_embeddings
+from tesseract4d.policy.idm import InverseDynamics, check_compatible, clip_gap, expand_chunk, sentence_embeddings
 from tesseract4d.policy.points import frame_points
 from tesseract4d.resize import resize_factor, resize_rgbdn
 
@@ -162,7 +162,7 @@ class OracleFuture:
         self.config = config
         self.cam = planner_episode.cameras[config.camera]
         steps = len(planner_episode.actions)
-        self.gap = max(1, int(round(steps / (config.num_frames - 1))))
+        self.gap = clip_gap(steps)  # the spacing of the IDM's training pairs
         if not np.array_equal(planner_episode.frame_steps, np.arange(steps + 1)):
             raise UserError("the oracle future needs the planner episode rendered at every step (frames=0)")
 
