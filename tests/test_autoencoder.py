@@ -131,7 +131,10 @@ def test_trainer_resume_is_exact_and_gate_is_stored(tmp_path):
     second.fidelity_fn = lambda m: fidelity_metrics(m, heldout)
     gate = second.train()
     for a, b in zip(full.model.state_dict().values(), second.model.state_dict().values()):
-        assert torch.equal(a, b)
+        if a.is_cuda:  # cuDNN's convolution gradients are not bit-reproducible: equal up to rounding
+            assert (a - b).abs().max() < 1e-4
+        else:
+            assert torch.equal(a, b)
     saved = json.loads((tmp_path / "split" / "ae_train_config.json").read_text())
     assert saved["max_steps"] == 4 and saved["resume"] is True  # the config of the run as it continued
     stored = json.loads((tmp_path / "split" / "autoencoder" / "fidelity.json").read_text())
@@ -180,7 +183,7 @@ def test_fine_tune_starts_from_an_exported_autoencoder_on_several_datasets(tmp_p
     assert len(ft.frames) == (3 * 8 + 8) // 2
     exported = load_autoencoder(tmp_path / "base" / "autoencoder")
     for k, v in exported.state_dict().items():
-        assert torch.equal(ft.model.state_dict()[k], v), k
+        assert torch.equal(ft.model.state_dict()[k].cpu(), v), k
     ft.train()
     saved = json.loads((tmp_path / "ft" / "ae_train_config.json").read_text())
     assert saved["data"] == [str(data), str(other)] and saved["init"].endswith("autoencoder")

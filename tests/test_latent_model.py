@@ -96,7 +96,7 @@ def test_micro_latent_model_overfits_one_clip(tmp_path):
     losses = [trainer.train_step()["loss"] for _ in range(300)]
     assert sum(losses[-10:]) / 10 < 0.2 * losses[0]
     latents, text = trainer.data.clip(0)  # (T, C, h, w), encoded from the dataset's pixels
-    target = trainer.codec.decode(latents[None])  # (1, T, 7, H, W): what the autoencoder can show
+    target = trainer.codec.decode(latents[None]).cpu()  # (1, T, 7, H, W): what the autoencoder can show
     ep = df.read_episode(df.list_episode_files(data)[0])
     cam = ep.cameras["close"]
     first = trainer.model_space.encode(cam.rgb[:1], cam.depth_m[:1], cam.normal_cam[:1])  # (1, 7, H, W) pixels
@@ -288,7 +288,7 @@ def test_init_fine_tunes_a_checkpoint_in_its_own_latent_space(tmp_path):
     trainer = Trainer(_config(data, tmp_path / "more", None, init=ckpt, max_steps=2))
     assert trainer.cfg.autoencoder == ckpt / "autoencoder"  # the checkpoint's own, hash-checked
     for name, value in trainer.ema.model.state_dict().items():
-        assert torch.equal(value, start[name].float()), name
+        assert torch.equal(value.cpu(), start[name].float()), name
     assert trainer.step == 0 and trainer.optimizer.state_dict()["state"] == {}
     final = trainer.train()
     training = json.loads((final / "tesseract4d_config.json").read_text())["training"]
@@ -416,7 +416,7 @@ def test_a_lighter_decoder_starts_from_the_init_and_swaps_into_the_checkpoint(tm
     trainer = AutoencoderTrainer(AutoencoderTrainConfig(out=tmp_path / "light", decoder_layers_per_block=0, **cfg))
     light, full = trainer.model.state_dict(), init.state_dict()
     assert all(len(block.resnets) == 1 for block in trainer.model.vae.decoder.up_blocks)
-    assert all(torch.equal(v, full[k]) for k, v in light.items())  # every kept weight is the init's
+    assert all(torch.equal(v.cpu(), full[k]) for k, v in light.items())  # every kept weight is the init's
     dropped = set(full) - set(light)
     assert dropped and all(".up_blocks." in k and ".resnets.1." in k for k in dropped)
     trainer.train()

@@ -151,10 +151,11 @@ class RGBDNAutoencoder(torch.nn.Module):
 
     def _set_stats(self, mean: list[float] | None, std: list[float] | None) -> None:
         c = self.config.latent_channels
+        device = next(self.vae.parameters()).device  # where the model already is (e.g. a GPU)
         m = torch.tensor(mean, dtype=torch.float32) if mean is not None else torch.zeros(c)
         s = torch.tensor(std, dtype=torch.float32) if std is not None else torch.ones(c)
-        self.register_buffer("latent_mean", m.view(1, c, 1, 1), persistent=False)
-        self.register_buffer("latent_std", s.view(1, c, 1, 1), persistent=False)
+        self.register_buffer("latent_mean", m.view(1, c, 1, 1).to(device), persistent=False)
+        self.register_buffer("latent_std", s.view(1, c, 1, 1).to(device), persistent=False)
 
     def set_latent_stats(self, mean: torch.Tensor, std: torch.Tensor) -> None:
         """Record per-channel latent statistics (into the config too, so they are saved)."""
@@ -167,11 +168,16 @@ class RGBDNAutoencoder(torch.nn.Module):
             raise ValueError(f"expected frames (n, {NUM_CHANNELS}, {self.config.height}, {self.config.width}), "
                              f"got {tuple(x.shape)}")
 
+    @property
+    def device(self) -> torch.device:
+        return self.latent_mean.device
+
     # ------------------------------------------------------------------ training-level API
     def posterior(self, x: torch.Tensor):
-        """Frames (n, 7, H, W) model space -> the diagonal Gaussian posterior over raw latents."""
+        """Frames (n, 7, H, W) model space (on any device) -> the diagonal Gaussian posterior over
+        raw latents, on the model's device."""
         self._check(x)
-        h = F.pixel_unshuffle(x, self.config.stem)  # (n, 7 * s², H / s, W / s)
+        h = F.pixel_unshuffle(x.to(self.device), self.config.stem)  # (n, 7 * s², H / s, W / s)
         return self.vae.encode(h).latent_dist
 
     def decode_raw(self, z_raw: torch.Tensor) -> torch.Tensor:
@@ -189,10 +195,11 @@ class RGBDNAutoencoder(torch.nn.Module):
         return (z - self.latent_mean) / self.latent_std
 
     def decode(self, z: torch.Tensor) -> torch.Tensor:
-        """Normalised latents (n, C, h, w) -> fp32 frames (n, 7, H, W) in [-1, 1], normals unit length.
+        """Normalised latents (n, C, h, w) on any device -> fp32 frames (n, 7, H, W) in [-1, 1] on the
+        model's device, normals unit length.
 
         Inside a bf16 autocast region the decoder runs in bf16 except its last convolution."""
-        x = self.decode_raw(z * self.latent_std + self.latent_mean).float().clamp(-1.0, 1.0)
+        x = self.decode_raw(z.to(self.device) * self.latent_std + self.latent_mean).float().clamp(-1.0, 1.0)
         return renormalize_normals(x)
 
     def encode_clips(self, x: torch.Tensor, chunk: int = 16) -> torch.Tensor:

@@ -275,7 +275,10 @@ class AutoencoderTrainer:
         self.fidelity_fn = fidelity_fn
         self.format_fn = format_fn or (lambda d: json.dumps(d))
         self.out = Path(cfg.out)
-        chosen = resolve_precision(cfg.precision, "cpu")
+        # The GPU when torch sees one, as the diffusion trainer (accelerate) does; CUDA_VISIBLE_DEVICES=
+        # keeps a run on the CPU.
+        self.device = torch.device("cuda" if torch.cuda.is_available() else "cpu")
+        chosen = resolve_precision(cfg.precision, self.device.type)
         announce(chosen)
         self.precision = chosen.name
         self._check_run_folder()
@@ -287,6 +290,7 @@ class AutoencoderTrainer:
         self.model = RGBDNAutoencoder(ae_cfg)
         if cfg.init is not None and (cfg.decoder_only or not cfg.resume):
             self._load_init(cfg.init)  # on --resume of a decoder-only run too: it keeps the init's latent statistics
+        self.model.to(self.device)
         for module in self.frozen_modules():
             module.requires_grad_(False)
         self.ema = EMA(self.model, cfg.ema_decay)
@@ -410,13 +414,14 @@ class AutoencoderTrainer:
         cfg = self.cfg
         g = torch.Generator().manual_seed(cfg.seed * 1_000_003 + self.step)
         x, mask = self.frames.batch(cfg.batch_size, g)
+        x, mask = x.to(self.device), mask.to(self.device)
         lr = lr_at(self.step, cfg)
         for group in self.optimizer.param_groups:
             group["lr"] = lr
         self.model.train()
         for module in self.frozen_modules():
             module.eval()
-        with torch.autocast("cpu", dtype=torch.bfloat16, enabled=self.precision == "bf16"):
+        with torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=self.precision == "bf16"):
             with torch.set_grad_enabled(not cfg.decoder_only):
                 post = self.model.posterior(x)
             z = post.sample(generator=g)
@@ -445,7 +450,7 @@ class AutoencoderTrainer:
         # Written on a resume too, so the folder says how the run continued (e.g. a longer --max-steps).
         df.atomic_write_text(self.out / CONFIG_FILE, json.dumps(cfg.to_dict(), indent=2))
         print(f"autoencoder {cfg.preset}: {sum(p.numel() for p in self.model.parameters()) / 1e6:.2f} M params, "
-              f"{len(self.frames)} training frames, precision {self.precision}, "
+              f"{len(self.frames)} training frames, {self.device.type}, precision {self.precision}, "
               f"{self.model.config.spatial_compression}x -> latent {self.model.config.latent_shape}")
         writer = SummaryWriter(str(self.out / "logs"))
         previous = {s: signal.getsignal(s) for s in (signal.SIGTERM, signal.SIGINT)}
