@@ -251,6 +251,30 @@ def test_latent_cache_reused_when_valid_rebuilt_when_autoencoder_changes(tmp_pat
     assert tuple(batch.shape) == (3, 4, 4, 4, 4) and len(texts) == 3 and tuple(objects.shape) == (3, 4, 4, 4)
 
 
+def test_latent_cache_travels_without_its_episodes(tmp_path):
+    # A dataset folder copied with only info.json and its cache (e.g. to a GPU machine) trains from
+    # the cache as it is, for the autoencoder that built it, and refuses another with the fix named.
+    import shutil
+
+    from tesseract4d.model.latent_cache import ensure_latent_cache
+
+    data = write_segmented_dataset(tmp_path / "data", episodes=2)
+    torch.manual_seed(0)
+    save_autoencoder(RGBDNAutoencoder(get_autoencoder_preset("ae-test")), tmp_path / "ae")
+    cache, _ = ensure_latent_cache(data, tmp_path / "ae")
+    copy = tmp_path / "copy"
+    copy.mkdir()
+    shutil.copy(data / "info.json", copy / "info.json")
+    shutil.copytree(cache.folder, copy / cache.folder.relative_to(data))
+    moved, built = ensure_latent_cache(copy, tmp_path / "ae")
+    assert not built and [e.instruction for e in moved.episodes] == [e.instruction for e in cache.episodes]
+    assert all(torch.equal(a.latents, b.latents) for a, b in zip(moved.episodes, cache.episodes))
+    torch.manual_seed(1)
+    save_autoencoder(RGBDNAutoencoder(get_autoencoder_preset("ae-test")), tmp_path / "other")
+    with pytest.raises(UserError, match="holds no episodes, only a latent cache"):
+        ensure_latent_cache(copy, tmp_path / "other")
+
+
 def test_latent_cache_never_writes_into_a_folder_that_is_not_a_cache(tmp_path):
     from tesseract4d.model.latent_cache import ensure_latent_cache
 

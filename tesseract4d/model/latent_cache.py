@@ -9,7 +9,9 @@ A cache folder (default ``DATASET/latent_cache/<camera>/``) holds::
 
 The cache is valid only for the autoencoder whose ``autoencoder_hash`` it records and the dataset
 files it was built from; ``ensure_latent_cache`` rebuilds it when either changed, writing into a
-temporary sibling that is renamed into place (never half-written). ``open_latent_cache`` only
+temporary sibling that is renamed into place (never half-written). A dataset folder copied with
+only its ``info.json`` and its cache (no episodes: training on another machine) uses the cache as it
+is, for its own autoencoder only. ``open_latent_cache`` only
 reads and refuses a cache of another autoencoder with a message saying what to run.
 """
 
@@ -157,7 +159,16 @@ def ensure_latent_cache(dataset: str | os.PathLike, autoencoder_dir: str | os.Pa
     meta = _read_meta(folder)
     if folder.exists() and meta is None and any(folder.iterdir()):
         raise UserError(f"{folder} exists and is not a latent cache; choose another cache folder")
-    valid = (meta is not None and not rebuild and meta["autoencoder_hash"] == autoencoder_hash(autoencoder_dir)
+    want = autoencoder_hash(autoencoder_dir)
+    if meta is not None and not rebuild and not df.list_episode_files(dataset):
+        # A cache that travelled without its episodes (e.g. to a GPU machine): nothing to check it
+        # against or rebuild it from, so it is used as it is, if the autoencoder is its own.
+        if meta["autoencoder_hash"] != want or meta["camera"] != camera:
+            raise UserError(f"{dataset} holds no episodes, only a latent cache of autoencoder "
+                            f"{meta['autoencoder_hash']} (camera {meta['camera']}), not of {autoencoder_dir} ({want}, "
+                            f"camera {camera}); copy the episodes there too, or pass the autoencoder it was built with")
+        return open_latent_cache(folder), False
+    valid = (meta is not None and not rebuild and meta["autoencoder_hash"] == want
              and meta["camera"] == camera and meta["dataset_fingerprint"] == dataset_fingerprint(dataset))
     if valid:
         return open_latent_cache(folder), False
