@@ -17,31 +17,26 @@ synthetic 128² data (speed does not depend on them); sampling rows use the ship
 from __future__ import annotations
 
 import argparse
-import statistics
 import sys
 import tempfile
-import time
 from pathlib import Path
 
-from measure import print_table
+from measure import median_seconds, print_table
 
 ROOT = Path(__file__).resolve().parent.parent
 CHECKPOINTS = ROOT / "tesseract4d" / "checkpoints"
 
 
 def cuda_seconds(fn, repeats: int) -> float:
-    """Median wall time of ``repeats`` calls of ``fn`` after one untimed call, the GPU idle at each clock read."""
+    """``measure.median_seconds`` of ``fn`` after one untimed call, the GPU synchronised after each
+    call, so every clock read finds it idle."""
     import torch
 
-    fn()
-    times = []
-    for _ in range(repeats):
-        torch.cuda.synchronize()
-        t0 = time.perf_counter()
+    def synced():
         fn()
         torch.cuda.synchronize()
-        times.append(time.perf_counter() - t0)
-    return statistics.median(times)
+
+    return median_seconds(synced, repeats, warmup=True)
 
 
 def peak_mb(fn) -> float:
@@ -89,9 +84,9 @@ def first_frames(data: Path, count: int):
         cam = next(iter(ep.cameras.values()))
         frames.append(ModelSpace().encode(cam.rgb[:1], cam.depth_m[:1], cam.normal_cam[:1])[0])
         texts.append(ep.instruction)
-    while len(frames) < count:  # repeat the episodes when there are fewer than asked
-        frames.append(frames[len(frames) % len(texts)])
-        texts.append(texts[len(texts) % len(texts)])
+    n = len(frames)  # repeat the episodes when there are fewer than asked
+    frames += [frames[i % n] for i in range(n, count)]
+    texts += [texts[i % n] for i in range(n, count)]
     return torch.stack(frames), texts
 
 
