@@ -93,6 +93,27 @@ def test_bf16_decode_keeps_the_output_layer_in_fp32_and_stays_close_to_fp32():
     assert float((low[:, s["rgb"]] - ref[:, s["rgb"]]).abs().mean()) < 0.01
 
 
+def test_decoder_goes_channels_last_after_the_latent_resolution_with_the_same_output():
+    """The decoder runs channels-first at the latent resolution and channels-last from its first
+    upsampling (a speed choice): the memory layout changes, the decoded frames do not."""
+    model = RGBDNAutoencoder(get_autoencoder_preset("ae-test")).eval()
+    plain = RGBDNAutoencoder(get_autoencoder_preset("ae-test")).eval()
+    plain.load_state_dict(model.state_dict())
+    plain.vae.decoder.up_blocks[0].upsamplers[0]._forward_pre_hooks.clear()  # the layout the input comes in
+
+    layouts = {}
+    decoder = model.vae.decoder
+    decoder.mid_block.register_forward_hook(lambda m, a, out: layouts.setdefault("latent resolution", out))
+    decoder.up_blocks[0].register_forward_hook(lambda m, a, out: layouts.setdefault("upsampled", out))
+    torch.manual_seed(0)
+    z = torch.randn(3, *model.config.latent_shape)
+    with torch.no_grad():
+        out, ref = model.decode(z), plain.decode(z)
+    assert layouts["latent resolution"].is_contiguous()
+    assert layouts["upsampled"].is_contiguous(memory_format=torch.channels_last)
+    assert torch.allclose(out, ref, atol=1e-5)
+
+
 def test_save_load_same_outputs_and_hash(tmp_path):
     torch.manual_seed(1)
     model = RGBDNAutoencoder(get_autoencoder_preset("ae-test")).eval()
