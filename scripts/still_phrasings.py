@@ -125,7 +125,7 @@ def main(argv: list[str] | None = None) -> int:
     print(f"\n{len(scene_list)} scenes x {len(args.sample_seed)} noise seeds; a clip keeps still at motion <= "
           f"{STILL_SHARE:.0%} of its scene's true active futures' (limits {min(s['limit'] for s in scene_list):.2f}-"
           f"{max(s['limit'] for s in scene_list):.2f})\n")
-    print("| phrasing | split | " + " | ".join(f"{Path(c).name}: still / median motion" for c in report) + " |")
+    print("| phrasing | split | " + " | ".join(f"{c}: still / median motion" for c in report) + " |")
     print("|---|---|" + "---|" * len(report))
     for phrase, split in phrasings:
         cells = [f"{r[phrase]['still']} / {r[phrase]['clips']}, {statistics.median(r[phrase]['motion']):.2f}"
