@@ -6,8 +6,8 @@ training paraphrases and the held-out ones, or --phrase ...), once per noise see
 ``evaluate --heldout`` gives that scene. A clip keeps still when its motion (mean |RGB change| from
 its first predicted frame, as ``evaluate``'s instruction contrast measures it) is at most 10 % of
 the mean motion of the scene's true active futures (the group's episodes whose skill moves an
-object; contrast's "active instructions"). ``evaluate --heldout`` judges "keep still" only under the one phrasing each group was
-generated with; this asks every phrasing in every scene.
+object; contrast's "active instructions"). ``evaluate --heldout`` judges "keep still" only under
+the one phrasing each group was generated with; this asks every phrasing in every scene.
 
   .venv/bin/python scripts/still_phrasings.py --heldout data/heldout_groups128 \\
       --checkpoint tesseract4d/checkpoints/v2 tesseract4d/checkpoints/v2-2step --sample-seed 0 1
@@ -23,8 +23,6 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-STILL_SHARE = 0.1  # as evaluate's instruction contrast
-
 
 def keep_still_phrasings() -> list[tuple[str, str]]:
     """(phrase, split) for every keep-still paraphrase of the skill library."""
@@ -39,6 +37,7 @@ def scenes(heldout: Path, max_scenes: int | None) -> list[dict]:
 
     from tesseract4d import dataset_format as df
     from tesseract4d.errors import UserError
+    from tesseract4d.evaluation.believability import STILL_SHARE
     from tesseract4d.evaluation.heldout_believability import GRIPPER_ONLY_SKILLS, clip_motion
 
     groups: dict[tuple[str, int], list[Path]] = {}
@@ -107,6 +106,7 @@ def main(argv: list[str] | None = None) -> int:
 
     from tesseract4d import runtime
     from tesseract4d.errors import UserError
+    from tesseract4d.evaluation.believability import STILL_SHARE
     from tesseract4d.model.checkpoint import SHIPPED_CHECKPOINT
 
     runtime.configure()
@@ -133,7 +133,9 @@ def main(argv: list[str] | None = None) -> int:
         print(f"| {phrase} | {split} | " + " | ".join(cells) + " |")
     if args.json is not None:
         args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps(report, indent=1))
+        part = args.json.with_name(args.json.name + ".part")  # never a half-written report
+        part.write_text(json.dumps(report, indent=1))
+        part.replace(args.json)
     return 0
 
 
