@@ -3,27 +3,16 @@ into dataset folders the latent model trains from."""
 
 from __future__ import annotations
 
-import importlib.util
-from pathlib import Path
-
 import torch
+from project_scripts import load_script
 from synthetic_scene import write_segmented_dataset
 
 from tesseract4d.model.autoencoder import RGBDNAutoencoder, get_autoencoder_preset, save_autoencoder
 from tesseract4d.model.latent_cache import ensure_latent_cache
 
-SCRIPT = Path(__file__).resolve().parent.parent / "scripts" / "latent_cache_8bit.py"
-
-
-def _script():
-    spec = importlib.util.spec_from_file_location("latent_cache_8bit", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
 
 def test_pack_unpack_round_trip_trains_from_the_unpacked_cache(tmp_path):
-    tool = _script()
+    tool = load_script("latent_cache_8bit")
     data = write_segmented_dataset(tmp_path / "data", episodes=3, frames=8)
     torch.manual_seed(0)
     save_autoencoder(RGBDNAutoencoder(get_autoencoder_preset("ae-test")), tmp_path / "ae")

@@ -2,28 +2,18 @@
 
 from __future__ import annotations
 
-import importlib.util
 import json
-from pathlib import Path
 
 import numpy as np
+from project_scripts import load_script
 from synthetic_scene import write_grouped_dataset
-
-SCRIPT = Path(__file__).resolve().parent.parent / "scripts" / "still_phrasings.py"
-
-
-def _script():
-    spec = importlib.util.spec_from_file_location("still_phrasings", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
 
 
 def test_every_phrasing_in_every_scene_against_the_scene_s_true_motion(micro_checkpoint, tmp_path, capsys):
     from tesseract4d import dataset_format as df
     from tesseract4d.evaluation.heldout_believability import clip_motion
 
-    tool = _script()
+    tool = load_script("still_phrasings")
     data = write_grouped_dataset(tmp_path / "groups", scenes=2)
     out = tmp_path / "probe.json"
     assert tool.main(["--heldout", str(data), "--checkpoint", str(micro_checkpoint), "--sample-seed", "0", "1",
@@ -47,7 +37,7 @@ def test_every_phrasing_in_every_scene_against_the_scene_s_true_motion(micro_che
 
 
 def test_default_phrasings_are_the_skill_library_s_and_bad_input_is_one_line(tmp_path, capsys):
-    tool = _script()
+    tool = load_script("still_phrasings")
     phrasings = tool.keep_still_phrasings()
     assert ("don't move", "heldout") in phrasings and ("stay still", "train") in phrasings
 
