@@ -24,23 +24,26 @@ from pathlib import Path
 
 import numpy as np
 
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+
 SCALE = 8.0 / 127
-CACHE = Path("latent_cache")
 
 
 def pack(datasets: list[Path], out: Path, camera: str = "close", chunk_mb: float = 26.4) -> list[Path]:
     from safetensors.numpy import load_file
 
+    from tesseract4d.model.latent_cache import CACHE_FILE, LATENTS_FILE, default_cache_dir
+
     out.mkdir(parents=True, exist_ok=True)
     tag = "_".join(d.name for d in datasets)
     header, blobs, offset = {"scale": SCALE, "datasets": []}, [], 0
     for d in datasets:
-        cache = d / CACHE / camera
-        if not (cache / "cache.json").is_file():
+        cache = default_cache_dir(d, camera)
+        if not (cache / CACHE_FILE).is_file():
             raise SystemExit(f"{d} has no latent cache for camera {camera!r}; build it with "
                              f"`tesseract4d encode-latents --data {d} --autoencoder AE`")
-        meta = json.loads((cache / "cache.json").read_text())
-        tensors = load_file(str(cache / "latents.safetensors"))
+        meta = json.loads((cache / CACHE_FILE).read_text())
+        tensors = load_file(str(cache / LATENTS_FILE))
         n = len(meta["episodes"])
         lat = [tensors[f"{i}.latents"] for i in range(n)]  # (T, C, h, w) float16
         obj = [tensors[f"{i}.objects"] for i in range(n)]  # (T, h, w) float16
@@ -60,17 +63,20 @@ def pack(datasets: list[Path], out: Path, camera: str = "close", chunk_mb: float
         offset += len(blob)
         print(f"{d}: {n} episodes, {len(blob) / 1e6:.1f} MB packed", flush=True)
     stream, chunk = b"".join(blobs), int(chunk_mb * 1e6)
-    written = [out / f"header_{tag}.json"]
-    written[0].write_text(json.dumps(header))
+    blob_files = []
     for k in range(0, len(stream), chunk):
-        written.append(out / f"blob_{tag}.{k // chunk:02d}")
-        written[-1].write_bytes(stream[k:k + chunk])
-    return written
+        blob_files.append(out / f"blob_{tag}.{k // chunk:02d}")
+        blob_files[-1].write_bytes(stream[k:k + chunk])
+    header_file = out / f"header_{tag}.json"
+    header_file.write_text(json.dumps(header))  # last: unpack finds a header only beside all its chunks
+    return [header_file, *blob_files]
 
 
 def unpack(src: Path, out: Path, camera: str = "close") -> list[Path]:
     import torch
     from safetensors.torch import save_file
+
+    from tesseract4d.model.latent_cache import CACHE_FILE, LATENTS_FILE, default_cache_dir
 
     folders = []
     for hp in sorted(src.glob("header_*.json")):
@@ -92,13 +98,13 @@ def unpack(src: Path, out: Path, camera: str = "close") -> list[Path]:
                 pos += n
                 tensors[f"{i}.objects"] = torch.from_numpy((o / 64).astype(np.float16))
             folder = out / d["name"]
-            cache = folder / CACHE / camera
+            cache = default_cache_dir(folder, camera)
             if folder.exists():
                 raise SystemExit(f"{folder} exists; unpack into an empty --out")
             cache.mkdir(parents=True)
             (folder / "info.json").write_text(json.dumps(d["info"]))
-            save_file(tensors, str(cache / "latents.safetensors"))
-            (cache / "cache.json").write_text(json.dumps(d["cache"]))  # last: the cache is complete
+            save_file(tensors, str(cache / LATENTS_FILE))
+            (cache / CACHE_FILE).write_text(json.dumps(d["cache"]))  # last: the cache is complete
             folders.append(folder)
             print(f"{folder}: {len(d['lat_shapes'])} episodes", flush=True)
     return folders
