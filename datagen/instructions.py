@@ -26,6 +26,8 @@ TEMPLATES: dict[str, dict[str, list[str]]] = {
             "grasp the {color} cube and raise it {height} {direction}",
             "lift the {color} block {height} {direction}",
             "take the {color} cube and hold it {height} {direction}",
+            "pick the {color} cube up and hold it {height} {direction}",
+            "raise the {color} block {height} {direction} with the gripper",
         ],
         "heldout": [
             "grab the {color} box and carry it {height} {direction}",
@@ -37,6 +39,8 @@ TEMPLATES: dict[str, dict[str, list[str]]] = {
             "push the {color} cube {direction} onto the target",
             "slide the {color} cube {direction} to the red and white target",
             "push the {color} block {direction} until it reaches the goal",
+            "slide the {color} block {direction} onto the goal",
+            "move the {color} cube {direction} onto the target by pushing it",
         ],
         "heldout": [
             "nudge the {color} box {direction} onto the bullseye",
@@ -48,6 +52,8 @@ TEMPLATES: dict[str, dict[str, list[str]]] = {
             "pull the {color} cube {direction} onto the target",
             "drag the {color} cube {direction} to the red and white target",
             "pull the {color} block {direction} until it reaches the goal",
+            "drag the {color} block {direction} onto the goal",
+            "move the {color} cube {direction} onto the target by pulling it",
         ],
         "heldout": [
             "draw the {color} box {direction} onto the bullseye",
@@ -59,6 +65,8 @@ TEMPLATES: dict[str, dict[str, list[str]]] = {
             "stack the {color} cube on the {color2} cube",
             "put the {color} cube on top of the {color2} cube",
             "pick up the {color} block and place it on the {color2} block {direction}",
+            "stack the {color} block on top of the {color2} block",
+            "stack the {color} cube {direction} on the {color2} cube",
         ],
         "heldout": [
             "place the {color} box onto the {color2} box",
@@ -70,6 +78,8 @@ TEMPLATES: dict[str, dict[str, list[str]]] = {
             "stand the peg on the {side} upright",
             "lift the peg on the {side} so it stands upright",
             "turn the lying peg upright",
+            "put the peg on the {side} upright",
+            "raise the peg on the {side} until it is upright",
         ],
         "heldout": [
             "set the peg on its end",
@@ -81,6 +91,8 @@ TEMPLATES: dict[str, dict[str, list[str]]] = {
             "use the L-shaped tool to pull the {color} cube toward the robot",
             "grab the hook and drag the {color} cube closer",
             "pick up the tool and pull the {color} cube {direction}",
+            "use the hook to drag the {color} cube {direction}",
+            "pull the {color} cube {direction} with the L-shaped tool",
         ],
         "heldout": [
             "with the hook, bring the {color} block back within reach",
@@ -92,6 +104,8 @@ TEMPLATES: dict[str, dict[str, list[str]]] = {
             "plug the charger into the socket {direction}",
             "insert the charger into the receptacle {direction}",
             "pick up the charger and plug it in {direction}",
+            "plug the charger in {direction}",
+            "put the charger into the socket {direction}",
         ],
         "heldout": [
             "connect the charger to the wall socket {direction}",
@@ -103,6 +117,8 @@ TEMPLATES: dict[str, dict[str, list[str]]] = {
             "insert the peg into the hole of the box {direction}",
             "pick up the peg and push it sideways into the hole {direction}",
             "put the peg into the box's hole {direction}",
+            "push the peg into the hole of the box {direction}",
+            "insert the peg sideways into the box {direction}",
         ],
         "heldout": [
             "slide the stick into the opening of the box {direction}",

@@ -206,6 +206,29 @@ def test_time_shift_trains_and_is_recorded(tmp_path):
     assert load_pipeline(final).config["recipe"]["time_shift"] == 3.0
 
 
+def test_rephrase_trains_on_other_wordings_and_is_recorded(tmp_path, monkeypatch):
+    """``--rephrase``: the text encoder sees the paraphrases the trainer was given; the lever travels with
+    the checkpoint; a trainer asked to rephrase without paraphrases refuses."""
+    from tesseract4d.model.predict import load_pipeline
+    from tesseract4d.model.trainer import Trainer
+
+    data = write_segmented_dataset(tmp_path / "data", episodes=2)
+    words = {"push the square to the right": ["push the square to the right", "slide the square right"]}
+    cfg = _config(data, tmp_path / "run", _autoencoder(tmp_path / "ae"), batch_size=4, rephrase=1.0)
+    with pytest.raises(ValueError, match="paraphrases"):
+        Trainer(cfg)
+    trainer = Trainer(cfg, lambda text: words.get(text, [text]))
+    encoded = []
+    original = trainer.text_encoder.encode
+    monkeypatch.setattr(trainer.text_encoder, "encode", lambda texts: encoded.extend(texts) or original(texts))
+    for step in range(4):
+        trainer.compute_loss(step)
+    # Only the rightward episode has paraphrases: its two wordings and the leftward one, nothing else.
+    assert set(encoded) == {"push the square to the right", "slide the square right", "push the square to the left"}
+    final = trainer.train()
+    assert load_pipeline(final).config["recipe"]["rephrase"] == 1.0
+
+
 def test_group_batches_share_noise_and_time_per_scene_and_are_recorded(tmp_path, monkeypatch):
     """``--group-batches``: the trainer's batches are whole counterfactual groups with one noise and one
     diffusion time per group; the swap shows siblings' noisy samples; the recipe travels with the

@@ -52,6 +52,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--counterfactual-swap", type=float, default=d.counterfactual_swap, metavar="P",
                         help="train the student in batches of whole groups (needs --group-pairs pairs) and show a "
                              "pair at noise >= 0.3, with probability P, a sibling's noisy sample (default %(default)s)")
+    parser.add_argument("--rephrase", type=float, default=d.rephrase, metavar="P",
+                        help="probability of training a pair under another training wording of its instruction, the "
+                             "teacher's clip staying the target (as `train --rephrase`) (default %(default)s)")
     parser.add_argument("--max-steps", type=int, default=d.max_steps,
                         help="training steps; the cosine learning-rate decay ends here (default %(default)s)")
     parser.add_argument("--max-minutes", type=float, help="stop with a checkpoint after this many minutes of this invocation")
@@ -89,7 +92,9 @@ def run(args: argparse.Namespace) -> int:
         max_steps=args.max_steps, max_minutes=args.max_minutes, batch_size=args.batch_size, lr=args.lr,
         precision=args.precision, resume=args.resume, val_every=args.val_every, ckpt_every=args.ckpt_every,
         seed=args.seed, progress=not args.no_progress, group_batches=args.counterfactual_swap > 0,
-        counterfactual_swap=args.counterfactual_swap)
-    final = ReflowTrainer(cfg).train()
+        counterfactual_swap=args.counterfactual_swap, rephrase=args.rephrase)
+    from datagen.paraphrases import train_paraphrases
+
+    final = ReflowTrainer(cfg, train_paraphrases).train()
     print(f"student checkpoint: {final} ({args.student_steps} steps, one network pass each)")
     return 0

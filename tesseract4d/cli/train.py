@@ -60,6 +60,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--counterfactual-swap", type=float, default=d.counterfactual_swap,
                         help=f"with --group-batches: probability that a clip at noise >= {SWAP_MIN_T} is shown another "
                              f"future of its group as its noisy sample and must still predict its own (default %(default)s)")
+    parser.add_argument("--rephrase", type=float, default=d.rephrase, metavar="P",
+                        help="probability of training a clip under another training wording of its instruction (same "
+                             "object, direction and distance, from the datagen's train templates) (default %(default)s)")
     parser.add_argument("--text-dropout", type=float, help="share of steps without text, for guidance (default: the preset's)")
     parser.add_argument("--max-steps", type=int, default=d.max_steps,
                         help="training steps; the cosine learning-rate decay ends here (default %(default)s)")
@@ -112,8 +115,10 @@ def run(args: argparse.Namespace) -> int:
         condition_noise=args.condition_noise, moving_weight=args.moving_weight, object_weight=args.object_weight,
         prediction=args.prediction, text_dropout=args.text_dropout, init=args.init, time_shift=args.time_shift,
         group_batches=args.group_batches, difference_weight=args.difference_weight,
-        counterfactual_swap=args.counterfactual_swap,
+        counterfactual_swap=args.counterfactual_swap, rephrase=args.rephrase,
     )
-    final = Trainer(cfg).train()
+    from datagen.paraphrases import train_paraphrases
+
+    final = Trainer(cfg, train_paraphrases).train()
     print(f"inference checkpoint: {final}")
     return 0

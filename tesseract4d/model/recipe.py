@@ -27,6 +27,11 @@
   words where the noisy sample points elsewhere, as a sampler's intermediate samples do when they
   drift back towards the first frame (README, "Where the instruction is lost"). Below ``SWAP_MIN_T``
   the noisy sample pins the future, and the swap would ask for the impossible.
+- ``rephrase``: with this probability, a clip's instruction is replaced by another training wording
+  of the same meaning (same object, direction and distance; the paraphrases come from the datagen's
+  train templates, ``datagen.paraphrases``, handed to the trainer by the command line). It trains the
+  network to read what the words say rather than which of a few sentences it saw: a model trained
+  long on three wordings per skill kept still only under those three (README, "Keep still").
 - ``text_dropout`` (TrainConfig) and the guidance scales (``tesseract4d predict``) already exist.
 
 Also here: which data a preset trains on (pixels, or a latent cache of an autoencoder).
@@ -59,6 +64,8 @@ def check_recipe(cfg, preset: ModelPreset) -> None:
         raise UserError(f"--difference-weight must be a finite number > 0, got {cfg.difference_weight}")
     if not 0.0 <= cfg.counterfactual_swap <= 1.0:
         raise UserError(f"--counterfactual-swap is a probability in [0, 1], got {cfg.counterfactual_swap}")
+    if not 0.0 <= cfg.rephrase <= 1.0:
+        raise UserError(f"--rephrase is a probability in [0, 1], got {cfg.rephrase}")
     if not cfg.group_batches and (cfg.difference_weight != 1.0 or cfg.counterfactual_swap > 0):
         raise UserError("--difference-weight and --counterfactual-swap compare the futures of a counterfactual group: "
                         "add --group-batches")
@@ -176,6 +183,18 @@ def swap_sources(leaders: list[int], t: torch.Tensor, probability: float, genera
         if siblings and u[k] < probability and float(t[k]) >= SWAP_MIN_T:
             shown[k] = siblings[min(int(pick[k] * len(siblings)), len(siblings) - 1)]
     return shown
+
+
+def rephrase(texts: list[str], paraphrases, probability: float, generator: torch.Generator) -> list[str]:
+    """Each instruction, or (with ``probability``) one of ``paraphrases(instruction)`` drawn uniformly
+    (the list holds the instruction itself). Draws the same random numbers whatever the outcome."""
+    u = torch.rand(len(texts), generator=generator).tolist()
+    pick = torch.rand(len(texts), generator=generator).tolist()
+    out = []
+    for text, uk, pk in zip(texts, u, pick):
+        options = paraphrases(text) if uk < probability else [text]
+        out.append(options[min(int(pk * len(options)), len(options) - 1)])
+    return out
 
 
 def recipe_loss(out: torch.Tensor, cond: torch.Tensor, x0: torch.Tensor, noise: torch.Tensor,

@@ -254,7 +254,7 @@ class ReflowTrainer(Trainer):
     cfg: ReflowConfig
     command = "distill"
 
-    def __init__(self, config: ReflowConfig):
+    def __init__(self, config: ReflowConfig, paraphrases=None):
         from tesseract4d.model.checkpoint import read_inference_config
         from tesseract4d.outputs import check_not_input
 
@@ -270,7 +270,7 @@ class ReflowTrainer(Trainer):
         config = dataclasses.replace(config, text_dropout=0.0, image_dropout=0.0, condition_noise=0.0,
                                      prediction=recipe.get("prediction", "x0"), init=config.teacher,
                                      pretrained=config.pretrained or self.teacher_config.get("pretrained_dir"))
-        super().__init__(config)
+        super().__init__(config, paraphrases)
 
     @property
     def teacher_digest(self) -> str:
@@ -311,7 +311,7 @@ class ReflowTrainer(Trainer):
         else:
             first, noise, x0, texts = self.data.sample_batch(cfg.batch_size, g)
         first_enc = self.codec.encode(first[:, None].to(self.device), generator=g)  # (b, 1, c, h, w)
-        text = self.text_encoder.encode(texts)  # (b, L, d)
+        text = self.text_encoder.encode(self.rephrased(texts, g))  # (b, L, d)
         t = share_within_groups(torch.rand(x0.shape[0], generator=g), leaders)
         if leaders is not None and cfg.counterfactual_swap > 0:
             shown = swap_sources(leaders, t, cfg.counterfactual_swap, g)

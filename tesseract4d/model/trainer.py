@@ -31,6 +31,7 @@ import signal
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 import torch
@@ -99,6 +100,7 @@ class TrainConfig:
     group_batches: bool = False  # batches of whole counterfactual groups sharing one noise and one diffusion time
     difference_weight: float = 1.0  # with group_batches: loss weight of cells where a group's futures differ
     counterfactual_swap: float = 0.0  # with group_batches: probability of showing a clip a sibling's noisy sample
+    rephrase: float = 0.0  # probability of training a clip under another training wording of its instruction
 
     def resolved(self, preset: ModelPreset) -> "TrainConfig":
         out = dataclasses.replace(self)
@@ -150,7 +152,7 @@ class TrainConfig:
         """The recipe levers, saved in the inference config (sampling needs ``prediction``)."""
         return {k: getattr(self, k) for k in ("condition_noise", "moving_weight", "object_weight", "prediction",
                                               "text_dropout", "time_shift", "group_batches", "difference_weight",
-                                              "counterfactual_swap")}
+                                              "counterfactual_swap", "rephrase")}
 
 
 def lr_at(step: int, cfg: TrainConfig) -> float:
@@ -308,7 +310,10 @@ class Trainer:
 
     command = "train"  # the command that owns the run folder (tesseract4d.outputs)
 
-    def __init__(self, config: TrainConfig):
+    def __init__(self, config: TrainConfig, paraphrases: Callable[[str], list[str]] | None = None):
+        """paraphrases: instruction -> its training wordings (itself included), for ``config.rephrase``;
+        the command line passes ``datagen.paraphrases.train_paraphrases``."""
+        self.paraphrases = paraphrases
         self.preset = self._resolve_preset(config)
         self.cfg = self._check_init(config.resolved(self.preset))
         cfg = self.cfg
@@ -318,6 +323,8 @@ class Trainer:
         from tesseract4d.model.recipe import check_recipe
 
         check_recipe(cfg, self.preset)
+        if cfg.rephrase > 0 and paraphrases is None:
+            raise ValueError("rephrase > 0 needs the paraphrases function (datagen.paraphrases.train_paraphrases)")
         self.out = Path(cfg.out)
         existing = list_checkpoints(self.out)
         if existing and not cfg.resume:
@@ -475,7 +482,7 @@ class Trainer:
             first = self.codec.encode(clips[:, :1].to(self.device), generator=g)  # (b, 1, c, h, w)
         b = x0.shape[0]
         first = augment_condition(first, cfg.condition_noise, g)
-        text = self.text_encoder.encode(texts)  # (b, L, d)
+        text = self.text_encoder.encode(self.rephrased(texts, g))  # (b, L, d)
         keep_text = (torch.rand(b, generator=g) >= cfg.text_dropout).float()
         keep_image = (torch.rand(b, generator=g) >= cfg.image_dropout).float()
         text = (text * keep_text[:, None, None]).to(self.device)
@@ -485,6 +492,14 @@ class Trainer:
         if leaders is not None and cfg.counterfactual_swap > 0:
             shown = swap_sources(leaders, t, cfg.counterfactual_swap, g)
         return self.denoising_loss(x0, first, text, t, noise, objects, leaders=leaders, shown=shown)
+
+    def rephrased(self, texts: list[str], g: torch.Generator) -> list[str]:
+        """The batch's instructions after the ``rephrase`` lever (unchanged, drawing nothing, at 0)."""
+        if self.cfg.rephrase <= 0:
+            return texts
+        from tesseract4d.model.recipe import rephrase
+
+        return rephrase(texts, self.paraphrases, self.cfg.rephrase, g)
 
     def denoising_loss(self, x0: torch.Tensor, first: torch.Tensor, text: torch.Tensor, t: torch.Tensor,
                        noise: torch.Tensor, objects: torch.Tensor | None = None, *, leaders: list[int] | None = None,
