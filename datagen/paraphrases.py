@@ -47,11 +47,11 @@ def _fill(template: str, values: dict[str, str]) -> str:
 
 
 @functools.lru_cache(maxsize=None)
-def _patterns() -> list[tuple[str, tuple[str, ...], re.Pattern, dict[str, str]]]:
+def _patterns() -> list[tuple[tuple[str, ...], re.Pattern, dict[str, str]]]:
     """One pattern per train template and set of fields it may leave empty."""
-    out = []  # (kind, its train templates, pattern, the fields it leaves empty)
+    out = []  # (the family's train templates, pattern, the fields it leaves empty)
     families = {**instructions.TEMPLATES, **skill_language.TEMPLATES}
-    for kind, splits in families.items():
+    for splits in families.values():
         train = tuple(splits["train"])
         for template in train:
             fields = _fields(template)
@@ -62,7 +62,7 @@ def _patterns() -> list[tuple[str, tuple[str, ...], re.Pattern, dict[str, str]]]
                     for f in fields:
                         if f not in empty:
                             regex = regex.replace(re.escape(marks[f]), f"(?P<{f}>{FIELD_PATTERNS[f]})", 1)
-                    out.append((kind, train, re.compile(regex), dict.fromkeys(empty, "")))
+                    out.append((train, re.compile(regex), dict.fromkeys(empty, "")))
     return out
 
 
@@ -71,7 +71,7 @@ def _paraphrases(instruction: str) -> tuple[str, ...]:
     # The readings with the fewest empty fields win: "stack the red cube on the green cube" is a stack
     # without a direction, not one whose direction was left out.
     readings = []
-    for kind, train, pattern, empty in _patterns():
+    for train, pattern, empty in _patterns():
         m = pattern.fullmatch(instruction)
         if m is not None:
             readings.append((len(empty), train, {**empty, **m.groupdict()}))

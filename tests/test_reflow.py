@@ -199,7 +199,8 @@ def test_distill_with_counterfactual_swap(teacher, tmp_path, monkeypatch):
     monkeypatch.setattr(ReflowTrainer, "denoising_loss", spy)
     argv = ["distill", "--teacher", str(ckpt), "--data", str(groups), "--pairs", str(tmp_path / "p"), "--group-pairs",
             "--num-pairs", "8", "--teacher-steps", "2", "--out", str(tmp_path / "run"), "--batch-size", "4",
-            "--max-steps", "12", "--val-every", "0", "--ckpt-every", "0", "--no-progress", "--counterfactual-swap", "1"]
+            "--max-steps", "12", "--val-every", "0", "--ckpt-every", "0", "--no-progress", "--counterfactual-swap", "1",
+            "--rephrase", "1"]  # (no train template writes the synthetic instructions: they keep their words)
     assert main(argv) == 0
     assert len(seen) == 12
     swapped = 0
@@ -215,6 +216,7 @@ def test_distill_with_counterfactual_swap(teacher, tmp_path, monkeypatch):
     assert swapped > 0
     student = load_pipeline(tmp_path / "run" / "final")
     assert student.config["recipe"]["counterfactual_swap"] == 1.0 and student.config["recipe"]["group_batches"]
+    assert student.config["recipe"]["rephrase"] == 1.0
     assert student.config["distilled_from"]["pair_groups"] is True
     # Pairs drawn one by one cannot be swapped within a group.
     plain = tmp_path / "plain"

@@ -31,6 +31,7 @@ import json
 import os
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Callable
 
 import torch
 
@@ -254,7 +255,7 @@ class ReflowTrainer(Trainer):
     cfg: ReflowConfig
     command = "distill"
 
-    def __init__(self, config: ReflowConfig, paraphrases=None):
+    def __init__(self, config: ReflowConfig, paraphrases: Callable[[str], list[str]] | None = None):
         from tesseract4d.model.checkpoint import read_inference_config
         from tesseract4d.outputs import check_not_input
 
