@@ -31,7 +31,8 @@
   of the same meaning (same object, direction and distance; the paraphrases come from the datagen's
   train templates, ``datagen.paraphrases``, handed to the trainer by the command line). It trains the
   network to read what the words say rather than which of a few sentences it saw: a model trained
-  long on three wordings per skill kept still only under those three (README, "Keep still").
+  long on three wordings per skill kept still only under those three (README, "v2 trained with many
+  wordings").
 - ``text_dropout`` (TrainConfig) and the guidance scales (``tesseract4d predict``) already exist.
 
 Also here: which data a preset trains on (pixels, or a latent cache of an autoencoder).
