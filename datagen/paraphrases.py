@@ -20,20 +20,28 @@ import itertools
 import re
 from string import Formatter
 
-from datagen import instructions, skill_language
+import numpy as np
 
-# What each field's words can be: the finite vocabularies exactly, the names of things loosely.
-_DIRECTIONS = sorted({*(f"{a} and {b}" for a in ("forward", "back") for b in ("to the left", "to the right")),
-                      "forward", "back", "to the left", "to the right", "in place", "back toward the robot",
-                      "right where it is"}, key=len, reverse=True)
+from datagen import instructions, skill_language, skills
+
+# What each field's words can be: the datagen's own word functions over every case (so a word added
+# there is parsed here), the names of things loosely.
+_DIRECTIONS = ({instructions.direction_words(np.array(v, float)) for v in itertools.product((-1, 0, 1), repeat=2)}
+               | {"back toward the robot", "right where it is"})  # PullCubeTool's and _sentence_direction's
 _NAME = r"[a-z]+(?: [a-z]+)?"  # 'red', 'green cylinder'
+
+
+def _alternatives(words) -> str:
+    return "|".join(map(re.escape, sorted(set(words), key=len, reverse=True)))
+
+
 FIELD_PATTERNS: dict[str, str] = {
     "object": _NAME, "other": _NAME, "color": r"[a-z]+", "color2": r"[a-z]+",
-    "direction": "|".join(map(re.escape, _DIRECTIONS)),
+    "direction": _alternatives(_DIRECTIONS),
     "distance": r"\d+ cm",
-    "height": "slightly|high|up",
-    "side": "left|right|middle",
-    "place": "left|right",
+    "height": _alternatives(instructions.height_words(dz) for dz in (0.0, 0.1, 0.3)),
+    "side": _alternatives(instructions.side_words(np.array([0.0, y])) for y in (-1.0, 0.0, 1.0)),
+    "place": _alternatives(skills.PLACES),
 }
 
 
