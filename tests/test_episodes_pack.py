@@ -1,0 +1,68 @@
+"""scripts/episodes_pack.py: episodes packed small for another machine and written back there as dataset
+folders the project reads (the autoencoder trains from them)."""
+
+from __future__ import annotations
+
+import numpy as np
+from project_scripts import load_script
+from synthetic_scene import write_grouped_dataset, write_segmented_dataset
+
+from tesseract4d import dataset_format as df
+
+
+def test_pack_unpack_round_trip_keeps_every_field_within_its_step(tmp_path):
+    tool = load_script("episodes_pack")
+    squares = write_segmented_dataset(tmp_path / "squares", episodes=3, frames=8)
+    groups = write_grouped_dataset(tmp_path / "groups", scenes=2, frames=8)
+    # A far depth beyond the stored range and a negative normal component, as rendered scenes have.
+    path = df.list_episode_files(squares)[0]
+    ep = df.read_episode(path)
+    ep.cameras["base_camera" if "base_camera" in ep.cameras else next(iter(ep.cameras))].depth_m[0, 0, 0] = 9.0
+    df.write_episode(squares, ep)
+
+    parts = tool.pack([squares, groups], tmp_path / "packed", frame_stride=2, part_mb=0.004)  # several parts
+    assert len(parts) > 1 and all(p.with_suffix(".json").is_file() for p in parts)
+    folders = tool.unpack(tmp_path / "packed", tmp_path / "there", workers=2)
+    assert sorted(f.name for f in folders) == ["groups", "squares"]
+    for src in (squares, groups):
+        there = tmp_path / "there" / src.name
+        assert df.read_info(there) == df.read_info(src)
+        originals, copies = df.list_episode_files(src), df.list_episode_files(there)
+        assert [p.name for p in originals] == [p.name for p in copies]
+        for a_path, b_path in zip(originals, copies):
+            a, b = df.read_episode(a_path, frames=slice(None, None, 2)), df.read_episode(b_path)
+            for field in ("env_id", "seed", "instruction", "success", "control_mode", "env_kwargs", "fps", "source",
+                          "metadata", "variant", "intent"):
+                assert getattr(a, field) == getattr(b, field), field
+            assert np.array_equal(a.frame_steps, b.frame_steps) and np.array_equal(a.actions, b.actions)
+            assert np.array_equal(a.qpos, b.qpos)
+            assert a.object_poses.keys() == b.object_poses.keys()
+            assert all(np.array_equal(a.object_poses[k], b.object_poses[k]) for k in a.object_poses)
+            for name, ca in a.cameras.items():
+                cb = b.cameras[name]
+                assert cb.rgb.shape[0] == 4  # every second of 8 frames
+                assert np.array_equal(ca.rgb, cb.rgb) and np.array_equal(ca.segmentation, cb.segmentation)
+                assert ca.seg_id_to_name == cb.seg_id_to_name and all(isinstance(k, int) for k in cb.seg_id_to_name)
+                assert np.array_equal(ca.K, cb.K) and np.array_equal(ca.T_world_cam, cb.T_world_cam)
+                far = np.minimum(ca.depth_m, 65535 * tool.DEPTH_STEP_M)
+                assert np.abs(far - cb.depth_m).max() <= tool.DEPTH_STEP_M / 2 + 1e-6
+                assert np.array_equal(ca.depth_m == 0, cb.depth_m == 0)
+                assert np.abs(ca.normal_cam - cb.normal_cam).max() <= tool.NORMAL_STEP / 2 + 1e-3  # float16 on disk
+    assert df.read_episode(df.list_episode_files(tmp_path / "there" / "squares")[0]).cameras[
+        next(iter(ep.cameras))].depth_m[0, 0, 0] == np.float32(65535 * tool.DEPTH_STEP_M)
+
+
+def test_pack_spreads_a_subset_and_refuses_a_used_folder(tmp_path):
+    tool = load_script("episodes_pack")
+    data = write_segmented_dataset(tmp_path / "data", episodes=5, frames=4)
+    tool.pack([data], tmp_path / "packed", episodes=3)
+    (folder,) = tool.unpack(tmp_path / "packed", tmp_path / "there", workers=1)
+    names = [p.name for p in df.list_episode_files(folder)]
+    every = [p.name for p in df.list_episode_files(data)]
+    assert names == [every[0], every[2], every[4]]
+    try:
+        tool.pack([data], tmp_path / "packed")
+    except SystemExit as e:
+        assert "not empty" in str(e)
+    else:
+        raise AssertionError("packing into a used folder must be refused")
