@@ -272,6 +272,36 @@ def test_latent_cache_reused_when_valid_rebuilt_when_autoencoder_changes(tmp_pat
     assert tuple(batch.shape) == (3, 4, 4, 4, 4) and len(texts) == 3 and tuple(objects.shape) == (3, 4, 4, 4)
 
 
+def test_latent_cache_outlives_a_decoder_swap_but_not_an_encoder_change(tmp_path):
+    # A decoder-only fine-tune makes the same latents: its cache stays valid (here, there and travelling);
+    # one changed encoder weight makes it another autoencoder's cache.
+    from tesseract4d.model.autoencoder import latents_hash
+    from tesseract4d.model.latent_cache import ensure_latent_cache, open_latent_cache
+
+    data = write_segmented_dataset(tmp_path / "data", episodes=2)
+    torch.manual_seed(0)
+    ae = RGBDNAutoencoder(get_autoencoder_preset("ae-test")).eval()
+    state = {k: v.half().float() for k, v in ae.state_dict().items()}
+    save_autoencoder(ae, tmp_path / "ae", state_dict={k: v.half() for k, v in state.items()})  # shipped as float16
+    cache, built = ensure_latent_cache(data, tmp_path / "ae")
+    assert built and cache.meta["latents_hash"] == latents_hash(tmp_path / "ae")
+    decoder_key = next(k for k in state if k.startswith("vae.decoder."))
+    state[decoder_key] += 0.5
+    save_autoencoder(ae, tmp_path / "new_decoder", state_dict=state)  # a fine-tune's float32 export
+    assert autoencoder_hash(tmp_path / "new_decoder") != autoencoder_hash(tmp_path / "ae")
+    reused, built = ensure_latent_cache(data, tmp_path / "new_decoder")
+    assert not built and torch.equal(reused.episodes[0].latents, cache.episodes[0].latents)
+    open_latent_cache(cache.folder, tmp_path / "new_decoder")  # no error
+    encoder_key = next(k for k in state if k.startswith("vae.encoder."))
+    state[encoder_key] += 0.5
+    save_autoencoder(ae, tmp_path / "new_encoder", state_dict=state)
+    assert latents_hash(tmp_path / "new_encoder") != latents_hash(tmp_path / "ae")
+    with pytest.raises(UserError, match="encode-latents"):
+        open_latent_cache(cache.folder, tmp_path / "new_encoder")
+    _, built = ensure_latent_cache(data, tmp_path / "new_encoder")
+    assert built
+
+
 def test_latent_cache_travels_without_its_episodes(tmp_path):
     # A dataset folder copied with only info.json and its cache (e.g. to a GPU machine) trains from
     # the cache as it is, for the autoencoder that built it, and refuses another with the fix named.

@@ -35,6 +35,10 @@ from tesseract4d.model.model_space import NUM_CHANNELS, ModelSpace, renormalize_
 
 CONFIG_FILE = "config.json"
 WEIGHTS_FILE = "model.safetensors"
+# The weights that make the latents, and the config fields the latents do not depend on: a decoder-only
+# fine-tune (`train-autoencoder --decoder-only`) changes neither, so its latents are the init's, bit for bit.
+ENCODER_PREFIXES = ("vae.encoder.", "vae.quant_conv.")
+DECODER_FIELDS = ("name", "decoder_layers_per_block")
 FIDELITY_FILE = "fidelity.json"
 FORMAT = "tesseract4d-autoencoder"
 
@@ -275,4 +279,21 @@ def autoencoder_hash(folder: str | os.PathLike) -> str:
         with open(folder / name, "rb") as f:
             for block in iter(lambda: f.read(1 << 20), b""):
                 h.update(block)
+    return h.hexdigest()[:16]
+
+
+def latents_hash(folder: str | os.PathLike) -> str:
+    """SHA-256 (hex, 16 chars) of what a saved autoencoder's latents depend on: its config but for
+    ``DECODER_FIELDS`` (the latent statistics included) and its encoder weights as float32. Equal for an
+    autoencoder and a decoder-only fine-tune of it, so a latent cache outlives a decoder swap."""
+    from safetensors.torch import load_file
+
+    folder = Path(folder)
+    config = read_autoencoder_config(folder).to_dict()
+    h = hashlib.sha256(json.dumps({k: v for k, v in config.items() if k not in DECODER_FIELDS}, sort_keys=True).encode())
+    weights = load_file(str(folder / WEIGHTS_FILE))
+    for key in sorted(weights):
+        if key.startswith(ENCODER_PREFIXES):
+            h.update(key.encode())
+            h.update(weights[key].float().contiguous().numpy().tobytes())
     return h.hexdigest()[:16]

@@ -336,7 +336,7 @@ class AutoencoderTrainer:
 
     def frozen_modules(self) -> list[torch.nn.Module]:
         """What --decoder-only keeps fixed: everything that maps frames to latents."""
-        # latent_checkpoint.ENCODER_PREFIXES names the same modules' weights.
+        # autoencoder.ENCODER_PREFIXES names the same modules' weights.
         return [self.model.vae.encoder, self.model.vae.quant_conv] if self.cfg.decoder_only else []
 
     def trained_parameters(self) -> list[torch.nn.Parameter]:

@@ -7,7 +7,8 @@ A cache folder (default ``DATASET/latent_cache/<camera>/``) holds::
     latents.safetensors   per episode: "<i>.latents" (T, C, h, w) float16 normalised latents and
                           "<i>.objects" (T, h, w) float16 share of robot/object pixels per latent cell
 
-The cache is valid only for the autoencoder whose ``autoencoder_hash`` it records and the dataset
+The cache is valid only for the autoencoder whose ``autoencoder_hash`` it records (or a decoder-only
+fine-tune of it: the same ``latents_hash``, so `swap-decoder` keeps the caches) and the dataset
 files it was built from; ``ensure_latent_cache`` rebuilds it when either changed, writing into a
 temporary sibling that is renamed into place (never half-written). A dataset folder copied with
 only its ``info.json`` and its cache (no episodes: training on another machine) uses the cache as it
@@ -68,7 +69,7 @@ class LatentCache:
 def _build(dataset: Path, autoencoder_dir: Path, camera: str, folder: Path, progress: bool) -> None:
     from safetensors.torch import save_file
 
-    from tesseract4d.model.autoencoder import autoencoder_hash, load_autoencoder
+    from tesseract4d.model.autoencoder import autoencoder_hash, latents_hash, load_autoencoder
     from tesseract4d.model.autoencoder_trainer import robot_object_mask
 
     model = load_autoencoder(autoencoder_dir)
@@ -104,6 +105,7 @@ def _build(dataset: Path, autoencoder_dir: Path, camera: str, folder: Path, prog
     save_file(tensors, str(folder / LATENTS_FILE))
     meta = {
         "format": FORMAT, "autoencoder_hash": autoencoder_hash(autoencoder_dir), "autoencoder_dir": str(autoencoder_dir),
+        "latents_hash": latents_hash(autoencoder_dir),
         "camera": camera, "latent_shape": list(model.config.latent_shape), "resolution": [info.height, info.width],
         "dataset_fingerprint": dataset_fingerprint(dataset), "episodes": episodes,
     }
@@ -116,6 +118,16 @@ def _read_meta(folder: Path) -> dict | None:
         return None
     meta = json.loads(path.read_text())
     return meta if meta.get("format") == FORMAT else None
+
+
+def made_by(meta: dict, autoencoder_dir: str | os.PathLike) -> bool:
+    """Whether a cache's latents are those ``autoencoder_dir`` makes: it built the cache, or it is a
+    decoder-only fine-tune of the one that did (``latents_hash``: same encoder, statistics and config)."""
+    from tesseract4d.model.autoencoder import autoencoder_hash, latents_hash
+
+    if meta["autoencoder_hash"] == autoencoder_hash(autoencoder_dir):
+        return True
+    return meta.get("latents_hash") is not None and meta["latents_hash"] == latents_hash(autoencoder_dir)
 
 
 def open_latent_cache(folder: str | os.PathLike, autoencoder_dir: str | os.PathLike | None = None) -> LatentCache:
@@ -131,7 +143,7 @@ def open_latent_cache(folder: str | os.PathLike, autoencoder_dir: str | os.PathL
         from tesseract4d.model.autoencoder import autoencoder_hash
 
         want = autoencoder_hash(autoencoder_dir)
-        if meta["autoencoder_hash"] != want:
+        if not made_by(meta, autoencoder_dir):
             raise UserError(f"the latent cache {folder} was built by autoencoder {meta['autoencoder_hash']} "
                             f"({meta.get('autoencoder_dir')}), not {want} ({autoencoder_dir}); rebuild it with "
                             f"`tesseract4d encode-latents --data DATASET --autoencoder {autoencoder_dir} --rebuild`")
@@ -163,13 +175,12 @@ def ensure_latent_cache(dataset: str | os.PathLike, autoencoder_dir: str | os.Pa
     if meta is not None and not rebuild and not df.list_episode_files(dataset):
         # A cache that travelled without its episodes (e.g. to a GPU machine): nothing to check it
         # against or rebuild it from, so it is used as it is, if the autoencoder is its own.
-        if meta["autoencoder_hash"] != want or meta["camera"] != camera:
+        if not made_by(meta, autoencoder_dir) or meta["camera"] != camera:
             raise UserError(f"{dataset} holds no episodes, only a latent cache of autoencoder "
                             f"{meta['autoencoder_hash']} (camera {meta['camera']}), not of {autoencoder_dir} ({want}, "
                             f"camera {camera}); copy the episodes there too, or pass the autoencoder it was built with")
         return open_latent_cache(folder), False
-    valid = (meta is not None and not rebuild and meta["autoencoder_hash"] == want
-             and meta["camera"] == camera and meta["dataset_fingerprint"] == dataset_fingerprint(dataset))
+    valid = (meta is not None and not rebuild and meta["camera"] == camera and made_by(meta, autoencoder_dir) and meta["dataset_fingerprint"] == dataset_fingerprint(dataset))
     if valid:
         return open_latent_cache(folder), False
     # Build in a fresh temporary sibling of our own, then move its two files into place: the cache

@@ -13,10 +13,9 @@ import shutil
 from pathlib import Path
 
 from tesseract4d.errors import UserError
+from tesseract4d.model.autoencoder import DECODER_FIELDS, ENCODER_PREFIXES
 
 AUTOENCODER_DIR = "autoencoder"
-ENCODER_PREFIXES = ("vae.encoder.", "vae.quant_conv.")  # the autoencoder's weights that make its latents
-DECODER_FIELDS = ("name", "decoder_layers_per_block")  # AutoencoderConfig fields the latents do not depend on
 
 
 def autoencoder_entry(codec, autoencoder_dir: str | None) -> dict:
