@@ -12,7 +12,7 @@ Weights are random (speed does not depend on them) unless --autoencoder names a 
 bf16 rows run only where the CPU has AMX or AVX512-BF16 (elsewhere bf16 is far slower).
 
   .venv/bin/python benchmarks/bench_latent.py [--autoencoder-preset ae-f8c32] [--repeats 3]
-  .venv/bin/python benchmarks/bench_latent.py --autoencoder AE [AE ...]   # trained ones, side by side
+  .venv/bin/python benchmarks/bench_latent.py --autoencoder AE [AE ...]   # trained ones, side by side (numbered in order)
 """
 
 from __future__ import annotations
@@ -136,11 +136,13 @@ def main(argv: list[str] | None = None) -> int:
                 r = bench_training("tiny", pixel, bf16, args.train_steps, 4)
                 add("tiny", p, "train b4", f"{1 / r['s_per_step']:.2f} steps/s", f"{r['peak_mb']:.0f}")
             entries = []
-            for ae_dir in ae_dirs:
+            for i, ae_dir in enumerate(ae_dirs, 1):
                 r = bench_autoencoder_codec(ae_dir, bf16, args.repeats)
-                add(f"autoencoder ({r['decoder']})", p, "encode 16-frame 128² clip", f"{r['encode_s']:.3f} s", f"{r['peak_mb']:.0f}")
-                add(f"autoencoder ({r['decoder']})", p, "decode 16-frame 128² clip", f"{r['decode_s']:.3f} s", f"{r['peak_mb']:.0f}")
-                label = f"latent-128, {r['decoder']}" if len(ae_dirs) > 1 else "latent-128"
+                name = f"autoencoder {i} ({r['decoder']})" if len(ae_dirs) > 1 else f"autoencoder ({r['decoder']})"
+                add(name, p, "encode 16-frame 128² clip", f"{r['encode_s']:.3f} s", f"{r['peak_mb']:.0f}")
+                add(name, p, "decode 16-frame 128² clip", f"{r['decode_s']:.3f} s", f"{r['peak_mb']:.0f}")
+                # Numbered when several are compared: two of the same depth must not share a row.
+                label = f"latent-128, autoencoder {i} ({r['decoder']})" if len(ae_dirs) > 1 else "latent-128"
                 entries.append((label, *sampling_pipeline("latent-128", bf16, autoencoder=ae_dir)))
             if pixel is not None:
                 entries.append(("tiny", *sampling_pipeline("tiny", bf16)))
