@@ -5,7 +5,8 @@ receive a few tens of MB per call needs the episodes themselves in as few bytes 
 packs episodes of one or more datasets (an even spread of ``--episodes`` of each, every
 ``--frame-stride``-th frame) into ``part_NN.bin`` + ``part_NN.json`` of at most ``--part-mb`` MB each;
 every part holds whole episodes, so a part unpacks on its own. On the other machine ``unpack`` writes
-them back as dataset folders (``info.json`` + episode files) through the project's own writer:
+them back as dataset folders (``info.json`` + episode files) through the project's own writer, and
+refuses, before writing anything, when an episode file it would write exists already:
 
 - depth: metres rounded to 0.1 mm (uint16; depths beyond 6.5535 m, far outside the model's
   0.2-1.5 m, are stored as 6.5535 m; 0 = no measurement stays 0);
@@ -142,19 +143,21 @@ def pack(datasets: list[Path], out: Path, episodes: int | None = None, frame_str
         blob = encode_episode(ep)
         if len(buf) + len(blob) > part_mb * 1e6:
             flush()
-        records.append({"dataset": d.name, "offset": len(buf), "size": len(blob)})
+        records.append({"dataset": d.name, "file": f.relative_to(d).as_posix(), "offset": len(buf), "size": len(blob)})
         buf += blob
     flush()
     return parts
 
 
-def _unpack_one(job: tuple[str, int, int, str]) -> str:
+def _unpack_one(job: tuple[str, int, int, str, str]) -> str:
     from tesseract4d import dataset_format as df
 
-    bin_path, offset, size, folder = job
+    bin_path, offset, size, folder, target = job
     with open(bin_path, "rb") as f:
         f.seek(offset)
         ep = decode_episode(f.read(size))
+    if df.episode_path(folder, ep.env_id, ep.seed, ep.variant) != Path(target):
+        raise SystemExit(f"{bin_path}: episode {ep.episode_id} does not belong at {target}; the part is corrupt")
     df.write_episode(folder, ep, compression_level=1)
     return folder
 
@@ -164,13 +167,20 @@ def unpack(src: Path, out: Path, workers: int | None = None) -> list[Path]:
 
     from tesseract4d import dataset_format as df
 
-    jobs = []
+    jobs, infos = [], {}
     for header_path in sorted(src.glob("part_*.json")):
         header = json.loads(header_path.read_text())
-        for name, info in header["infos"].items():
-            df.init_dataset(out / name, df.DatasetInfo.from_dict(info))
+        infos.update(header["infos"])
         bin_path = str(header_path.with_suffix(".bin"))
-        jobs += [(bin_path, r["offset"], r["size"], str(out / r["dataset"])) for r in header["episodes"]]
+        jobs += [(bin_path, r["offset"], r["size"], str(out / r["dataset"]), str(out / r["dataset"] / r["file"]))
+                 for r in header["episodes"]]
+    # Never replace an episode file: unpacking into a folder that holds the originals would swap them
+    # for their quantised copies. Parts hold disjoint episodes, so unpacking them one by one is fine.
+    taken = [job[4] for job in jobs if Path(job[4]).exists()]
+    if taken:
+        raise SystemExit(f"{len(taken)} episode files exist already (e.g. {taken[0]}); unpack into a new --out folder")
+    for name, info in infos.items():
+        df.init_dataset(out / name, df.DatasetInfo.from_dict(info))
     written: dict[str, int] = {}
     with ProcessPoolExecutor(max_workers=workers) as pool:
         for folder in pool.map(_unpack_one, jobs, chunksize=8):

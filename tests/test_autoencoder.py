@@ -275,6 +275,8 @@ def test_latent_cache_reused_when_valid_rebuilt_when_autoencoder_changes(tmp_pat
 def test_latent_cache_outlives_a_decoder_swap_but_not_an_encoder_change(tmp_path):
     # A decoder-only fine-tune makes the same latents: its cache stays valid (here, there and travelling);
     # one changed encoder weight makes it another autoencoder's cache.
+    import shutil
+
     from tesseract4d.model.autoencoder import latents_hash
     from tesseract4d.model.latent_cache import ensure_latent_cache, open_latent_cache
 
@@ -292,6 +294,12 @@ def test_latent_cache_outlives_a_decoder_swap_but_not_an_encoder_change(tmp_path
     reused, built = ensure_latent_cache(data, tmp_path / "new_decoder")
     assert not built and torch.equal(reused.episodes[0].latents, cache.episodes[0].latents)
     open_latent_cache(cache.folder, tmp_path / "new_decoder")  # no error
+    copy = tmp_path / "copy"  # travelling without its episodes, as to a GPU machine
+    copy.mkdir()
+    shutil.copy(data / "info.json", copy / "info.json")
+    shutil.copytree(cache.folder, copy / cache.folder.relative_to(data))
+    _, built = ensure_latent_cache(copy, tmp_path / "new_decoder")
+    assert not built
     encoder_key = next(k for k in state if k.startswith("vae.encoder."))
     state[encoder_key] += 0.5
     save_autoencoder(ae, tmp_path / "new_encoder", state_dict=state)

@@ -4,6 +4,7 @@ folders the project reads (the autoencoder trains from them)."""
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from project_scripts import load_script
 from synthetic_scene import write_grouped_dataset, write_segmented_dataset
 
@@ -60,9 +61,19 @@ def test_pack_spreads_a_subset_and_refuses_a_used_folder(tmp_path):
     names = [p.name for p in df.list_episode_files(folder)]
     every = [p.name for p in df.list_episode_files(data)]
     assert names == [every[0], every[2], every[4]]
-    try:
+    with pytest.raises(SystemExit, match="not empty"):
         tool.pack([data], tmp_path / "packed")
-    except SystemExit as e:
-        assert "not empty" in str(e)
-    else:
-        raise AssertionError("packing into a used folder must be refused")
+
+
+def test_unpack_never_replaces_an_episode_file(tmp_path):
+    # Unpacked over the originals, the quantised copies would replace them: refused before anything is written.
+    tool = load_script("episodes_pack")
+    data = write_segmented_dataset(tmp_path / "data", episodes=2, frames=4)
+    before = {p: p.read_bytes() for p in df.list_episode_files(data)}
+    tool.pack([data], tmp_path / "packed")
+    with pytest.raises(SystemExit, match="exist already"):
+        tool.unpack(tmp_path / "packed", tmp_path, workers=1)
+    assert {p: p.read_bytes() for p in df.list_episode_files(data)} == before
+    tool.unpack(tmp_path / "packed", tmp_path / "there", workers=1)
+    with pytest.raises(SystemExit, match="exist already"):  # a second unpack of the same parts
+        tool.unpack(tmp_path / "packed", tmp_path / "there", workers=1)

@@ -180,7 +180,8 @@ def ensure_latent_cache(dataset: str | os.PathLike, autoencoder_dir: str | os.Pa
                             f"{meta['autoencoder_hash']} (camera {meta['camera']}), not of {autoencoder_dir} ({want}, "
                             f"camera {camera}); copy the episodes there too, or pass the autoencoder it was built with")
         return open_latent_cache(folder), False
-    valid = (meta is not None and not rebuild and meta["camera"] == camera and made_by(meta, autoencoder_dir) and meta["dataset_fingerprint"] == dataset_fingerprint(dataset))
+    valid = (meta is not None and not rebuild and meta["camera"] == camera and made_by(meta, autoencoder_dir)
+             and meta["dataset_fingerprint"] == dataset_fingerprint(dataset))
     if valid:
         return open_latent_cache(folder), False
     # Build in a fresh temporary sibling of our own, then move its two files into place: the cache
