@@ -120,12 +120,13 @@ def _read_meta(folder: Path) -> dict | None:
     return meta if meta.get("format") == FORMAT else None
 
 
-def made_by(meta: dict, autoencoder_dir: str | os.PathLike) -> bool:
-    """Whether a cache's latents are those ``autoencoder_dir`` makes: it built the cache, or it is a
-    decoder-only fine-tune of the one that did (``latents_hash``: same encoder, statistics and config)."""
-    from tesseract4d.model.autoencoder import autoencoder_hash, latents_hash
+def _made_by(meta: dict, autoencoder_dir: str | os.PathLike, ae_hash: str) -> bool:
+    """Whether a cache's latents are those ``autoencoder_dir`` (hash ``ae_hash``) makes: it built the
+    cache, or it is a decoder-only fine-tune of the one that did (``latents_hash``: same encoder,
+    statistics and config; read only when the hashes differ)."""
+    from tesseract4d.model.autoencoder import latents_hash
 
-    if meta["autoencoder_hash"] == autoencoder_hash(autoencoder_dir):
+    if meta["autoencoder_hash"] == ae_hash:
         return True
     return meta.get("latents_hash") is not None and meta["latents_hash"] == latents_hash(autoencoder_dir)
 
@@ -143,7 +144,7 @@ def open_latent_cache(folder: str | os.PathLike, autoencoder_dir: str | os.PathL
         from tesseract4d.model.autoencoder import autoencoder_hash
 
         want = autoencoder_hash(autoencoder_dir)
-        if not made_by(meta, autoencoder_dir):
+        if not _made_by(meta, autoencoder_dir, want):
             raise UserError(f"the latent cache {folder} was built by autoencoder {meta['autoencoder_hash']} "
                             f"({meta.get('autoencoder_dir')}), not {want} ({autoencoder_dir}); rebuild it with "
                             f"`tesseract4d encode-latents --data DATASET --autoencoder {autoencoder_dir} --rebuild`")
@@ -175,12 +176,12 @@ def ensure_latent_cache(dataset: str | os.PathLike, autoencoder_dir: str | os.Pa
     if meta is not None and not rebuild and not df.list_episode_files(dataset):
         # A cache that travelled without its episodes (e.g. to a GPU machine): nothing to check it
         # against or rebuild it from, so it is used as it is, if the autoencoder is its own.
-        if not made_by(meta, autoencoder_dir) or meta["camera"] != camera:
+        if not _made_by(meta, autoencoder_dir, want) or meta["camera"] != camera:
             raise UserError(f"{dataset} holds no episodes, only a latent cache of autoencoder "
                             f"{meta['autoencoder_hash']} (camera {meta['camera']}), not of {autoencoder_dir} ({want}, "
                             f"camera {camera}); copy the episodes there too, or pass the autoencoder it was built with")
         return open_latent_cache(folder), False
-    valid = (meta is not None and not rebuild and meta["camera"] == camera and made_by(meta, autoencoder_dir)
+    valid = (meta is not None and not rebuild and meta["camera"] == camera and _made_by(meta, autoencoder_dir, want)
              and meta["dataset_fingerprint"] == dataset_fingerprint(dataset))
     if valid:
         return open_latent_cache(folder), False
