@@ -13,11 +13,13 @@ bf16 rows run only where the CPU has AMX or AVX512-BF16 (elsewhere bf16 is far s
 
   .venv/bin/python benchmarks/bench_latent.py [--autoencoder-preset ae-f8c32] [--repeats 3]
   .venv/bin/python benchmarks/bench_latent.py --autoencoder AE [AE ...]   # trained ones, side by side (numbered in order)
+  .venv/bin/python benchmarks/bench_latent.py --guidance-min-sigma 0.5      # also with a guidance interval
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import os
 import statistics
 import sys
@@ -91,6 +93,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--train-steps", type=int, default=5, help="timed training steps per row")
     parser.add_argument("--repeats", type=int, default=3, help="timed repeats per encode/decode/sampling row")
     parser.add_argument("--no-tiny", action="store_true", help="skip the pixel tiny rows")
+    parser.add_argument("--guidance-min-sigma", type=float, nargs="*", default=[], metavar="S",
+                        help="also time latent-128 (first autoencoder) guided only at noise >= S (a guidance "
+                             "interval, as `set-sampler --guidance-min-sigma S` writes it), for each S given")
     add_isa_cap_argument(parser)
     args = parser.parse_args(argv)
     apply_isa_cap(args.cap_isa)
@@ -144,6 +149,10 @@ def main(argv: list[str] | None = None) -> int:
                 # Numbered when several are compared: two of the same depth must not share a row.
                 label = f"latent-128, autoencoder {i} ({r['decoder']})" if len(ae_dirs) > 1 else "latent-128"
                 entries.append((label, *sampling_pipeline("latent-128", bf16, autoencoder=ae_dir)))
+            for sigma in args.guidance_min_sigma:
+                pipe, first = sampling_pipeline("latent-128", bf16, autoencoder=ae_dirs[0])
+                pipe.preset = dataclasses.replace(pipe.preset, guidance_min_sigma=sigma)
+                entries.append((f"latent-128, guidance at noise >= {sigma:g}", pipe, first))
             if pixel is not None:
                 entries.append(("tiny", *sampling_pipeline("tiny", bf16)))
             _reset_peak_rss()

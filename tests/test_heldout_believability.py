@@ -316,6 +316,23 @@ def test_each_checkpoint_samples_with_its_own_steps(two_checkpoints, tmp_path):
     assert {v["num_steps"] for v in forced["sampler"].values()} == {3}
 
 
+def test_a_guidance_interval_is_sampled_and_reported(two_checkpoints, tmp_path):
+    """A checkpoint guided only at high noise (set-sampler --guidance-min-sigma) is evaluated with its
+    interval, and the report names it."""
+    from tesseract4d.evaluation.heldout import HeldoutConfig, evaluate_heldout, format_markdown
+    from tesseract4d.model.checkpoint import write_sampler_copy
+
+    a, _, heldout = two_checkpoints
+    guided = write_sampler_copy(a, tmp_path / "guided", {"text_guidance": 2.0})
+    interval = write_sampler_copy(a, tmp_path / "interval", {"text_guidance": 2.0, "guidance_min_sigma": 0.5})
+    report = evaluate_heldout(HeldoutConfig(checkpoint=[guided, interval], data=heldout), progress=False)
+    steps = report["sampler"]["guided"]["num_steps"]
+    assert report["sampler"] == {"guided": {"num_steps": steps, "text_guidance": 2.0},
+                                 "interval": {"num_steps": steps, "text_guidance": 2.0, "guidance_min_sigma": 0.5}}
+    assert report["summary"]["guided"]["rgb_psnr_db"] != report["summary"]["interval"]["rgb_psnr_db"]
+    assert "interval 10 steps, text guidance 2 at noise ≥ 0.5".replace("10", str(steps)) in format_markdown(report)
+
+
 def test_single_checkpoint_keeps_the_report_keys(two_checkpoints):
     from tesseract4d.evaluation.heldout import HeldoutConfig, evaluate_heldout, format_markdown
 

@@ -179,3 +179,77 @@ def test_batched_guidance_equals_the_separate_passes(checkpoint, text_guidance, 
         expected = none + image_guidance * (img - none) + text_guidance * (full - img)
     assert len(guidance_passes(text_guidance, image_guidance)) == (2 if image_guidance == 1.0 else 3)
     torch.testing.assert_close(batched, expected, atol=1e-4, rtol=1e-4)
+
+
+def test_guidance_interval_guides_only_the_noisy_steps(checkpoint):
+    """``guidance_min_sigma``: steps below it run one unguided pass; at 0 every step is guided, above 1
+    none is (the clip of text guidance 1)."""
+    pipe = load_pipeline(checkpoint, precision="fp32")
+    p = pipe.preset
+    first = torch.rand(1, 7, p.height, p.width, generator=torch.Generator().manual_seed(0)) * 2 - 1
+    batches = []
+    hook = pipe.transformer.register_forward_pre_hook(lambda m, args: batches.append(args[0].shape[0]))
+
+    def sample(**kw):
+        batches.clear()
+        clip = pipe(first, ["push the square to the left"], num_inference_steps=4, text_guidance=2.0,
+                    generator=torch.Generator().manual_seed(3), **kw)
+        return clip, list(batches)
+
+    try:
+        guided, n_guided = sample(guidance_min_sigma=0.0)
+        default, _ = sample()
+        half, n_half = sample(guidance_min_sigma=0.5)
+        none, n_none = sample(guidance_min_sigma=1.5)
+    finally:
+        hook.remove()
+    unguided = pipe(first, ["push the square to the left"], num_inference_steps=4, text_guidance=1.0,
+                    generator=torch.Generator().manual_seed(3))
+    assert p.guidance_min_sigma == 0.0 and torch.equal(default, guided)
+    sigmas = [float(s) for s in pipe.scheduler.sigmas[:4]]  # 1, 0.667, 0.334, 0.001
+    assert n_guided == [2, 2, 2, 2] and n_none == [1, 1, 1, 1]
+    assert n_half == [2 if s >= 0.5 else 1 for s in sigmas] == [2, 2, 1, 1]
+    torch.testing.assert_close(none, unguided)
+    assert not torch.allclose(half, guided) and not torch.allclose(half, none)
+
+
+def test_set_sampler_writes_a_copy_that_samples_with_the_new_settings(checkpoint, tmp_path, capsys):
+    """set-sampler: the copy's weights are the checkpoint's byte for byte, its preset samples with the
+    new settings (as the original does when given them), the change is recorded, the original is kept."""
+    source = shutil.copytree(checkpoint, tmp_path / "source")
+    (source / "MODEL_CARD.md").write_text("the source's card\n")
+    before = {p.relative_to(source): p.read_bytes() for p in source.rglob("*") if p.is_file()}
+    to = tmp_path / "interval"
+    assert cli.main(["set-sampler", "--checkpoint", str(source), "--to", str(to), "--guidance-min-sigma", "0.5",
+                     "--text-guidance", "2"]) == 0
+    assert {p.relative_to(source): p.read_bytes() for p in source.rglob("*") if p.is_file()} == before
+    weights = Path("transformer") / "diffusion_pytorch_model.safetensors"
+    assert (to / weights).read_bytes() == before[weights] and not (to / "MODEL_CARD.md").exists()
+    config = json.loads((to / "tesseract4d_config.json").read_text())
+    assert config["preset"]["guidance_min_sigma"] == 0.5 and config["preset"]["text_guidance"] == 2.0
+    assert config["sampler_changed"] == [{"source": str(source), "previous": {"guidance_min_sigma": 0.0,
+                                                                               "text_guidance": 1.0},
+                                          "new": {"guidance_min_sigma": 0.5, "text_guidance": 2.0}}]
+    copy, original = load_pipeline(to, precision="fp32"), load_pipeline(source, precision="fp32")
+    assert copy.preset.guidance_min_sigma == 0.5 and original.preset.guidance_min_sigma == 0.0
+    p = copy.preset
+    first = torch.rand(1, 7, p.height, p.width, generator=torch.Generator().manual_seed(0)) * 2 - 1
+
+    def sample(pipe, **kw):
+        return pipe(first, ["push the square to the right"], num_inference_steps=4,
+                    generator=torch.Generator().manual_seed(4), **kw)
+
+    assert torch.equal(sample(copy), sample(original, text_guidance=2.0, guidance_min_sigma=0.5))
+    assert not torch.equal(sample(copy), sample(original, text_guidance=2.0))  # the interval changes the clip
+
+
+def test_set_sampler_refuses_bad_settings(checkpoint, tmp_path, capsys):
+    runs = [(["--to", str(tmp_path / "a")], "nothing to change"),
+            (["--to", str(tmp_path / "b"), "--guidance-min-sigma", "-0.1"], "--guidance-min-sigma must be"),
+            (["--to", str(tmp_path / "c"), "--text-guidance", "0"], "--text-guidance must be"),
+            (["--to", str(tmp_path / "d"), "--steps", "0"], "--steps must be"),
+            (["--to", str(checkpoint), "--steps", "3"], "--to")]
+    for extra, message in runs:
+        assert cli.main(["set-sampler", "--checkpoint", str(checkpoint), *extra]) != 0
+        assert message in capsys.readouterr().err
+    assert not any((tmp_path / name).exists() for name in "abcd")

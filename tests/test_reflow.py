@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import shutil
 from pathlib import Path
 
 import pytest
@@ -53,6 +54,13 @@ def test_pairs_are_deterministic_and_resume(teacher, tmp_path):
     with pytest.raises(UserError, match="other settings"):
         generate_pairs(PairsConfig(teacher=ckpt, data=data, out=tmp_path / "a", num_pairs=4, shard_size=2,
                                    teacher_steps=3), progress=False)
+    # The same weights guided only at high noise sample other clips: their pairs are other pairs.
+    interval = shutil.copytree(ckpt, tmp_path / "interval")
+    config = json.loads((interval / "tesseract4d_config.json").read_text())
+    config["preset"]["guidance_min_sigma"] = 0.5
+    (interval / "tesseract4d_config.json").write_text(json.dumps(config))
+    with pytest.raises(UserError, match="guidance_min_sigma"):
+        generate_pairs(_pairs_cfg(interval, data, tmp_path / "a", 4), progress=False)
 
 
 def test_distill_student_follows_teacher_in_few_steps(teacher, tmp_path, capsys):

@@ -18,6 +18,7 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "encode-latents": ("tesseract4d.cli.encode_latents", "encode a dataset once into a latent cache for the latent model"),
     "train": ("tesseract4d.cli.train", "train the RGB-D-N video diffusion model"),
     "swap-decoder": ("tesseract4d.cli.swap_decoder", "put a decoder fine-tuned on a latent checkpoint's latents into a copy of it"),
+    "set-sampler": ("tesseract4d.cli.set_sampler", "copy a checkpoint with other default sampler settings (steps, guidance)"),
     "distill": ("tesseract4d.cli.distill", "distil a checkpoint into a few-step student (one network pass per step)"),
     "predict": ("tesseract4d.cli.predict", "predict the RGB-D-N future from a first frame and an instruction"),
     "reconstruct": ("tesseract4d.cli.reconstruct", "fuse an RGB-D-N video into a consistent 4D point cloud"),

@@ -346,10 +346,14 @@ def instruction_discrimination(pipeline, files: list[Path], camera: str | None, 
 
 def sampler_settings(cfg: HeldoutConfig, pipeline) -> dict:
     """The steps and text guidance one checkpoint samples with: the config's where it sets them, else
-    the checkpoint preset's own (a 2-step student and its 10-step teacher each keep their sampler)."""
+    the checkpoint preset's own (a 2-step student and its 10-step teacher each keep their sampler); and
+    its preset's guidance interval where it has one."""
     p = pipeline.preset
-    return {"num_steps": int(cfg.num_steps or p.num_steps),
-            "text_guidance": float(p.text_guidance if cfg.text_guidance is None else cfg.text_guidance)}
+    settings = {"num_steps": int(cfg.num_steps or p.num_steps),
+                "text_guidance": float(p.text_guidance if cfg.text_guidance is None else cfg.text_guidance)}
+    if p.guidance_min_sigma > 0:  # a guidance interval (named only where there is one)
+        settings["guidance_min_sigma"] = float(p.guidance_min_sigma)
+    return settings
 
 
 def evaluate_heldout(cfg: HeldoutConfig, progress: bool = True) -> dict:
@@ -423,7 +427,9 @@ def evaluate_heldout(cfg: HeldoutConfig, progress: bool = True) -> dict:
         bar.set_postfix_str(f"{gts[0].env_id} seed {gts[0].seed}: predicting")
         instructions = [gt.instruction for gt in gts]
         predictions = [[predict_at_data_resolution(pipeline, firsts, instructions, cameras, num_frames,
-                                                   seed=seed, batch_size=batch_size, **sampler[with_c],
+                                                   seed=seed, batch_size=batch_size,
+                                                   num_steps=sampler[with_c]["num_steps"],
+                                                   text_guidance=sampler[with_c]["text_guidance"],
                                                    noise_seeds=[scene_noise_seed(seed, gt.env_id, gt.seed) for gt in gts])
                         for seed in seeds]
                        for (with_c, _), pipeline in zip(keys, pipelines)]  # [checkpoint][seed][scene]
@@ -651,8 +657,10 @@ def format_markdown(report: dict) -> str:
                  f"(tracker error on the ground truth: {_fmt(follow[first].get('tracker_px'), '')} px).")
     sampler = report.get("sampler") or {}
     if sampler:
-        lines.append("Samplers: " + "; ".join(f"{m} {v['num_steps']} steps, text guidance {v['text_guidance']:g}"
-                                              for m, v in sampler.items()) + ".")
+        lines.append("Samplers: " + "; ".join(
+            f"{m} {v['num_steps']} steps, text guidance {v['text_guidance']:g}"
+            + (f" at noise ≥ {v['guidance_min_sigma']:g}" if v.get("guidance_min_sigma") else "")
+            for m, v in sampler.items()) + ".")
     resized = {m: r for m, r in report.get("resolutions", {}).items() if r.get("resized")}
     if resized:
         lines.append("Resolutions: " + "; ".join(

@@ -152,3 +152,60 @@ def load_transformer(checkpoint: str | os.PathLike, preset, modality_channels: d
         raise UserError(f"{folder}: weights do not match the config of preset {preset.name!r} "
                         f"({str(e).splitlines()[0]} ...); re-export the checkpoint") from e
     return model.eval()
+
+
+# The preset fields that only say how a checkpoint samples (the weights do not depend on them).
+SAMPLER_FIELDS = ("num_steps", "text_guidance", "image_guidance", "guidance_min_sigma")
+
+
+def check_sampler_settings(settings: dict) -> None:
+    """UserError naming the flag when a sampler setting is out of range."""
+    import math
+
+    flags = {"num_steps": "--steps", "text_guidance": "--text-guidance", "image_guidance": "--image-guidance",
+             "guidance_min_sigma": "--guidance-min-sigma"}
+    for name, value in settings.items():
+        if name not in SAMPLER_FIELDS:
+            raise UserError(f"{name!r} is not a sampler setting (one of {', '.join(SAMPLER_FIELDS)})")
+        if name == "num_steps":
+            if int(value) != value or value < 1:
+                raise UserError(f"{flags[name]} must be a whole number of steps ≥ 1, got {value}")
+        elif not math.isfinite(value) or value < 0 or (name != "guidance_min_sigma" and value == 0):
+            what = "≥ 0 (0: guidance at every step)" if name == "guidance_min_sigma" else "> 0 (1: no guidance)"
+            raise UserError(f"{flags[name]} must be a finite number {what}, got {value}")
+
+
+def write_sampler_copy(checkpoint: str | os.PathLike, to: str | os.PathLike, settings: dict,
+                       overwrite: bool = False) -> Path:
+    """Write a copy of ``checkpoint`` into ``to`` (a new folder; the checkpoint is never changed) whose
+    preset samples with ``settings`` (SAMPLER_FIELDS: steps, guidance scales, guidance interval), the
+    weights byte for byte the same. The previous settings and the source are recorded in
+    INFERENCE_CONFIG_FILE under ``sampler_changed``; a model card is not copied (it describes the source)."""
+    import shutil
+
+    from tesseract4d.outputs import OutputDir
+
+    if not settings:
+        raise UserError("nothing to change: give --steps, --text-guidance, --image-guidance or --guidance-min-sigma")
+    check_sampler_settings(settings)
+    checkpoint = Path(checkpoint)
+    config = read_inference_config(checkpoint)
+    from tesseract4d.model.presets import preset_from_dict
+
+    preset = dict(config["preset"])
+    saved = preset_from_dict(preset)  # settings an older checkpoint lacks read as their defaults
+    previous = {name: getattr(saved, name) for name in settings}
+    with OutputDir(to, "set-sampler", inputs=[checkpoint], overwrite=overwrite, flag="--to") as tmp:
+        for child in sorted(checkpoint.iterdir()):
+            if child.name == INFERENCE_CONFIG_FILE or child.name.startswith(".") or child.name == "MODEL_CARD.md":
+                continue
+            if child.is_dir():
+                shutil.copytree(child, tmp / child.name)
+            else:
+                shutil.copy2(child, tmp / child.name)
+        preset.update(settings)
+        changes = list(config.get("sampler_changed", []))
+        changes.append({"source": str(checkpoint), "previous": previous, "new": dict(settings)})
+        (tmp / INFERENCE_CONFIG_FILE).write_text(json.dumps({**config, "preset": preset, "sampler_changed": changes},
+                                                            indent=2))
+    return Path(to)

@@ -106,9 +106,10 @@ class RGBDNPipeline:
         return (batch, self.codec.num_latent_frames(p.num_frames), *probe.shape[2:])
 
     def _denoise_clip(self, first_frame, text, null_text, num_steps, text_guidance, image_guidance,
-                      generator, progress, step_offset, total_steps, latents=None):
+                      generator, progress, step_offset, total_steps, latents=None, guidance_min_sigma=0.0):
         """One clip of the preset's length from a (b, 7, H, W) first frame, in the network's space:
-        (b, t', c, h, w). ``latents``: the initial noise (default: drawn from ``generator``)."""
+        (b, t', c, h, w). ``latents``: the initial noise (default: drawn from ``generator``).
+        ``guidance_min_sigma``: steps at a lower noise level run unguided (one pass)."""
         b = first_frame.shape[0]
         nt = self.codec.num_latent_frames(self.preset.num_frames)
         first = self.codec.encode(first_frame[:, None].to(self.device), generator=generator)  # (b, 1, c, h, w)
@@ -124,7 +125,9 @@ class RGBDNPipeline:
         self.scheduler.set_timesteps(num_steps, device=self.device)
         for i, timestep in enumerate(self.scheduler.timesteps):
             sigma = float(self.scheduler.sigmas[i])
-            pred = self._predict_x0(x, sigma, cond, null_cond, text, null_text, text_guidance, image_guidance)
+            guided = sigma >= guidance_min_sigma
+            pred = self._predict_x0(x, sigma, cond, null_cond, text, null_text,
+                                    text_guidance if guided else 1.0, image_guidance if guided else 1.0)
             velocity = pred if self.prediction == "velocity" else (x - pred) / sigma
             x = self.scheduler.step(velocity, timestep, x, return_dict=False)[0]
             if progress is not None:
@@ -154,6 +157,7 @@ class RGBDNPipeline:
         num_inference_steps: int | None = None,
         text_guidance: float | None = None,
         image_guidance: float | None = None,
+        guidance_min_sigma: float | None = None,
         generator: torch.Generator | None = None,
         progress: Callable[[int, int], None] | None = None,
         latents: torch.Tensor | None = None,
@@ -178,6 +182,7 @@ class RGBDNPipeline:
         num_steps = p.num_steps if num_inference_steps is None else int(num_inference_steps)
         text_guidance = p.text_guidance if text_guidance is None else float(text_guidance)
         image_guidance = p.image_guidance if image_guidance is None else float(image_guidance)
+        guidance_min_sigma = p.guidance_min_sigma if guidance_min_sigma is None else float(guidance_min_sigma)
         b = first_frame.shape[0]
         if first_frame.ndim != 4 or tuple(first_frame.shape[2:]) != self.resolution:
             raise ValueError(f"first_frame must be (b, 7, {p.height}, {p.width}), got {tuple(first_frame.shape)}")
@@ -197,7 +202,8 @@ class RGBDNPipeline:
 
         if output_type == "latent":
             return self._denoise_clip(first_frame.float(), text, null_text, num_steps, text_guidance, image_guidance,
-                                      generator, progress, 0, num_steps, latents=latents).cpu()
+                                      generator, progress, 0, num_steps, latents=latents,
+                                      guidance_min_sigma=guidance_min_sigma).cpu()
 
         # 3. Sample clip after clip, each conditioned on the last frame so far.
         clip_len = p.num_frames
@@ -208,7 +214,8 @@ class RGBDNPipeline:
         for k in range(num_clips):
             clip = self._sample_clip(current, text, null_text, num_steps, text_guidance, image_guidance,
                                      generator, progress, k * num_steps, total,
-                                     latents=latents if k == 0 else None).cpu()
+                                     latents=latents if k == 0 else None,
+                                     guidance_min_sigma=guidance_min_sigma).cpu()
             frames.append(clip if k == 0 else clip[:, 1:])
             current = clip[:, -1]
         # 4. Stitch the clips.

@@ -62,6 +62,9 @@ class ModelPreset:
     num_steps: int = 10
     text_guidance: float = 1.5
     image_guidance: float = 1.0
+    # Guidance only at noise levels >= this (a guidance interval): lower-noise steps run one unguided
+    # pass. 0 = every step guided.
+    guidance_min_sigma: float = 0.0
 
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)

@@ -79,6 +79,9 @@ def _check_manifest(out: Path, manifest: dict) -> None:
     keys = ("teacher_digest", "teacher_steps", "text_guidance", "image_guidance", "data", "seed", "shard_size",
             "groups")
     differ = [k for k in keys if saved.get(k) != manifest.get(k)]
+    # Pairs written before guidance intervals existed were guided at every step.
+    if saved.get("guidance_min_sigma", 0.0) != manifest.get("guidance_min_sigma", 0.0):
+        differ.append("guidance_min_sigma")
     if differ:
         raise UserError(f"{out} holds pairs made with other settings ({', '.join(differ)} differ); "
                         f"choose a new --out for these settings")
@@ -111,7 +114,7 @@ def generate_pairs(cfg: PairsConfig, progress: bool = True) -> Path:
     out = Path(cfg.out)
     manifest = {"format": 1, "teacher": str(cfg.teacher), "teacher_digest": weights_digest(cfg.teacher),
                 "teacher_preset": p.to_dict(), "teacher_steps": steps, "text_guidance": text_g,
-                "image_guidance": image_g, "data": plain(cfg.data), "camera": data.camera, "seed": cfg.seed,
+                "image_guidance": image_g, "guidance_min_sigma": p.guidance_min_sigma, "data": plain(cfg.data), "camera": data.camera, "seed": cfg.seed,
                 "shard_size": cfg.shard_size, "groups": bool(cfg.groups), "config": cfg.to_dict()}
     _check_manifest(out, manifest)
     out.mkdir(parents=True, exist_ok=True)
@@ -243,7 +246,7 @@ def student_preset(teacher_preset, student_steps: int):
     """The teacher's preset with the student's sampling defaults: ``student_steps`` Euler steps and no
     guidance (text = image = 1.0), i.e. one network pass per step."""
     return dataclasses.replace(teacher_preset, num_steps=int(student_steps), text_guidance=1.0, image_guidance=1.0,
-                               text_dropout=0.0, image_dropout=0.0)
+                               guidance_min_sigma=0.0, text_dropout=0.0, image_dropout=0.0)
 
 
 class ReflowTrainer(Trainer):
