@@ -14,6 +14,7 @@ bf16 rows run only where the CPU has AMX or AVX512-BF16 (elsewhere bf16 is far s
   .venv/bin/python benchmarks/bench_latent.py [--autoencoder-preset ae-f8c32] [--repeats 3]
   .venv/bin/python benchmarks/bench_latent.py --autoencoder AE [AE ...]   # trained ones, side by side (numbered in order)
   .venv/bin/python benchmarks/bench_latent.py --guidance-min-sigma 0.5      # also with a guidance interval
+  .venv/bin/python benchmarks/bench_latent.py --no-training --repeats 20    # the sampling comparison alone
 """
 
 from __future__ import annotations
@@ -93,6 +94,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--train-steps", type=int, default=5, help="timed training steps per row")
     parser.add_argument("--repeats", type=int, default=3, help="timed repeats per encode/decode/sampling row")
     parser.add_argument("--no-tiny", action="store_true", help="skip the pixel tiny rows")
+    parser.add_argument("--no-training", action="store_true",
+                        help="skip the training rows (codec and sampling rows only; more --repeats in the same time)")
     parser.add_argument("--guidance-min-sigma", type=float, nargs="*", default=[], metavar="S",
                         help="also time latent-128 (first autoencoder) guided only at noise >= S (a guidance "
                              "interval, as `set-sampler --guidance-min-sigma S` writes it), for each S given")
@@ -129,17 +132,18 @@ def main(argv: list[str] | None = None) -> int:
         if not ae_dirs:
             torch.manual_seed(0)
             ae_dirs = [save_autoencoder(RGBDNAutoencoder(get_autoencoder_preset(ae_preset)), tmp / "ae")]
-        data = write_segmented_dataset(tmp / "data128", episodes=4, frames=16, size=128)
+        data = None if args.no_training else write_segmented_dataset(tmp / "data128", episodes=4, frames=16, size=128)
         pixel = None if args.no_tiny else write_synthetic_dataset(tmp / "data64", episodes=4, frames=16, size=64)
         for bf16 in precisions:
             p = "bf16" if bf16 else "fp32"
-            r = bench_autoencoder_training(data, ae_preset, bf16, args.train_steps)
-            add(f"autoencoder {ae_preset}", p, "train b8 frames", f"{1 / r['s_per_step']:.2f} steps/s", f"{r['peak_mb']:.0f}")
-            r = bench_latent_training(data, ae_dirs[0], bf16, args.train_steps, 4)
-            add("latent-128", p, "train b4 (latent cache)", f"{1 / r['s_per_step']:.2f} steps/s", f"{r['peak_mb']:.0f}")
-            if pixel is not None:
-                r = bench_training("tiny", pixel, bf16, args.train_steps, 4)
-                add("tiny", p, "train b4", f"{1 / r['s_per_step']:.2f} steps/s", f"{r['peak_mb']:.0f}")
+            if not args.no_training:
+                r = bench_autoencoder_training(data, ae_preset, bf16, args.train_steps)
+                add(f"autoencoder {ae_preset}", p, "train b8 frames", f"{1 / r['s_per_step']:.2f} steps/s", f"{r['peak_mb']:.0f}")
+                r = bench_latent_training(data, ae_dirs[0], bf16, args.train_steps, 4)
+                add("latent-128", p, "train b4 (latent cache)", f"{1 / r['s_per_step']:.2f} steps/s", f"{r['peak_mb']:.0f}")
+                if pixel is not None:
+                    r = bench_training("tiny", pixel, bf16, args.train_steps, 4)
+                    add("tiny", p, "train b4", f"{1 / r['s_per_step']:.2f} steps/s", f"{r['peak_mb']:.0f}")
             entries = []
             for i, ae_dir in enumerate(ae_dirs, 1):
                 r = bench_autoencoder_codec(ae_dir, bf16, args.repeats)
