@@ -183,6 +183,7 @@ def write_sampler_copy(checkpoint: str | os.PathLike, to: str | os.PathLike, set
     INFERENCE_CONFIG_FILE under ``sampler_changed``; a model card is not copied (it describes the source)."""
     import shutil
 
+    from tesseract4d.model.presets import preset_from_dict
     from tesseract4d.outputs import OutputDir
 
     if not settings:
@@ -190,8 +191,6 @@ def write_sampler_copy(checkpoint: str | os.PathLike, to: str | os.PathLike, set
     check_sampler_settings(settings)
     checkpoint = Path(checkpoint)
     config = read_inference_config(checkpoint)
-    from tesseract4d.model.presets import preset_from_dict
-
     preset = dict(config["preset"])
     saved = preset_from_dict(preset)  # settings an older checkpoint lacks read as their defaults
     previous = {name: getattr(saved, name) for name in settings}

@@ -167,6 +167,8 @@ class RGBDNPipeline:
 
         first_frame: (b, 7, H, W) model-space first frames; instructions: b strings (one per sample).
         num_frames: frames to return (default: one clip); longer rollouts continue autoregressively.
+        guidance_min_sigma: guide only the steps at noise levels ≥ it; the steps below run one unguided
+        pass (default: the preset's; 0 = every step guided).
         generator: a CPU ``torch.Generator``; the same seed gives the same clips.
         progress: optional callable(step, total) called after every denoising step.
         latents: the first clip's initial noise (b, t', c, h, w) (see :meth:`latent_shape`); default:
