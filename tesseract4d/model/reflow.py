@@ -69,6 +69,11 @@ def _shard_path(out: Path, index: int) -> Path:
     return out / f"{SHARD_PREFIX}{index:05d}.safetensors"
 
 
+# What a manifest written before a key existed meant by it: pairs before guidance intervals were
+# guided at every step.
+_MANIFEST_DEFAULTS = {"guidance_min_sigma": 0.0}
+
+
 def _check_manifest(out: Path, manifest: dict) -> None:
     path = out / MANIFEST
     if not path.is_file():
@@ -76,12 +81,9 @@ def _check_manifest(out: Path, manifest: dict) -> None:
             raise UserError(f"{out} exists and is not a reflow pairs folder; choose a new --out")
         return
     saved = json.loads(path.read_text())
-    keys = ("teacher_digest", "teacher_steps", "text_guidance", "image_guidance", "data", "seed", "shard_size",
-            "groups")
-    differ = [k for k in keys if saved.get(k) != manifest.get(k)]
-    # Pairs written before guidance intervals existed were guided at every step.
-    if saved.get("guidance_min_sigma", 0.0) != manifest.get("guidance_min_sigma", 0.0):
-        differ.append("guidance_min_sigma")
+    keys = ("teacher_digest", "teacher_steps", "text_guidance", "image_guidance", "guidance_min_sigma", "data", "seed",
+            "shard_size", "groups")
+    differ = [k for k in keys if saved.get(k, _MANIFEST_DEFAULTS.get(k)) != manifest.get(k)]
     if differ:
         raise UserError(f"{out} holds pairs made with other settings ({', '.join(differ)} differ); "
                         f"choose a new --out for these settings")
@@ -114,8 +116,8 @@ def generate_pairs(cfg: PairsConfig, progress: bool = True) -> Path:
     out = Path(cfg.out)
     manifest = {"format": 1, "teacher": str(cfg.teacher), "teacher_digest": weights_digest(cfg.teacher),
                 "teacher_preset": p.to_dict(), "teacher_steps": steps, "text_guidance": text_g,
-                "image_guidance": image_g, "guidance_min_sigma": p.guidance_min_sigma, "data": plain(cfg.data), "camera": data.camera, "seed": cfg.seed,
-                "shard_size": cfg.shard_size, "groups": bool(cfg.groups), "config": cfg.to_dict()}
+                "image_guidance": image_g, "guidance_min_sigma": p.guidance_min_sigma, "data": plain(cfg.data),
+                "camera": data.camera, "seed": cfg.seed, "shard_size": cfg.shard_size, "groups": bool(cfg.groups), "config": cfg.to_dict()}
     _check_manifest(out, manifest)
     out.mkdir(parents=True, exist_ok=True)
     tmp = out / f".{MANIFEST}.tmp"
