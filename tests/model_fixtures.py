@@ -1,5 +1,6 @@
 """Test helpers of the model tests: a micro preset, a tiny random CogVideoX-5B-I2V-shaped model
-folder. Their synthetic RGB-D-N data is in ``synthetic_scene.py``."""
+folder, a short `--max-steps auto` probe on a known clock. Their synthetic RGB-D-N data is in
+``synthetic_scene.py``."""
 
 from __future__ import annotations
 
@@ -58,3 +59,21 @@ def write_tiny_cogvideox_folder(root: Path) -> Path:
     t5.save_pretrained(root / "text_encoder")
     AutoTokenizer.from_pretrained(minilm_path()).save_pretrained(root / "tokenizer")
     return root
+
+
+def short_step_budget(monkeypatch, module: str, seconds_per_call: float = 1.0):
+    """The trainer's StepBudget with a short probe (1 untimed, 2 timed steps) on a clock that moves
+    ``seconds_per_call`` each time it is read, so the fitted number of steps is known in advance."""
+    import functools
+    import importlib
+
+    from tesseract4d.model.lr_schedule import StepBudget
+
+    now = [0.0]
+
+    def clock():
+        now[0] += seconds_per_call
+        return now[0]
+
+    monkeypatch.setattr(importlib.import_module(module), "StepBudget",
+                        functools.partial(StepBudget, skip_steps=1, timed_steps=2, clock=clock))

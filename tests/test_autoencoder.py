@@ -378,3 +378,25 @@ def test_trainer_never_takes_over_a_folder_it_did_not_write(tmp_path):
     # A new folder is claimed (marked as this trainer's) only once the inputs have loaded.
     AutoencoderTrainer(_train_cfg(data, tmp_path / "new", max_steps=1))
     assert (tmp_path / "new" / ".tesseract4d-output.json").is_file()
+
+
+def test_max_steps_auto_fits_the_autoencoder_schedule_and_resume_keeps_it(tmp_path, monkeypatch):
+    from model_fixtures import short_step_budget
+
+    from tesseract4d.model.autoencoder_trainer import AutoencoderTrainer
+
+    # Clock reads: start 1, after steps 1/2/3: 2, 3, 4 -> 1 step/s with 0.2 min - 3 s left.
+    short_step_budget(monkeypatch, "tesseract4d.model.autoencoder_trainer")
+    fitted = 3 + int(1.0 * (12.0 - 3.0) * 0.93)
+    data = write_segmented_dataset(tmp_path / "data")
+    run = tmp_path / "auto"
+    trainer = AutoencoderTrainer(_train_cfg(data, run, max_steps="auto", max_minutes=0.2))
+    gate = trainer.train()
+    assert trainer.step == fitted == gate["step"]
+    saved = json.loads((run / "ae_train_config.json").read_text())
+    assert saved["max_steps"] == fitted and saved["max_steps_fit"]["max_steps"] == fitted
+    resumed = AutoencoderTrainer(_train_cfg(data, run, max_steps="auto", resume=True))
+    resumed.load_checkpoint()
+    assert resumed.cfg.max_steps == fitted and resumed.cfg.max_steps_fit == saved["max_steps_fit"]
+    with pytest.raises(UserError, match="--max-minutes"):
+        AutoencoderTrainer(_train_cfg(data, tmp_path / "nobudget", max_steps="auto"))

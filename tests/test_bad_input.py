@@ -333,6 +333,8 @@ def test_two_datagen_processes_on_one_folder(tmp_path, capsys):
     (["--loss-weights", "rgb"], ["--loss-weights"]),
     (["--max-steps", "0"], ["--max-steps"]),
     (["--max-steps", "-1"], ["--max-steps"]),
+    (["--max-steps", "auto"], ["--max-steps auto", "--max-minutes"]),
+    (["--max-steps", "auto", "--max-minutes", "5", "--stop-at-step", "3"], ["--stop-at-step"]),
     (["--warmup-steps", "-1"], ["--warmup-steps"]),
     (["--max-minutes", "nan"], ["--max-minutes"]),
 ])

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 import torch
-from model_fixtures import MICRO, register_preset
+from model_fixtures import MICRO, register_preset, short_step_budget
 from synthetic_scene import write_synthetic_dataset
 
 from tesseract4d import cli
@@ -169,3 +169,29 @@ def test_overfit_one_clip(tmp_path):
     noise = rgb_psnr(torch.rand(gt.shape, generator=torch.Generator().manual_seed(0)), gt)
     # Measured: 35.5 dB vs 21.1 dB static world vs 8.5 dB noise.
     assert psnr > 28.0 and psnr > static + 6.0 and psnr > noise + 15.0, (psnr, static, noise)
+
+
+def test_max_steps_auto_fits_the_schedule_and_trains_as_that_number(dataset, tmp_path, monkeypatch, capsys):
+    # Clock reads: start 1, after steps 1/2/3: 2, 3, 4 -> 2 timed steps in 2 s = 1 step/s, 0.5 min - 3 s left.
+    short_step_budget(monkeypatch, "tesseract4d.model.trainer")
+    fitted = 3 + int(1.0 * (30.0 - 3.0) * 0.93)
+    run = tmp_path / "auto"
+    auto = Trainer(_config(dataset, run, max_steps="auto", max_minutes=0.5, warmup_steps=3))
+    auto.train()
+    printed = capsys.readouterr()
+    assert f"schedule ends at step {fitted}" in printed.out + printed.err
+    assert auto.step == fitted == auto.cfg.max_steps
+    saved = json.loads((run / "train_config.json").read_text())
+    assert saved["max_steps"] == fitted and saved["max_steps_fit"]["steps_per_s"] == pytest.approx(1.0)
+    state = json.loads((list_checkpoints(run)[-1] / "trainer_state.json").read_text())
+    assert state["config"]["max_steps"] == fitted
+    # The probe's steps are warm-up steps, so the run is step for step a run given that number.
+    given = Trainer(_config(dataset, tmp_path / "given", max_steps=fitted, warmup_steps=3))
+    given.train()
+    wa, wb = _weights(auto), _weights(given)
+    assert all(torch.equal(wa[k], wb[k]) for k in wa)
+    # --resume with auto (no budget needed) goes on along the recorded schedule.
+    resumed = Trainer(_config(dataset, run, max_steps="auto", resume=True, warmup_steps=3))
+    assert resumed.cfg.max_steps == fitted and resumed.cfg.max_steps_fit == saved["max_steps_fit"]
+    with pytest.raises(UserError, match="--max-minutes"):
+        Trainer(_config(dataset, tmp_path / "nobudget", max_steps="auto"))

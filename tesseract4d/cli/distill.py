@@ -27,6 +27,7 @@ from pathlib import Path
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+    from tesseract4d.model.lr_schedule import add_max_steps_argument
     from tesseract4d.model.reflow import PairsConfig, ReflowConfig
     from tesseract4d.precision import add_precision_argument
 
@@ -55,8 +56,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--rephrase", type=float, default=d.rephrase, metavar="P",
                         help="probability of training a pair under another training wording of its instruction, the "
                              "teacher's clip staying the target (as `train --rephrase`) (default %(default)s)")
-    parser.add_argument("--max-steps", type=int, default=d.max_steps,
-                        help="training steps; the cosine learning-rate decay ends here (default %(default)s)")
+    add_max_steps_argument(parser, d.max_steps, "the student's training steps")
     parser.add_argument("--max-minutes", type=float, help="stop with a checkpoint after this many minutes of this invocation")
     parser.add_argument("--batch-size", type=int, help="pairs per step (default: the teacher preset's)")
     parser.add_argument("--lr", type=float, help="peak learning rate (default: the teacher preset's)")

@@ -3,6 +3,8 @@
   tesseract4d train --data data/ae128 --autoencoder runs/ae/autoencoder --out runs/latent   # latent-128 (default)
   tesseract4d train --data data/skills data/tasks --autoencoder runs/ae/autoencoder --out runs/v2   # two datasets
   tesseract4d train --preset tiny --data data/train --out runs/tiny --max-minutes 60
+  tesseract4d train --data data/ae128 --autoencoder runs/ae/autoencoder --out runs/gpu --max-steps auto --max-minutes 8
+                                                                     # the cosine decay fitted to an 8-minute budget
   tesseract4d train --out runs/tiny --resume --data data/train      # continue exactly where it stopped
   tesseract4d train --init tesseract4d/checkpoints/v2 --data data/skills --out runs/v2-more --lr 1.5e-4
                                                                      # fine-tune a checkpoint (new schedule)
@@ -23,6 +25,7 @@ from tesseract4d.model.presets import PRESETS
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     from tesseract4d.model.recipe import SWAP_MIN_T
+    from tesseract4d.model.lr_schedule import add_max_steps_argument
     from tesseract4d.model.trainer import TrainConfig
     from tesseract4d.precision import add_precision_argument
 
@@ -64,8 +67,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="probability of training a clip under another training wording of its instruction (same "
                              "object, direction and distance, from the datagen's train templates) (default %(default)s)")
     parser.add_argument("--text-dropout", type=float, help="share of steps without text, for guidance (default: the preset's)")
-    parser.add_argument("--max-steps", type=int, default=d.max_steps,
-                        help="training steps; the cosine learning-rate decay ends here (default %(default)s)")
+    add_max_steps_argument(parser, d.max_steps)
     parser.add_argument("--max-minutes", type=float, help="stop with a checkpoint after this many minutes of this invocation")
     parser.add_argument("--stop-at-step", type=int,
                         help="stop with a checkpoint at this step; the learning-rate schedule still ends at --max-steps "

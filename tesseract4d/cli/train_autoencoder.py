@@ -21,6 +21,8 @@ Example:
       --heldout data/skills128_heldout --out runs/dec_ft     # a better decoder for v2's latents (see swap-decoder)
   tesseract4d train-autoencoder --init tesseract4d/checkpoints/v2/autoencoder --decoder-only --decoder-layers-per-block 0 \\
       --data data/skills128 --heldout data/skills128_heldout --out runs/dec_light   # a lighter, faster one
+  tesseract4d train-autoencoder --data data/ae128 --heldout data/ae128_heldout --max-steps auto --max-minutes 8 \
+      --out runs/ae_gpu     # the cosine decay fitted to an 8-minute budget (e.g. a lent GPU)
 """
 
 from __future__ import annotations
@@ -30,6 +32,7 @@ from pathlib import Path
 
 from tesseract4d.model.autoencoder import AUTOENCODER_PRESETS
 from tesseract4d.model.autoencoder_trainer import AutoencoderTrainConfig
+from tesseract4d.model.lr_schedule import add_max_steps_argument
 from tesseract4d.precision import add_precision_argument
 
 
@@ -55,7 +58,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--preset", default=d.preset, choices=list(AUTOENCODER_PRESETS),
                         help="autoencoder architecture (default %(default)s)")
     parser.add_argument("--camera", default=None, help="camera of the dataset to train on (default: its first)")
-    parser.add_argument("--max-steps", type=int, default=d.max_steps, help="steps in total, also the cosine decay length (default %(default)s)")
+    add_max_steps_argument(parser, d.max_steps)
     parser.add_argument("--max-minutes", type=float, default=None, help="stop with a checkpoint after this many minutes")
     parser.add_argument("--batch-size", type=int, default=d.batch_size, help="frames per step (default %(default)s)")
     parser.add_argument("--lr", type=float, default=d.lr, help="peak learning rate (default %(default)s)")

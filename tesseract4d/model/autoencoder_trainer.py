@@ -32,7 +32,6 @@ Run folder::
 from __future__ import annotations
 
 import json
-import math
 import os
 import re
 import shutil
@@ -53,6 +52,7 @@ from tesseract4d.precision import announce, resolve_precision
 from tesseract4d.model.autoencoder import (
     FIDELITY_FILE, AutoencoderConfig, RGBDNAutoencoder, get_autoencoder_preset, load_autoencoder, save_autoencoder,
 )
+from tesseract4d.model.lr_schedule import AUTO, UNFITTED_MAX_STEPS, StepBudget, check_max_steps, lr_at, resumed_max_steps
 from tesseract4d.model.model_space import ModelSpace, channel_slices
 
 CONFIG_FILE = "ae_train_config.json"
@@ -78,7 +78,7 @@ class AutoencoderTrainConfig:
     frame_stride: int = 1  # train on every k-th frame of each episode
     preset: str = "ae-f8c32"
     camera: str | None = None
-    max_steps: int = 20000  # also the length of the cosine decay
+    max_steps: int | str = 20000  # also the length of the cosine decay; "auto": fitted to max_minutes (lr_schedule)
     max_minutes: float | None = None  # stop (with a checkpoint) after this much time in this invocation
     batch_size: int = 8
     lr: float = 4e-4
@@ -101,6 +101,7 @@ class AutoencoderTrainConfig:
     seed: int = 0
     resume: bool = False
     progress: bool = True
+    max_steps_fit: dict | None = None  # set by the trainer when --max-steps auto fitted the schedule
 
     @property
     def data_folders(self) -> list[Path]:
@@ -108,14 +109,6 @@ class AutoencoderTrainConfig:
 
     def to_dict(self) -> dict:
         return config_dict(self)
-
-
-def lr_at(step: int, cfg: AutoencoderTrainConfig) -> float:
-    """Linear warm-up to ``lr``, then cosine decay to ``min_lr_ratio * lr`` at ``max_steps``."""
-    if step < cfg.warmup_steps:
-        return cfg.lr * (step + 1) / cfg.warmup_steps
-    progress = min(1.0, (step - cfg.warmup_steps) / max(1, cfg.max_steps - cfg.warmup_steps))
-    return cfg.lr * (cfg.min_lr_ratio + (1 - cfg.min_lr_ratio) * 0.5 * (1 + math.cos(math.pi * progress)))
 
 
 # --------------------------------------------------------------------------- data
@@ -268,6 +261,7 @@ class AutoencoderTrainer:
             raise UserError("--data is required: a dataset folder written by `tesseract4d datagen --resolution 128`")
         if cfg.frame_stride < 1:
             raise UserError(f"--frame-stride must be at least 1, got {cfg.frame_stride}")
+        check_max_steps(cfg.max_steps, cfg.max_minutes, resume=cfg.resume)
         if cfg.decoder_only and cfg.init is None:
             raise UserError("--decoder-only fine-tunes the decoder of an existing autoencoder: pass --init AE "
                             "(e.g. tesseract4d/checkpoints/v2/autoencoder)")
@@ -370,7 +364,8 @@ class AutoencoderTrainer:
         save_autoencoder(self.model, tmp / "model")
         save_autoencoder(self.ema.model, tmp / "model_ema")
         save_optimizer(self.optimizer, tmp)
-        (tmp / STATE_FILE).write_text(json.dumps({"step": self.step, "precision": self.precision}))
+        (tmp / STATE_FILE).write_text(json.dumps({"step": self.step, "precision": self.precision,
+                                                  "max_steps": self.cfg.max_steps}))
         if final.exists():
             shutil.rmtree(final)
         os.replace(tmp, final)
@@ -387,7 +382,14 @@ class AutoencoderTrainer:
         self.model.load_state_dict(load_file(str(ckpt / "model" / "model.safetensors")))
         self.ema.model.load_state_dict(load_file(str(ckpt / "model_ema" / "model.safetensors")))
         load_optimizer(self.optimizer, ckpt)
-        self.step = json.loads((ckpt / STATE_FILE).read_text())["step"]
+        state = json.loads((ckpt / STATE_FILE).read_text())
+        self.step = state["step"]
+        requested = self.cfg.max_steps
+        if requested == AUTO:  # checkpoints before "max_steps" was in the state: the run's config has it
+            saved = state.get("max_steps", json.loads((self.out / CONFIG_FILE).read_text()).get("max_steps"))
+            self.cfg.max_steps = resumed_max_steps(requested, saved, self.cfg.max_minutes)
+            if self.cfg.max_steps != AUTO:
+                self.cfg.max_steps_fit = json.loads((self.out / CONFIG_FILE).read_text()).get("max_steps_fit")
 
     def export(self) -> dict:
         """Write RUN/autoencoder (EMA weights + latent statistics + fidelity.json) atomically; return the gate."""
@@ -461,12 +463,20 @@ class AutoencoderTrainer:
         for s in previous:
             signal.signal(s, request_stop)
         start = last_ckpt = time.time()
-        bar = tqdm(total=cfg.max_steps, initial=self.step, desc="train-autoencoder", unit="step", disable=not cfg.progress)
+        # "auto": the cosine is fitted to max_minutes after the first steps (the config says "auto" until then).
+        budget = StepBudget(cfg.max_minutes, self.step) if cfg.max_steps == AUTO else None
+        bar = tqdm(total=None if budget else cfg.max_steps, initial=self.step, desc="train-autoencoder", unit="step",
+                   disable=not cfg.progress)
         fidelity: dict = {}
         try:
-            while self.step < cfg.max_steps and not self.stop_requested:
+            while self.step < (UNFITTED_MAX_STEPS if cfg.max_steps == AUTO else cfg.max_steps) and not self.stop_requested:
                 t0 = time.perf_counter()
                 logs = self.train_step()
+                if budget is not None and budget.after_step(self.step) is not None:
+                    cfg.max_steps, cfg.max_steps_fit = budget.fitted, budget.record()
+                    bar.total = cfg.max_steps
+                    bar.write(budget.describe())
+                    df.atomic_write_text(self.out / CONFIG_FILE, json.dumps(cfg.to_dict(), indent=2))
                 logs["steps_per_s"] = 1.0 / (time.perf_counter() - t0)
                 for k, v in logs.items():
                     writer.add_scalar(f"train/{k}", v, self.step)

@@ -40,6 +40,7 @@ from tesseract4d.configs import config_dict, folder_list
 from tesseract4d.errors import UserError
 from tesseract4d.precision import announce, resolve_precision
 from tesseract4d.psnr import rgb_psnr
+from tesseract4d.model.lr_schedule import AUTO, UNFITTED_MAX_STEPS, StepBudget, check_max_steps, lr_at, resumed_max_steps
 from tesseract4d.model.model_space import MODALITIES, ModelSpace
 from tesseract4d.model.checkpoint import (
     INFERENCE_CONFIG_FILE, MODEL_CONFIG_FILE, SCHEDULER_CONFIG_FILE, SCHEDULER_DIR, TRANSFORMER_DIR, WEIGHTS_FILE,
@@ -62,7 +63,9 @@ class TrainConfig:
     out: Path = Path("runs/tiny")
     preset: str = "latent-128"
     pretrained: Path | None = None
-    max_steps: int = 5000  # also the length of the cosine decay
+    # Also the length of the cosine decay; "auto" fits it to max_minutes from the first steps' rate
+    # (tesseract4d.model.lr_schedule.StepBudget), the fit recorded in max_steps_fit.
+    max_steps: int | str = 5000
     max_minutes: float | None = None  # stop (with a checkpoint) after this much time in this invocation
     # Stop (with a checkpoint) at this step while the learning-rate schedule still ends at max_steps:
     # a run cut short of its schedule, reproducible in one command (--resume goes on from there).
@@ -101,6 +104,7 @@ class TrainConfig:
     difference_weight: float = 1.0  # with group_batches: loss weight of cells where a group's futures differ
     counterfactual_swap: float = 0.0  # with group_batches: probability of showing a clip a sibling's noisy sample
     rephrase: float = 0.0  # probability of training a clip under another training wording of its instruction
+    max_steps_fit: dict | None = None  # set by the trainer when --max-steps auto fitted the schedule
 
     def resolved(self, preset: ModelPreset) -> "TrainConfig":
         out = dataclasses.replace(self)
@@ -125,8 +129,7 @@ class TrainConfig:
             if not ok:
                 raise UserError(f"--{name.replace('_', '-')} must be a finite number {'>=' if low_ok else '>'} {low}, got {value}")
 
-        if self.max_steps < 1:
-            raise UserError(f"--max-steps must be at least 1, got {self.max_steps}")
+        check_max_steps(self.max_steps, self.max_minutes, self.stop_at_step, resume=self.resume)
         if self.batch_size < 1:
             raise UserError(f"--batch-size must be at least 1, got {self.batch_size}")
         finite("lr", self.lr, 0)
@@ -134,7 +137,7 @@ class TrainConfig:
             raise UserError(f"--warmup-steps must be >= 0, got {self.warmup_steps}")
         if self.max_minutes is not None:
             finite("max_minutes", self.max_minutes, 0, low_ok=True)
-        if self.stop_at_step is not None and not 1 <= self.stop_at_step <= self.max_steps:
+        if self.stop_at_step is not None and self.max_steps != AUTO and not 1 <= self.stop_at_step <= self.max_steps:
             raise UserError(f"--stop-at-step must be between 1 and --max-steps ({self.max_steps}), got {self.stop_at_step}")
         for name in ("val_every", "ckpt_every"):
             if getattr(self, name) < 0:
@@ -153,14 +156,6 @@ class TrainConfig:
         return {k: getattr(self, k) for k in ("condition_noise", "moving_weight", "object_weight", "prediction",
                                               "text_dropout", "time_shift", "group_batches", "difference_weight",
                                               "counterfactual_swap", "rephrase")}
-
-
-def lr_at(step: int, cfg: TrainConfig) -> float:
-    """Linear warm-up to ``lr``, then cosine decay to ``min_lr_ratio * lr`` at ``max_steps``."""
-    if step < cfg.warmup_steps:
-        return cfg.lr * (step + 1) / cfg.warmup_steps
-    progress = min(1.0, (step - cfg.warmup_steps) / max(1, cfg.max_steps - cfg.warmup_steps))
-    return cfg.lr * (cfg.min_lr_ratio + (1 - cfg.min_lr_ratio) * 0.5 * (1 + math.cos(math.pi * progress)))
 
 
 class EMA:
@@ -639,6 +634,11 @@ class Trainer:
                 raise UserError(f"{ckpt / sub} does not match preset {self.preset.name!r}: {str(e).splitlines()[0]}") from e
         load_optimizer(self.optimizer, ckpt)
         load_rng(ckpt)
+        saved_cfg = state.get("config", {})
+        requested = self.cfg.max_steps
+        self.cfg.max_steps = resumed_max_steps(requested, saved_cfg.get("max_steps"), self.cfg.max_minutes)
+        if requested == AUTO and self.cfg.max_steps != AUTO:  # the schedule of the run, and how it was fitted
+            self.cfg.max_steps_fit = saved_cfg.get("max_steps_fit")
         self.step = int(state["step"])
         self.elapsed_s = float(state["elapsed_s"])
         self.last_loss = state["last_loss"]
@@ -687,13 +687,22 @@ class Trainer:
         start = time.monotonic()
         start_step = self.step
         elapsed_before = self.elapsed_s
-        bar = tqdm(total=cfg.max_steps, initial=self.step, desc=f"train {self.preset.name}", unit="step",
-                   disable=not (cfg.progress and acc.is_main_process), dynamic_ncols=True)
+        # "auto": the cosine is fitted to max_minutes after the first steps (the config says "auto" until then).
+        budget = StepBudget(cfg.max_minutes, self.step) if cfg.max_steps == AUTO else None
+        bar = tqdm(total=None if budget else cfg.max_steps, initial=self.step, desc=f"train {self.preset.name}",
+                   unit="step", disable=not (cfg.progress and acc.is_main_process), dynamic_ncols=True)
         smooth = None
-        last_step = cfg.max_steps if cfg.stop_at_step is None else cfg.stop_at_step
+        last_step = UNFITTED_MAX_STEPS if budget else cfg.max_steps if cfg.stop_at_step is None else cfg.stop_at_step
         try:
             while self.step < last_step and not self._stop_requested:
                 logs = self.train_step()
+                if budget is not None and budget.after_step(self.step) is not None:
+                    cfg.max_steps = last_step = budget.fitted
+                    cfg.max_steps_fit = budget.record()
+                    bar.total = cfg.max_steps
+                    bar.write(budget.describe())
+                    if acc.is_main_process:
+                        (self.out / "train_config.json").write_text(json.dumps(cfg.to_dict(), indent=2))
                 self.elapsed_s = elapsed_before + time.monotonic() - start
                 smooth = logs["loss"] if smooth is None else 0.95 * smooth + 0.05 * logs["loss"]
                 rate = (self.step - start_step) / max(1e-6, time.monotonic() - start)
