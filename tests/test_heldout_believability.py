@@ -607,3 +607,51 @@ def test_clip_motion_ignores_a_constant_offset_of_the_predicted_frames_from_the_
         moving[t, 4:8, 2 * t:2 * t + 4] = 250
     assert clip_motion(moving) > 1.0
     assert clip_motion(decoded[:2]) == pytest.approx(10.0)
+
+
+def test_goals_table_reads_the_reports_numbers(two_checkpoints, tmp_path, capsys):
+    from tesseract4d import cli
+    from tesseract4d.evaluation.heldout import HeldoutConfig, evaluate_heldout, write_heldout_report
+
+    a, b, heldout = two_checkpoints
+    report = evaluate_heldout(HeldoutConfig(checkpoint=[a, b], data=heldout, num_steps=2), progress=False)
+    write_heldout_report(report, tmp_path / "eval")
+    capsys.readouterr()
+    assert cli.main(["goals", f"{tmp_path / 'eval'}=synthetic", "--references"]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    header = [c.strip() for c in lines[0].strip("|").split("|")]
+    assert header == ["measure (goal)", f"synthetic: {a.name}", "synthetic: v2", "synthetic: static world"]
+    rows = {line.split("|")[1].strip(): [c.strip() for c in line.strip().strip("|").split("|")[1:]]
+            for line in lines[2:] if line.startswith("| ")}
+    s = report["summary"]
+    psnr = rows["RGB PSNR, moving (≥ 22 dB)"]
+    assert [float(c.split()[0]) for c in psnr] == [round(s[m]["rgb_psnr_db_moving"], 2) for m in (a.name, "v2", "static")]
+    assert rows["4D Chamfer, moving (≤ 20 mm)"][2].split()[0] == f"{1000 * s['static']['chamfer_l1_m_moving']:.1f}"
+    # The static world keeps still in the one "keep still" instruction and follows neither push.
+    assert rows["instruction contrast (≥ 70%)"][2] == "1 / 3 (0.33) ✗"
+    assert rows['"keep still" right'][2] == "1 / 1 (1.00)" and rows["active instructions right"][2] == "0 / 2 (0.00)"
+    c = report["contrast"]["v2"]
+    assert rows["instruction contrast (≥ 70%)"][1].startswith(f"{c['right']} / {c['instructions']} ")
+    grid = s["static"]["token_grid_ratio"]
+    assert rows["token grid ratio (0.8–1.25)"][2] == f"{grid:.3f} " + ("✓" if 0.8 <= grid <= 1.25 else "✗")
+    assert any("noise seeds 0" in line and "2 steps" in line for line in lines)
+    # Without --references only the checkpoints.
+    assert cli.main(["goals", str(tmp_path / "eval")]) == 0
+    assert capsys.readouterr().out.splitlines()[0].count("eval: ") == 2
+
+
+def test_goals_refuses_what_is_not_a_heldout_report(tmp_path, capsys):
+    from tesseract4d import cli
+
+    (tmp_path / "empty").mkdir()
+    (tmp_path / "other").mkdir()
+    (tmp_path / "other" / "report.json").write_text(json.dumps({"rgb_psnr_db": 20.0}))
+    (tmp_path / "old").mkdir()
+    (tmp_path / "old" / "report.json").write_text(json.dumps({"format": "tesseract4d-heldout-eval", "format_version": 3}))
+    (tmp_path / "torn").mkdir()
+    (tmp_path / "torn" / "report.json").write_text('{"format": "tesseract4d-he')
+    for folder, words in (("empty", "holds no report.json"), ("other", "not a held-out report"),
+                          ("old", "format 3"), ("torn", "not a readable report")):
+        assert cli.main(["goals", str(tmp_path / folder)]) == 2
+        err = capsys.readouterr().err
+        assert words in err and "Traceback" not in err, err

@@ -23,6 +23,7 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "predict": ("tesseract4d.cli.predict", "predict the RGB-D-N future from a first frame and an instruction"),
     "reconstruct": ("tesseract4d.cli.reconstruct", "fuse an RGB-D-N video into a consistent 4D point cloud"),
     "evaluate": ("tesseract4d.cli.evaluate", "metrics of a prediction/reconstruction against ground truth"),
+    "goals": ("tesseract4d.cli.goals", "the held-out goals against `evaluate --heldout` reports, as one Markdown table"),
     "train-idm": ("tesseract4d.cli.train_idm", "train the inverse dynamics model (or its behaviour-cloning twin)"),
     "rollout": ("tesseract4d.cli.rollout", "closed-loop rollouts in ManiSkill with success rates per arm"),
     "view": ("tesseract4d.cli.view", "open a reconstruction, episode or prediction in the browser viewer"),
