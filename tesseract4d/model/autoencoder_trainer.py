@@ -385,11 +385,12 @@ class AutoencoderTrainer:
         state = json.loads((ckpt / STATE_FILE).read_text())
         self.step = state["step"]
         requested = self.cfg.max_steps
-        if requested == AUTO:  # checkpoints before "max_steps" was in the state: the run's config has it
-            saved = state.get("max_steps", json.loads((self.out / CONFIG_FILE).read_text()).get("max_steps"))
+        if requested == AUTO:  # the schedule the run was on (older checkpoints: from the run's config)
+            run_config = json.loads((self.out / CONFIG_FILE).read_text())
+            saved = state.get("max_steps", run_config.get("max_steps"))
             self.cfg.max_steps = resumed_max_steps(requested, saved, self.cfg.max_minutes)
             if self.cfg.max_steps != AUTO:
-                self.cfg.max_steps_fit = json.loads((self.out / CONFIG_FILE).read_text()).get("max_steps_fit")
+                self.cfg.max_steps_fit = run_config.get("max_steps_fit")
 
     def export(self) -> dict:
         """Write RUN/autoencoder (EMA weights + latent statistics + fidelity.json) atomically; return the gate."""

@@ -697,7 +697,7 @@ class Trainer:
             while self.step < last_step and not self._stop_requested:
                 logs = self.train_step()
                 if budget is not None and budget.after_step(self.step) is not None:
-                    cfg.max_steps = last_step = budget.fitted
+                    budget.fitted = cfg.max_steps = last_step = self._agreed_max_steps(budget.fitted)
                     cfg.max_steps_fit = budget.record()
                     bar.total = cfg.max_steps
                     bar.write(budget.describe())
@@ -729,6 +729,15 @@ class Trainer:
 
     def _request_stop(self, signum, frame) -> None:
         self._stop_requested = True
+
+    def _agreed_max_steps(self, fitted: int) -> int:
+        """The main process's fitted schedule, for every process (each timed its own steps; they must
+        stop at the same step)."""
+        if self.accelerator.num_processes == 1:
+            return fitted
+        from accelerate.utils import broadcast_object_list
+
+        return int(broadcast_object_list([fitted], from_process=0)[0])
 
 
 def _allow_new_accelerator(mixed_precision: str) -> None:
