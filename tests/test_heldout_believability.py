@@ -638,6 +638,15 @@ def test_goals_table_reads_the_reports_numbers(two_checkpoints, tmp_path, capsys
     # Without --references only the checkpoints.
     assert cli.main(["goals", str(tmp_path / "eval")]) == 0
     assert capsys.readouterr().out.splitlines()[0].count("eval: ") == 2
+    # Piped into a reader that stops early (`| head`): a quiet stop, no traceback.
+    import subprocess
+    import sys
+
+    proc = subprocess.Popen([sys.executable, "-m", "tesseract4d.cli", "goals", str(tmp_path / "eval")],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    proc.stdout.close()
+    err = proc.stderr.read().decode()
+    assert proc.wait() == 141 and "Traceback" not in err and "BrokenPipe" not in err, err
 
 
 def test_goals_refuses_what_is_not_a_heldout_report(tmp_path, capsys):

@@ -75,6 +75,11 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("\ninterrupted; finished work is kept on disk", file=sys.stderr)
         return 130
+    except BrokenPipeError:  # stdout closed by its reader (`... | head`): stop quietly, as Unix tools do
+        import os
+
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # no second error when Python flushes
+        return 141
     except Exception as e:  # user-facing errors: one clear line, no traceback
         from tesseract4d.errors import UserError
 
