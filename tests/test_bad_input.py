@@ -25,7 +25,6 @@ from synthetic_scene import synthetic_episode, write_synthetic_dataset
 
 from tesseract4d import cli
 from tesseract4d import dataset_format as df
-from tesseract4d.model.presets import PRESETS
 from tesseract4d.outputs import MARKER
 
 REPO = Path(__file__).resolve().parent.parent
@@ -36,10 +35,10 @@ ENV = "Synthetic-v0"
 
 
 @pytest.fixture(scope="module")
-def micro_registered():
-    PRESETS[MICRO.name] = MICRO
-    yield MICRO
-    PRESETS.pop(MICRO.name, None)
+def micro_registered(micro_preset):
+    """The micro preset, registered for the whole run by conftest's micro_preset (a registration of
+    this module's own would remove it from the modules that run after this one)."""
+    return micro_preset
 
 
 @pytest.fixture(scope="module")
