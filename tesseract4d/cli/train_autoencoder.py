@@ -21,7 +21,7 @@ Example:
       --heldout data/skills128_heldout --out runs/dec_ft     # a better decoder for v2's latents (see swap-decoder)
   tesseract4d train-autoencoder --init tesseract4d/checkpoints/v2/autoencoder --decoder-only --decoder-layers-per-block 0 \\
       --data data/skills128 --heldout data/skills128_heldout --out runs/dec_light   # a lighter, faster one
-  tesseract4d train-autoencoder --data data/ae128 --heldout data/ae128_heldout --max-steps auto --max-minutes 8 \
+  tesseract4d train-autoencoder --data data/ae128 --heldout data/ae128_heldout --max-steps auto --max-minutes 8 \\
       --out runs/ae_gpu     # the cosine decay fitted to an 8-minute budget (e.g. a lent GPU)
 """
 
