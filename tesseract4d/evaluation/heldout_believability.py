@@ -33,8 +33,8 @@ from tesseract4d.evaluation.believability import (MIN_OBJECT_PIXELS, OBJECT_COLO
 from tesseract4d.evaluation.instruction_following import object_pixel_track
 from tesseract4d.intervals import wilson_interval
 
-PRESENCE_GOAL = 0.95  # issue: every visible object present in at least 95 % of frames
-CONTRAST_GOAL = 0.70  # issue: at least 70 % of a group's instructions right
+PRESENCE_GOAL = 0.95  # goal: every visible object present in at least 95 % of frames
+CONTRAST_GOAL = 0.70  # goal: at least 70 % of a group's instructions right
 TOKEN_GRID_GOAL = (0.8, 1.25)  # ground truth at 64-128 px measures 0.95-1.16; outside this a grid shows
 EDGE_SHARPNESS_GOAL = 0.8  # the prediction keeps at least 80 % of the ground truth's edge contrast
 # Names (prefixes) in a segmentation map that are not scene objects.
