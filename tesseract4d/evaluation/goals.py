@@ -18,6 +18,7 @@ from pathlib import Path
 from typing import Callable
 
 from tesseract4d.errors import UserError
+from tesseract4d.evaluation.heldout import describe_sampler
 from tesseract4d.evaluation.heldout_believability import (
     CONTRAST_GOAL, EDGE_SHARPNESS_GOAL, PRESENCE_GOAL, TOKEN_GRID_GOAL)
 from tesseract4d.evaluation.instruction_following import RIGHT_WAY_COSINE
@@ -142,14 +143,6 @@ MEASURES = (
 )
 
 
-def _sampler(col: Column) -> str:
-    s = (col.report.get("sampler") or {}).get(col.method)
-    if not s:
-        return ""
-    text = f"{s['num_steps']} steps, text guidance {s['text_guidance']:g}"
-    return text + (f" at noise ≥ {s['guidance_min_sigma']:g}" if s.get("guidance_min_sigma") else "")
-
-
 def goals_table(reports: list[tuple[str, dict]], references: bool = False) -> str:
     """The Markdown table of ``reports`` ((set label, report) pairs): a row per goal, a column per
     model of each report, ✓ where a goal is met and ✗ where not; then a line per report saying what
@@ -165,8 +158,9 @@ def goals_table(reports: list[tuple[str, dict]], references: bool = False) -> st
     lines.append("")
     for label, report in reports:
         seeds = report.get("sample_seeds") or [report.get("config", {}).get("sample_seed", 0)]
-        samplers = "; ".join(f"{Path(path).name} {_sampler(Column(report, m, ''))}"
-                             for m, path in report["checkpoints"].items() if _sampler(Column(report, m, '')))
+        sampler = report.get("sampler") or {}
+        samplers = "; ".join(f"{Path(path).name} {describe_sampler(sampler[m])}"
+                             for m, path in report["checkpoints"].items() if sampler.get(m))
         tracked = max((f.get("episodes", 0) for f in (report.get("instruction_following") or {}).values()), default=0)
         lines.append(f"- {label}: {report['episodes']} held-out episodes of {report.get('config', {}).get('data', '?')} "
                      f"({', '.join(report.get('tasks', []))}), noise seeds {', '.join(map(str, seeds))}"

@@ -356,6 +356,12 @@ def sampler_settings(cfg: HeldoutConfig, pipeline) -> dict:
     return settings
 
 
+def describe_sampler(settings: dict) -> str:
+    """"10 steps, text guidance 1.5 at noise ≥ 0.2": one checkpoint's entry of a report's ``sampler``."""
+    text = f"{settings['num_steps']} steps, text guidance {settings['text_guidance']:g}"
+    return text + (f" at noise ≥ {settings['guidance_min_sigma']:g}" if settings.get("guidance_min_sigma") else "")
+
+
 def evaluate_heldout(cfg: HeldoutConfig, progress: bool = True) -> dict:
     """Run the evaluation; returns the report (also written to cfg.out when given).
 
@@ -657,10 +663,7 @@ def format_markdown(report: dict) -> str:
                  f"(tracker error on the ground truth: {_fmt(follow[first].get('tracker_px'), '')} px).")
     sampler = report.get("sampler") or {}
     if sampler:
-        lines.append("Samplers: " + "; ".join(
-            f"{m} {v['num_steps']} steps, text guidance {v['text_guidance']:g}"
-            + (f" at noise ≥ {v['guidance_min_sigma']:g}" if v.get("guidance_min_sigma") else "")
-            for m, v in sampler.items()) + ".")
+        lines.append("Samplers: " + "; ".join(f"{m} {describe_sampler(v)}" for m, v in sampler.items()) + ".")
     resized = {m: r for m, r in report.get("resolutions", {}).items() if r.get("resized")}
     if resized:
         lines.append("Resolutions: " + "; ".join(
