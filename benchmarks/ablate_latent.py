@@ -45,6 +45,7 @@ VARIANTS: dict[str, tuple[str, list[str] | None, list[str]]] = {
     "velocity": ("velocity target", ["--prediction", "velocity"], []),
     "text_dropout_0.3": ("text dropout 0.3", ["--text-dropout", "0.3"], []),
     "time_shift_3": ("diffusion times shifted to high noise (3)", ["--time-shift", "3"], []),
+    "time_logit_normal_1": ("diffusion times logit-normal (1), most at middle noise", ["--time-logit-normal", "1"], []),
     "group_batches": ("batches of whole counterfactual groups, one noise and time each", ["--group-batches"], []),
     "difference_weight_4": ("group batches, weight 4 where a group's futures differ",
                             ["--group-batches", "--difference-weight", "4"], []),

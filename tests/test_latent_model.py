@@ -197,13 +197,40 @@ def test_time_shift_draws_uniform_times_at_one_and_more_high_noise_above_it():
     assert abs(float((t > 0.75).float().mean()) - 0.5) < 0.02
 
 
+def test_time_logit_normal_draws_most_times_at_middle_noise():
+    """--time-logit-normal m: t = sigmoid(m n), n ~ N(0, 1), drawn from the generator's normal stream
+    (the uniform draw is untouched at 0): symmetric about t = 0.5, about 68 % of the draws between
+    sigmoid(-m) and sigmoid(m) (0.27-0.73 at m = 1; uniform: 46 %), and a shift maps them as it maps
+    uniform draws."""
+    from tesseract4d.model.recipe import sample_times
+
+    n = 20000
+    z = torch.randn(n, generator=torch.Generator().manual_seed(7))
+    t = sample_times(n, 1.0, torch.Generator().manual_seed(7), logit_normal=1.0)
+    assert torch.allclose(t, torch.sigmoid(z))
+    assert float(t.min()) > 0.0 and float(t.max()) < 1.0
+    assert abs(float(t.median()) - 0.5) < 0.02
+    inner = float(((t > torch.sigmoid(torch.tensor(-1.0))) & (t < torch.sigmoid(torch.tensor(1.0)))).float().mean())
+    assert abs(inner - 0.6827) < 0.02
+    shifted = sample_times(n, 3.0, torch.Generator().manual_seed(7), logit_normal=1.0)
+    assert torch.allclose(shifted, 3 * t / (1 + 2 * t))
+    assert torch.equal(sample_times(n, 1.0, torch.Generator().manual_seed(7), logit_normal=0.0),
+                       torch.rand(n, generator=torch.Generator().manual_seed(7)))
+
+
 def test_time_shift_trains_and_is_recorded(tmp_path):
     from tesseract4d.model.predict import load_pipeline
     from tesseract4d.model.trainer import Trainer
 
     data = write_segmented_dataset(tmp_path / "data", episodes=1)
-    final = Trainer(_config(data, tmp_path / "run", _autoencoder(tmp_path / "ae"), time_shift=3.0)).train()
-    assert load_pipeline(final).config["recipe"]["time_shift"] == 3.0
+    final = Trainer(_config(data, tmp_path / "run", _autoencoder(tmp_path / "ae"), time_shift=3.0,
+                            time_logit_normal=1.0)).train()
+    recipe = load_pipeline(final).config["recipe"]
+    assert recipe["time_shift"] == 3.0 and recipe["time_logit_normal"] == 1.0
+    for bad in (-1.0, float("nan")):
+        with pytest.raises(UserError, match="--time-logit-normal"):
+            Trainer(_config(data, tmp_path / "run2", _autoencoder(tmp_path / "ae"), time_logit_normal=bad))
+    assert not (tmp_path / "run2").exists()
 
 
 def test_rephrase_trains_on_other_wordings_and_is_recorded(tmp_path, monkeypatch):

@@ -54,6 +54,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--time-shift", type=float, default=d.time_shift,
                         help="diffusion times t = s*u / (1 + (s-1)*u), u uniform: 1 = uniform, > 1 trains more at high "
                              "noise (default %(default)s)")
+    parser.add_argument("--time-logit-normal", type=float, default=d.time_logit_normal, metavar="STD",
+                        help="draw u above logit-normal, sigmoid(STD * n) with n ~ N(0, 1), instead of uniform: trains "
+                             "most at middle noise, as SD3 does (1 is SD3's; default %(default)s = uniform)")
     parser.add_argument("--group-batches", action="store_true",
                         help="make every batch of whole counterfactual groups (one scene under several instructions, "
                              "from `datagen --instructions-per-scene`) sharing one noise and diffusion time")
@@ -116,6 +119,7 @@ def run(args: argparse.Namespace) -> int:
         camera=args.camera, progress=not args.no_progress, loss_weights=weights, autoencoder=args.autoencoder,
         condition_noise=args.condition_noise, moving_weight=args.moving_weight, object_weight=args.object_weight,
         prediction=args.prediction, text_dropout=args.text_dropout, init=args.init, time_shift=args.time_shift,
+        time_logit_normal=args.time_logit_normal,
         group_batches=args.group_batches, difference_weight=args.difference_weight,
         counterfactual_swap=args.counterfactual_swap, rephrase=args.rephrase,
     )

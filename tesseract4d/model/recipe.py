@@ -14,6 +14,10 @@
   ``u ~ U(0, 1)`` (the resolution shift of SD3 / flow-matching video models): ``s = 1`` is uniform,
   ``s > 1`` trains more at high noise, where the instruction decides the coarse motion, and less
   near the clean clip, where the noisy sample already shows it. Sampling is unchanged.
+- ``time_logit_normal``: with a standard deviation ``m > 0``, ``u`` above is drawn logit-normal
+  instead of uniform (``u = sigmoid(m n)``, ``n ~ N(0, 1)``; SD3's sampling of training times), which
+  trains most at middle noise: v2 started from the true future loses moved objects there, at noise
+  0.3-0.8 (README, "Handed the true future part-way"). 0 keeps the uniform draw.
 - ``group_batches``: every batch is made of whole counterfactual groups (one scene under several
   instructions, ``clips.draw_group_batch``) that share one noise and one diffusion time, so within a
   group the only thing that tells the futures apart is the words.
@@ -61,6 +65,9 @@ def check_recipe(cfg, preset: ModelPreset) -> None:
         raise UserError("--condition-noise must be >= 0 and --moving-weight/--object-weight > 0")
     if not (math.isfinite(cfg.time_shift) and cfg.time_shift > 0):
         raise UserError(f"--time-shift must be a finite number > 0 (1 = uniform diffusion times), got {cfg.time_shift}")
+    if not (math.isfinite(cfg.time_logit_normal) and cfg.time_logit_normal >= 0):
+        raise UserError(f"--time-logit-normal must be a finite number >= 0 (0 = uniform diffusion times), "
+                        f"got {cfg.time_logit_normal}")
     if not (math.isfinite(cfg.difference_weight) and cfg.difference_weight > 0):
         raise UserError(f"--difference-weight must be a finite number > 0, got {cfg.difference_weight}")
     if not 0.0 <= cfg.counterfactual_swap <= 1.0:
@@ -122,10 +129,15 @@ def augment_condition(first: torch.Tensor, max_std: float, generator: torch.Gene
     return first + (std[:, None, None, None, None] * noise).to(first.device)
 
 
-def sample_times(b: int, shift: float, generator: torch.Generator) -> torch.Tensor:
-    """(b,) diffusion times in [0, 1]: ``s u / (1 + (s - 1) u)`` of ``u ~ U(0, 1)``. At ``shift`` 1 every
-    operation is exact in floating point, so the uniform recipe draws exactly what it always drew."""
-    u = torch.rand(b, generator=generator)
+def sample_times(b: int, shift: float, generator: torch.Generator, logit_normal: float = 0.0) -> torch.Tensor:
+    """(b,) diffusion times in [0, 1]: ``s u / (1 + (s - 1) u)`` of ``u ~ U(0, 1)``, or of the
+    logit-normal ``u = sigmoid(logit_normal * n)``, ``n ~ N(0, 1)``, when ``logit_normal`` > 0. At
+    ``shift`` 1 and no logit-normal every operation is exact in floating point, so the uniform recipe
+    draws exactly what it always drew."""
+    if logit_normal > 0:
+        u = torch.sigmoid(logit_normal * torch.randn(b, generator=generator))
+    else:
+        u = torch.rand(b, generator=generator)
     return shift * u / (1.0 + (shift - 1.0) * u)
 
 

@@ -100,6 +100,7 @@ class TrainConfig:
     object_weight: float = 1.0  # loss weight of robot/object cells (latent presets: from the cached segmentation)
     prediction: str = "x0"  # network target: "x0" (clean clip, first frame + correction) or "velocity"
     time_shift: float = 1.0  # diffusion times t = s u / (1 + (s - 1) u), u ~ U(0, 1); > 1 trains more at high noise
+    time_logit_normal: float = 0.0  # > 0: u logit-normal with this std instead of uniform (trains most at middle noise)
     group_batches: bool = False  # batches of whole counterfactual groups sharing one noise and one diffusion time
     difference_weight: float = 1.0  # with group_batches: loss weight of cells where a group's futures differ
     counterfactual_swap: float = 0.0  # with group_batches: probability of showing a clip a sibling's noisy sample
@@ -154,8 +155,8 @@ class TrainConfig:
     def recipe(self) -> dict:
         """The recipe levers, saved in the inference config (sampling needs ``prediction``)."""
         return {k: getattr(self, k) for k in ("condition_noise", "moving_weight", "object_weight", "prediction",
-                                              "text_dropout", "time_shift", "group_batches", "difference_weight",
-                                              "counterfactual_swap", "rephrase")}
+                                              "text_dropout", "time_shift", "time_logit_normal", "group_batches",
+                                              "difference_weight", "counterfactual_swap", "rephrase")}
 
 
 class EMA:
@@ -482,7 +483,7 @@ class Trainer:
         keep_image = (torch.rand(b, generator=g) >= cfg.image_dropout).float()
         text = (text * keep_text[:, None, None]).to(self.device)
         first = first * keep_image.to(self.device)[:, None, None, None, None]
-        t = share_within_groups(sample_times(b, cfg.time_shift, g), leaders)
+        t = share_within_groups(sample_times(b, cfg.time_shift, g, cfg.time_logit_normal), leaders)
         noise = share_within_groups(torch.randn(x0.shape, generator=g), leaders)
         if leaders is not None and cfg.counterfactual_swap > 0:
             shown = swap_sources(leaders, t, cfg.counterfactual_swap, g)
