@@ -333,6 +333,56 @@ def test_a_guidance_interval_is_sampled_and_reported(two_checkpoints, tmp_path):
     assert "interval 10 steps, text guidance 2 at noise ≥ 0.5".replace("10", str(steps)) in format_markdown(report)
 
 
+def test_a_sampler_started_from_a_clip_begins_at_its_noise_level_and_runs_only_the_steps_from_there(two_checkpoints):
+    """The pipeline's ``start`` diagnostic: at noise 1 the clip is the one pure noise gives, exactly; at
+    0.5 of 4 steps (levels 1, 0.667, 0.334, 0.001) the network is first shown (1 - 0.334) clip + 0.334
+    noise and runs 2 passes, not 4."""
+    import torch
+
+    from tesseract4d.model.predict import load_pipeline
+
+    a, _, _ = two_checkpoints
+    pipe = load_pipeline(a, precision="fp32")
+    first = torch.rand(1, 7, *pipe.resolution) * 2 - 1
+    noise = torch.randn(pipe.latent_shape(1), generator=torch.Generator().manual_seed(1))
+    clean = torch.randn(pipe.latent_shape(1), generator=torch.Generator().manual_seed(2))
+    plain = pipe(first, ["push the cube"], num_inference_steps=4, latents=noise, output_type="latent")
+    at_one = pipe(first, ["push the cube"], num_inference_steps=4, latents=noise, output_type="latent", start=(clean, 1.0))
+    assert torch.equal(plain, at_one)
+    inputs = []
+    hook = pipe.transformer.register_forward_pre_hook(lambda module, args: inputs.append(args[0][:1].clone()))
+    try:
+        pipe(first, ["push the cube"], num_inference_steps=4, latents=noise, output_type="latent", start=(clean, 0.5))
+    finally:
+        hook.remove()
+    level = float(pipe.scheduler.sigmas[2])
+    assert abs(level - 0.334) < 1e-3 and len(inputs) == 2
+    assert torch.allclose(inputs[0], (1 - level) * clean + level * noise, atol=1e-6)
+    for bad in (0.0, 1.5):
+        with pytest.raises(ValueError, match="noise level"):
+            pipe(first, ["push the cube"], num_inference_steps=4, latents=noise, start=(clean, bad))
+
+
+def test_start_from_truth_is_sampled_and_reported_and_refused_out_of_range(two_checkpoints, tmp_path):
+    """``evaluate --heldout --start-from-truth``: at 1 the scores are those of the plain run, the report
+    names the diagnostic in its sampler; a level outside (0, 1] is a one-line refusal."""
+    from tesseract4d.errors import UserError
+    from tesseract4d.evaluation.heldout import HeldoutConfig, evaluate_heldout, format_markdown
+
+    a, _, heldout = two_checkpoints
+    plain = evaluate_heldout(HeldoutConfig(checkpoint=a, data=heldout, num_steps=2), progress=False)
+    at_one = evaluate_heldout(HeldoutConfig(checkpoint=a, data=heldout, num_steps=2, start_from_truth=1.0), progress=False)
+    assert at_one["summary"]["model_raw"] == plain["summary"]["model_raw"]
+    assert at_one["sampler"]["model"]["start_from_truth"] == 1.0 and "start_from_truth" not in plain["sampler"]["model"]
+    near = evaluate_heldout(HeldoutConfig(checkpoint=a, data=heldout, num_steps=4, start_from_truth=0.4), progress=False)
+    assert near["summary"]["model_raw"] != plain["summary"]["model_raw"]
+    assert "started from the true future at noise ≤ 0.4" in format_markdown(near)
+    for bad in (0.0, -0.5, 2.0):
+        with pytest.raises(UserError, match="--start-from-truth") as err:
+            evaluate_heldout(HeldoutConfig(checkpoint=a, data=heldout, num_steps=2, start_from_truth=bad), progress=False)
+        assert "\n" not in str(err.value)
+
+
 def test_single_checkpoint_keeps_the_report_keys(two_checkpoints):
     from tesseract4d.evaluation.heldout import HeldoutConfig, evaluate_heldout, format_markdown
 

@@ -76,6 +76,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                       help="diffusion noise seed (default 0); several (e.g. 0 1 2) predict every episode once per "
                            "seed and pool the scores: one noise draw decides much of an instruction's outcome, so "
                            "compare checkpoints on several")
+    held.add_argument("--start-from-truth", type=float, metavar="SIGMA",
+                      help="a diagnostic, not a way to use a model: every checkpoint's sampler starts from the "
+                           "episode's true future (through its codec) noised to its first noise level <= SIGMA, with "
+                           "the scene's noise, and runs only the steps from there: how much of a right future the "
+                           "network keeps (0 < SIGMA <= 1; 1 = from pure noise). Needs one-clip episodes at the "
+                           "model's resolution")
     held.add_argument("--max-per-task", type=int, help="episodes per task at most (default: all)")
     held.add_argument("--batch-size", type=int, metavar="N",
                       help="scenes per network call (default: predict_scenes' DEFAULT_SCENE_BATCH); each scene gets "
@@ -116,7 +122,7 @@ def run_heldout(args: argparse.Namespace) -> int:
     cfg = HeldoutConfig(checkpoint=checkpoints[0] if len(checkpoints) == 1 else checkpoints, data=args.heldout, out=None,
                         camera=args.camera, num_steps=args.steps, sample_seed=seeds, max_episodes=args.max_per_task,
                         max_depth_m=args.max_depth, precision=args.precision, batch_size=args.batch_size,
-                        text_guidance=args.text_guidance)
+                        text_guidance=args.text_guidance, start_from_truth=args.start_from_truth)
     report = evaluate_heldout(cfg)
     if output is not None:
         with output as stage:

@@ -107,6 +107,10 @@ class HeldoutConfig:
     precision: str = "auto"  # auto|fp32|bf16 (tesseract4d/precision.py)
     batch_size: int | None = None  # scenes per network call; None = predict.DEFAULT_SCENE_BATCH
     text_guidance: float | None = None  # None: each checkpoint preset's text guidance scale
+    # A diagnostic: every checkpoint's sampler starts from the episode's true future (through its
+    # codec) noised to its first noise level <= this, and runs only the steps from there (README,
+    # "Handed the true future part-way"). None: from pure noise, as a model is used.
+    start_from_truth: float | None = None
 
 
 def sample_seeds(cfg: HeldoutConfig) -> list[int]:
@@ -137,6 +141,21 @@ def autoencoder_round_trip(pipeline, gt: df.Episode, camera: str) -> df.Episode:
     frames = df.CameraFrames(rgb=rgb, depth_m=depth_m, normal_cam=normal_cam, K=cam.K, T_world_cam=cam.T_world_cam)
     return df.Episode(env_id=gt.env_id, seed=gt.seed, instruction=gt.instruction, cameras={camera: frames},
                       frame_steps=gt.frame_steps, fps=gt.fps, source="autoencoder-round-trip")
+
+
+def truth_clip(pipeline, gt: df.Episode, camera: str, num_frames: int):
+    """The first ``num_frames`` of ``camera``'s true future in a pipeline's network space (1, t', c, h, w),
+    through its codec: where ``evaluate --heldout --start-from-truth`` starts the sampler."""
+    import torch
+
+    cam = gt.cameras[camera]
+    if tuple(cam.rgb.shape[1:3]) != tuple(pipeline.resolution) or num_frames != pipeline.num_frames:
+        raise UserError(f"--start-from-truth needs episodes of one clip ({pipeline.num_frames} frames) at the model's "
+                        f"resolution {tuple(pipeline.resolution)}; {gt.env_id} seed {gt.seed} has {len(cam.rgb)} frames "
+                        f"of {tuple(cam.rgb.shape[1:3])}: evaluate without it, or on such a set")
+    x = pipeline.model_space.encode(cam.rgb[:num_frames], cam.depth_m[:num_frames], cam.normal_cam[:num_frames])
+    with torch.no_grad():
+        return pipeline.codec.encode(x[None].to(pipeline.device)).cpu()
 
 
 def ceiling_methods(keys: list[tuple[str, str]], pipelines: list, factors: list) -> dict[str, int]:
@@ -264,7 +283,8 @@ def scene_noise_seed(sample_seed: int, env_id: str, scene_seed: int) -> int:
 def predict_at_data_resolution(pipeline, firsts: list[df.Episode], instructions: list[str], cameras: list[str],
                                num_frames: list[int], *, seed: int, num_steps: int,
                                batch_size: int | None, text_guidance: float | None = None,
-                               noise_seeds: list[int] | None = None) -> list[tuple[df.Episode, np.ndarray]]:
+                               noise_seeds: list[int] | None = None, truths: list[df.Episode] | None = None,
+                               start_sigma: float | None = None) -> list[tuple[df.Episode, np.ndarray]]:
     """One prediction per scene at its first frame's resolution, whatever the model's: a list of
     (prediction at the data's resolution, its RGB as the model made it (T, h, w, 3) uint8).
 
@@ -273,7 +293,9 @@ def predict_at_data_resolution(pipeline, firsts: list[df.Episode], instructions:
     (``predict_scenes``), scene i from the noise ``predict_episode(..., seed=noise_seeds[i])`` draws
     (default: ``seed`` for every scene). A first frame of another resolution than the model's is
     resized to it, and the prediction back (:func:`at_resolution`); frame 0 is then the given first
-    frame again.
+    frame again. ``truths`` (the scenes' true episodes) and ``start_sigma``: the pipeline's ``start``
+    diagnostic, each scene from its true future through the checkpoint's codec (the data's resolution
+    must be the model's).
     """
     from tesseract4d.model.predict import predict_scenes
 
@@ -285,9 +307,11 @@ def predict_at_data_resolution(pipeline, firsts: list[df.Episode], instructions:
     out: list[tuple[df.Episode, np.ndarray] | None] = [None] * len(firsts)
     for n in sorted(set(num_frames)):  # predict_scenes takes one clip length per call
         idx = [i for i, m in enumerate(num_frames) if m == n]
+        starts = None if truths is None else [truth_clip(pipeline, truths[i], cameras[i], n) for i in idx]
         preds = predict_scenes(pipeline, [inputs[i] for i in idx], [instructions[i] for i in idx],
                                batch_size=batch_size, num_frames=n, seed=seed, num_steps=num_steps,
-                               text_guidance=text_guidance, noise_seeds=[noise_seeds[i] for i in idx])
+                               text_guidance=text_guidance, noise_seeds=[noise_seeds[i] for i in idx],
+                               start_clips=starts, start_sigma=None if truths is None else start_sigma)
         for i, pred in zip(idx, preds):
             model_rgb = pred.cameras[cameras[i]].rgb
             first = firsts[i].cameras[cameras[i]]
@@ -353,13 +377,18 @@ def sampler_settings(cfg: HeldoutConfig, pipeline) -> dict:
                 "text_guidance": float(p.text_guidance if cfg.text_guidance is None else cfg.text_guidance)}
     if p.guidance_min_sigma > 0:  # a guidance interval (named only where there is one)
         settings["guidance_min_sigma"] = float(p.guidance_min_sigma)
+    if cfg.start_from_truth is not None:  # the diagnostic (named only where it ran)
+        settings["start_from_truth"] = float(cfg.start_from_truth)
     return settings
 
 
 def describe_sampler(settings: dict) -> str:
     """"10 steps, text guidance 1.5 at noise ≥ 0.2": one checkpoint's entry of a report's ``sampler``."""
     text = f"{settings['num_steps']} steps, text guidance {settings['text_guidance']:g}"
-    return text + (f" at noise ≥ {settings['guidance_min_sigma']:g}" if settings.get("guidance_min_sigma") else "")
+    text += f" at noise ≥ {settings['guidance_min_sigma']:g}" if settings.get("guidance_min_sigma") else ""
+    if settings.get("start_from_truth") is not None:
+        text += f", started from the true future at noise ≤ {settings['start_from_truth']:g}"
+    return text
 
 
 def evaluate_heldout(cfg: HeldoutConfig, progress: bool = True) -> dict:
@@ -389,8 +418,13 @@ def evaluate_heldout(cfg: HeldoutConfig, progress: bool = True) -> dict:
     batch_size = DEFAULT_SCENE_BATCH if cfg.batch_size is None else int(cfg.batch_size)
     if batch_size < 1:
         raise UserError(f"--batch-size must be at least 1, got {batch_size}")
+    if cfg.start_from_truth is not None and not 0.0 < float(cfg.start_from_truth) <= 1.0:
+        raise UserError(f"--start-from-truth is a noise level in (0, 1] (1: from pure noise), got {cfg.start_from_truth}")
     pipelines = [load_pipeline(c, precision=cfg.precision) for c in checkpoints]
     factors = [data_to_model_factor(c, tuple(p.resolution), data, data_hw) for c, p in zip(checkpoints, pipelines)]
+    if cfg.start_from_truth is not None and any(s != 1 for s in factors):
+        raise UserError(f"--start-from-truth needs every checkpoint at the data's resolution {data_hw}; "
+                        f"evaluate the others without it")
     patch_px = [token_patch_px(p) for p in pipelines]
     ceilings = ceiling_methods(keys, pipelines, factors)
     methods = [k for pair in keys for k in pair] + list(ceilings) + ["static"]
@@ -436,7 +470,9 @@ def evaluate_heldout(cfg: HeldoutConfig, progress: bool = True) -> dict:
                                                    seed=seed, batch_size=batch_size,
                                                    num_steps=sampler[with_c]["num_steps"],
                                                    text_guidance=sampler[with_c]["text_guidance"],
-                                                   noise_seeds=[scene_noise_seed(seed, gt.env_id, gt.seed) for gt in gts])
+                                                   noise_seeds=[scene_noise_seed(seed, gt.env_id, gt.seed) for gt in gts],
+                                                   truths=None if cfg.start_from_truth is None else gts,
+                                                   start_sigma=cfg.start_from_truth)
                         for seed in seeds]
                        for (with_c, _), pipeline in zip(keys, pipelines)]  # [checkpoint][seed][scene]
         for j, (path, gt, camera, first) in enumerate(zip(chunk, gts, cameras, firsts)):

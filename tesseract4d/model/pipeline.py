@@ -106,10 +106,13 @@ class RGBDNPipeline:
         return (batch, self.codec.num_latent_frames(p.num_frames), *probe.shape[2:])
 
     def _denoise_clip(self, first_frame, text, null_text, num_steps, text_guidance, image_guidance,
-                      generator, progress, step_offset, total_steps, latents=None, guidance_min_sigma=0.0):
+                      generator, progress, step_offset, total_steps, latents=None, guidance_min_sigma=0.0,
+                      start=None):
         """One clip of the preset's length from a (b, 7, H, W) first frame, in the network's space:
         (b, t', c, h, w). ``latents``: the initial noise (default: drawn from ``generator``).
-        ``guidance_min_sigma``: steps at a lower noise level run unguided (one pass)."""
+        ``guidance_min_sigma``: steps at a lower noise level run unguided (one pass).
+        ``start``: (clean clips (b, t', c, h, w), sigma): begin at the first noise level ``s`` ≤ sigma
+        from ``(1 - s) clean + s noise`` and run only the steps from there."""
         b = first_frame.shape[0]
         nt = self.codec.num_latent_frames(self.preset.num_frames)
         first = self.codec.encode(first_frame[:, None].to(self.device), generator=generator)  # (b, 1, c, h, w)
@@ -123,13 +126,23 @@ class RGBDNPipeline:
                 raise ValueError(f"latents must be {(b, nt, *first.shape[2:])}, got {tuple(latents.shape)}")
             x = latents.float().to(self.device)
         self.scheduler.set_timesteps(num_steps, device=self.device)
+        first_step = 0
+        if start is not None:
+            clean, start_sigma = start
+            if tuple(clean.shape) != tuple(x.shape):
+                raise ValueError(f"start clips must be {tuple(x.shape)}, got {tuple(clean.shape)}")
+            levels = [float(s) for s in self.scheduler.sigmas[:-1]]
+            first_step = next((i for i, s in enumerate(levels) if s <= start_sigma), len(levels) - 1)
+            s = levels[first_step]
+            x = (1.0 - s) * clean.float().to(self.device) + s * x
         for i, timestep in enumerate(self.scheduler.timesteps):
-            sigma = float(self.scheduler.sigmas[i])
-            guided = sigma >= guidance_min_sigma
-            pred = self._predict_x0(x, sigma, cond, null_cond, text, null_text,
-                                    text_guidance if guided else 1.0, image_guidance if guided else 1.0)
-            velocity = pred if self.prediction == "velocity" else (x - pred) / sigma
-            x = self.scheduler.step(velocity, timestep, x, return_dict=False)[0]
+            if i >= first_step:
+                sigma = float(self.scheduler.sigmas[i])
+                guided = sigma >= guidance_min_sigma
+                pred = self._predict_x0(x, sigma, cond, null_cond, text, null_text,
+                                        text_guidance if guided else 1.0, image_guidance if guided else 1.0)
+                velocity = pred if self.prediction == "velocity" else (x - pred) / sigma
+                x = self.scheduler.step(velocity, timestep, x, return_dict=False)[0]
             if progress is not None:
                 progress(step_offset + i + 1, total_steps)
         return x
@@ -162,6 +175,7 @@ class RGBDNPipeline:
         progress: Callable[[int, int], None] | None = None,
         latents: torch.Tensor | None = None,
         output_type: str = "clip",
+        start: tuple[torch.Tensor, float] | None = None,
     ) -> torch.Tensor:
         """Sample a batch of clips.
 
@@ -175,6 +189,10 @@ class RGBDNPipeline:
         drawn from ``generator``.
         output_type: "clip" (decoded frames) or "latent": the first clip's final sample in the
         network's space, (b, t', c, h, w), before decoding (one clip only).
+        start: a diagnostic, one clip only: (clean clips in the network's space (b, t', c, h, w), such
+        as a true future through ``codec.encode``, and a noise level 0 < sigma ≤ 1): the sampler begins
+        at its first noise level ``s`` ≤ sigma (its last, if none is) from ``(1 - s) clips + s noise``
+        and runs only the steps from there; how much of a right future the network keeps.
         Returns (b, num_frames, 7, H, W) model-space clips; frame 0 is the model's reconstruction
         of the first frame.
         """
@@ -196,6 +214,8 @@ class RGBDNPipeline:
             raise ValueError(f"output_type must be 'clip' or 'latent', got {output_type!r}")
         if output_type == "latent" and num_frames != p.num_frames:
             raise ValueError("output_type='latent' returns exactly one clip; leave num_frames at the preset's")
+        if start is not None and (num_frames != p.num_frames or not 0.0 < float(start[1]) <= 1.0):
+            raise ValueError("start needs exactly one clip (num_frames at the preset's) and a noise level in (0, 1]")
         generator = generator if generator is not None else torch.Generator().manual_seed(0)
 
         # 2. Encode the instructions (cached per instruction).
@@ -205,7 +225,7 @@ class RGBDNPipeline:
         if output_type == "latent":
             return self._denoise_clip(first_frame.float(), text, null_text, num_steps, text_guidance, image_guidance,
                                       generator, progress, 0, num_steps, latents=latents,
-                                      guidance_min_sigma=guidance_min_sigma).cpu()
+                                      guidance_min_sigma=guidance_min_sigma, start=start).cpu()
 
         # 3. Sample clip after clip, each conditioned on the last frame so far.
         clip_len = p.num_frames
@@ -217,7 +237,7 @@ class RGBDNPipeline:
             clip = self._sample_clip(current, text, null_text, num_steps, text_guidance, image_guidance,
                                      generator, progress, k * num_steps, total,
                                      latents=latents if k == 0 else None,
-                                     guidance_min_sigma=guidance_min_sigma).cpu()
+                                     guidance_min_sigma=guidance_min_sigma, start=start).cpu()
             frames.append(clip if k == 0 else clip[:, 1:])
             current = clip[:, -1]
         # 4. Stitch the clips.

@@ -188,9 +188,13 @@ def predict_scenes(
     camera: str | None = None,
     noise_seeds: list[int] | None = None,
     progress: Callable[[int, int], None] | None = None,
+    start_clips: list[torch.Tensor] | None = None,
+    start_sigma: float | None = None,
 ) -> list[df.Episode]:
     """One prediction per scene (``first_frames[i]`` with ``instructions[i]``), ``batch_size`` scenes
     per network call (default :data:`DEFAULT_SCENE_BATCH`): the throughput path for evaluations.
+    ``start_clips`` (one (1, t', c, h, w) clean clip per scene in the network's space) and
+    ``start_sigma``: the pipeline's ``start`` diagnostic, each scene from its own clip.
 
     Scene i's initial noise comes from a generator seeded with (``seed``, i), or with
     ``noise_seeds[i]`` when given, so its first clip does not depend on ``batch_size`` or on the
@@ -202,6 +206,8 @@ def predict_scenes(
         raise UserError(f"{len(first_frames)} first frames for {len(instructions)} instructions; give one of each per scene")
     if noise_seeds is not None and len(noise_seeds) != len(first_frames):
         raise UserError(f"{len(noise_seeds)} noise seeds for {len(first_frames)} scenes; give one per scene, or none")
+    if (start_clips is None) != (start_sigma is None) or (start_clips is not None and len(start_clips) != len(first_frames)):
+        raise ValueError("start_clips needs start_sigma and one clip per scene")
     batch_size = DEFAULT_SCENE_BATCH if batch_size is None else int(batch_size)
     if batch_size < 1:
         raise UserError(f"--batch-size must be at least 1, got {batch_size}")
@@ -217,10 +223,11 @@ def predict_scenes(
         step_progress = None
         if progress is not None:
             step_progress = (lambda s, t, b=b: progress(b * t + s, num_batches * t))
+        start = None if start_clips is None else (torch.cat([start_clips[i] for i in chunk]), float(start_sigma))
         out += _predict_batch(pipeline, [scenes[i] for i in chunk], [0] * len(chunk), num_frames=num_frames,
                               num_steps=num_steps, text_guidance=text_guidance, image_guidance=image_guidance,
                               seed=seed, generator=torch.Generator().manual_seed(int(seed) + b), latents=latents,
-                              progress=step_progress)
+                              progress=step_progress, start=start)
     return out
 
 
@@ -247,12 +254,12 @@ def _scene(pipeline: RGBDNPipeline, first_frame: df.Episode, instruction: str, c
 
 def _predict_batch(pipeline: RGBDNPipeline, scenes: list, sample_indices: list[int], *, num_frames: int,
                    num_steps: int, text_guidance, image_guidance, seed: int, generator: torch.Generator,
-                   latents: torch.Tensor | None = None, progress=None) -> list[df.Episode]:
+                   latents: torch.Tensor | None = None, progress=None, start=None) -> list[df.Episode]:
     """One pipeline call for the given scenes (from :func:`_scene`), returned as predicted episodes."""
     x = torch.cat([s[4] for s in scenes])  # (n, 7, H, W)
     clips = pipeline(x, [s[1] for s in scenes], num_frames=num_frames, num_inference_steps=num_steps,
                      text_guidance=text_guidance, image_guidance=image_guidance, generator=generator,
-                     progress=progress, latents=latents)  # (n, T, 7, H, W)
+                     progress=progress, latents=latents, start=start)  # (n, T, 7, H, W)
     out = []
     for k, (first_frame, instruction, cam_name, cam, _) in enumerate(scenes):
         rgb, depth_m, normal_cam = pipeline.model_space.decode(clips[k])
@@ -270,6 +277,7 @@ def _predict_batch(pipeline: RGBDNPipeline, scenes: list, sample_indices: list[i
             metadata={"prediction": {
                 "checkpoint_preset": pipeline.preset.name, "sample_seed": int(seed), "sample_index": sample_indices[k],
                 "num_steps": int(num_steps), "text_guidance": text_guidance, "image_guidance": image_guidance,
+                **({} if start is None else {"started_from_clip_at_noise": float(start[1])}),
                 "depth_range_m": [pipeline.model_space.near_m, pipeline.model_space.far_m],
                 "training": pipeline.config.get("training"),
             }},
