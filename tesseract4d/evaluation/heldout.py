@@ -149,10 +149,9 @@ def truth_clip(pipeline, gt: df.Episode, camera: str, num_frames: int):
     import torch
 
     cam = gt.cameras[camera]
-    if tuple(cam.rgb.shape[1:3]) != tuple(pipeline.resolution) or num_frames != pipeline.num_frames:
-        raise UserError(f"--start-from-truth needs episodes of one clip ({pipeline.num_frames} frames) at the model's "
-                        f"resolution {tuple(pipeline.resolution)}; {gt.env_id} seed {gt.seed} has {len(cam.rgb)} frames "
-                        f"of {tuple(cam.rgb.shape[1:3])}: evaluate without it, or on such a set")
+    if num_frames != pipeline.num_frames:
+        raise UserError(f"--start-from-truth needs episodes of one clip ({pipeline.num_frames} frames); {gt.env_id} "
+                        f"seed {gt.seed} has {num_frames}: evaluate without it, or on such a set")
     x = pipeline.model_space.encode(cam.rgb[:num_frames], cam.depth_m[:num_frames], cam.normal_cam[:num_frames])
     with torch.no_grad():
         return pipeline.codec.encode(x[None].to(pipeline.device)).cpu()
@@ -283,7 +282,7 @@ def scene_noise_seed(sample_seed: int, env_id: str, scene_seed: int) -> int:
 def predict_at_data_resolution(pipeline, firsts: list[df.Episode], instructions: list[str], cameras: list[str],
                                num_frames: list[int], *, seed: int, num_steps: int,
                                batch_size: int | None, text_guidance: float | None = None,
-                               noise_seeds: list[int] | None = None, truths: list[df.Episode] | None = None,
+                               noise_seeds: list[int] | None = None, start_clips: list | None = None,
                                start_sigma: float | None = None) -> list[tuple[df.Episode, np.ndarray]]:
     """One prediction per scene at its first frame's resolution, whatever the model's: a list of
     (prediction at the data's resolution, its RGB as the model made it (T, h, w, 3) uint8).
@@ -293,9 +292,8 @@ def predict_at_data_resolution(pipeline, firsts: list[df.Episode], instructions:
     (``predict_scenes``), scene i from the noise ``predict_episode(..., seed=noise_seeds[i])`` draws
     (default: ``seed`` for every scene). A first frame of another resolution than the model's is
     resized to it, and the prediction back (:func:`at_resolution`); frame 0 is then the given first
-    frame again. ``truths`` (the scenes' true episodes) and ``start_sigma``: the pipeline's ``start``
-    diagnostic, each scene from its true future through the checkpoint's codec (the data's resolution
-    must be the model's).
+    frame again. ``start_clips`` (per scene, :func:`truth_clip`) and ``start_sigma``: the pipeline's
+    ``start`` diagnostic (the data's resolution must be the model's).
     """
     from tesseract4d.model.predict import predict_scenes
 
@@ -307,11 +305,11 @@ def predict_at_data_resolution(pipeline, firsts: list[df.Episode], instructions:
     out: list[tuple[df.Episode, np.ndarray] | None] = [None] * len(firsts)
     for n in sorted(set(num_frames)):  # predict_scenes takes one clip length per call
         idx = [i for i, m in enumerate(num_frames) if m == n]
-        starts = None if truths is None else [truth_clip(pipeline, truths[i], cameras[i], n) for i in idx]
         preds = predict_scenes(pipeline, [inputs[i] for i in idx], [instructions[i] for i in idx],
                                batch_size=batch_size, num_frames=n, seed=seed, num_steps=num_steps,
                                text_guidance=text_guidance, noise_seeds=[noise_seeds[i] for i in idx],
-                               start_clips=starts, start_sigma=None if truths is None else start_sigma)
+                               start_clips=None if start_clips is None else [start_clips[i] for i in idx],
+                               start_sigma=start_sigma)
         for i, pred in zip(idx, preds):
             model_rgb = pred.cameras[cameras[i]].rgb
             first = firsts[i].cameras[cameras[i]]
@@ -466,15 +464,18 @@ def evaluate_heldout(cfg: HeldoutConfig, progress: bool = True) -> dict:
         num_frames = [len(gt.cameras[cam].rgb) for gt, cam in zip(gts, cameras)]
         bar.set_postfix_str(f"{gts[0].env_id} seed {gts[0].seed}: predicting")
         instructions = [gt.instruction for gt in gts]
+        # The diagnostic's true futures, each encoded once per checkpoint (the same for every seed).
+        starts = [None if cfg.start_from_truth is None else
+                  [truth_clip(pipeline, gt, cam, n) for gt, cam, n in zip(gts, cameras, num_frames)]
+                  for pipeline in pipelines]
         predictions = [[predict_at_data_resolution(pipeline, firsts, instructions, cameras, num_frames,
                                                    seed=seed, batch_size=batch_size,
                                                    num_steps=sampler[with_c]["num_steps"],
                                                    text_guidance=sampler[with_c]["text_guidance"],
                                                    noise_seeds=[scene_noise_seed(seed, gt.env_id, gt.seed) for gt in gts],
-                                                   truths=None if cfg.start_from_truth is None else gts,
-                                                   start_sigma=cfg.start_from_truth)
+                                                   start_clips=start_clips, start_sigma=cfg.start_from_truth)
                         for seed in seeds]
-                       for (with_c, _), pipeline in zip(keys, pipelines)]  # [checkpoint][seed][scene]
+                       for (with_c, _), pipeline, start_clips in zip(keys, pipelines, starts)]  # [checkpoint][seed][scene]
         for j, (path, gt, camera, first) in enumerate(zip(chunk, gts, cameras, firsts)):
             gt_cam = gt.cameras[camera]
             bar.set_postfix_str(f"{gt.env_id} seed {gt.seed}")
