@@ -68,6 +68,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--rgb-weight", type=float, default=d.rgb_weight, help="default %(default)s")
     parser.add_argument("--depth-weight", type=float, default=d.depth_weight, help="default %(default)s")
     parser.add_argument("--normal-weight", type=float, default=d.normal_weight, help="default %(default)s")
+    parser.add_argument("--rgb-grad-weight", type=float, default=d.rgb_grad_weight,
+                        help="weight of the colour gradient-difference loss |grad rgb_hat - grad rgb|, which keeps "
+                             "colour edges sharp where the plain L1 loss blurs them; the gate's edge sharpness "
+                             "measures it (default %(default)s)")
     parser.add_argument("--kl-weight", type=float, default=d.kl_weight, help="default %(default)s")
     add_precision_argument(parser)
     parser.add_argument("--ckpt-minutes", type=float, default=d.ckpt_minutes,
@@ -93,6 +97,7 @@ def run(args: argparse.Namespace) -> int:
         frame_stride=args.frame_stride, warmup_steps=args.warmup_steps,
         max_steps=args.max_steps, max_minutes=args.max_minutes, batch_size=args.batch_size, lr=args.lr,
         object_weight=args.object_weight, rgb_weight=args.rgb_weight, depth_weight=args.depth_weight, normal_weight=args.normal_weight,
+        rgb_grad_weight=args.rgb_grad_weight,
         kl_weight=args.kl_weight, precision=args.precision, ckpt_minutes=args.ckpt_minutes,
         heldout_frames=args.heldout_frames, seed=args.seed, resume=args.resume, progress=not args.quiet,
     )

@@ -8,6 +8,9 @@ On held-out frames, over all pixels and over robot/object pixels (from the segme
   ``depth_abs_rel`` over the same pixels (``metrics.depth_metrics``).
 * ``normal_mean_deg``: mean angle between decoded (renormalised) and true normals
   (``metrics.normal_metrics``).
+* ``rgb_edge_sharpness`` (all pixels only): the decoded colour's gradient on the truth's strongest
+  edges relative to the truth's (``believability.edge_sharpness``, the held-out evaluation's
+  sharpness; 1 = as sharp). It caps what a latent model decoded by this autoencoder can reach.
 
 Aims (the project's fidelity gate): RGB >= 32 dB; depth <= 5 mm and normals <= 6 deg on robot/object pixels.
 """
@@ -17,6 +20,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from tesseract4d.evaluation.believability import edge_sharpness
 from tesseract4d.evaluation.metrics import depth_metrics, normal_metrics, rgb_psnr
 from tesseract4d.model.autoencoder import RGBDNAutoencoder
 from tesseract4d.model.autoencoder_trainer import FrameSet
@@ -49,6 +53,7 @@ def fidelity_metrics(model: RGBDNAutoencoder, heldout: FrameSet) -> dict:
         out[f"{prefix}depth_mae_mm"] = float(np.abs(pr_d - gt_depth)[d_sel].mean() * 1000.0) if d_sel.any() else float("nan")
         out[f"{prefix}depth_abs_rel"] = depth_metrics(pr_d, gt_depth, d_sel)["abs_rel"]
         out[f"{prefix}normal_mean_deg"] = normal_metrics(pr_normal, gt_normal, sel)["mean_deg"]
+    out["rgb_edge_sharpness"] = edge_sharpness(pr_rgb, gt_rgb)
     out["aims"] = AIMS
     out["meets_aims"] = bool(out["rgb_psnr_db"] >= AIMS["rgb_psnr_db"]
                              and out["object_depth_mae_mm"] <= AIMS["object_depth_mae_mm"]
@@ -67,6 +72,8 @@ def format_fidelity(d: dict) -> str:
              f"  {'metric':<20} {'all pixels':>11} {'robot/object':>13}   aim"]
     for label, key, aim in rows:
         lines.append(f"  {label:<20} {d[key]:>11.4g} {d['object_' + key]:>13.4g}   {aim}")
+    if "rgb_edge_sharpness" in d:  # gates stored before it was measured lack it
+        lines.append(f"  {'RGB edge sharpness':<20} {d['rgb_edge_sharpness']:>11.4g} {'':>13}   (1 = as sharp as the truth)")
     lines.append(f"  meets the aims: {'yes' if d['meets_aims'] else 'no'}")
     return "\n".join(lines)
 

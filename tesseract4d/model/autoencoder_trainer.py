@@ -9,6 +9,7 @@ survive compression:
   + depth_weight  * |depth_hat - depth|            (model space, i.e. metric over a fixed range)
   + normal_weight * (|n_hat - n| + (1 - cos(n_hat / |n_hat|, n)))
   + grad_weight   * (|grad depth_hat - grad depth| + |grad n_hat - grad n|)   (finite differences)
+  + rgb_grad_weight * |grad rgb_hat - grad rgb|   (off by default: sharper colour edges)
   + kl_weight     * KL(posterior || N(0, I)) per latent element
 
 Everything random in a step (frames, posterior sample) comes from a generator seeded by
@@ -91,6 +92,7 @@ class AutoencoderTrainConfig:
     depth_weight: float = 3.0
     normal_weight: float = 2.0
     grad_weight: float = 1.0
+    rgb_grad_weight: float = 0.0  # gradient-difference loss on colour: an L1 reconstruction blurs edges
     object_weight: float = 5.0
     edge_weight: float = 2.0
     kl_weight: float = 1e-4
@@ -224,9 +226,10 @@ def reconstruction_loss(pred: torch.Tensor, target: torch.Tensor, mask: torch.Te
         for gp, gt in zip(_grad_xy(pred[:, s[name]]), _grad_xy(target[:, s[name]])):
             grad = grad + _wmean((gp - gt).abs(), w)
     parts["grad"] = grad
+    parts["rgb_grad"] = sum(_wmean((gp - gt).abs(), w) for gp, gt in zip(_grad_xy(pred[:, s["rgb"]]), _grad_xy(target[:, s["rgb"]])))
     parts["kl"] = kl.mean()
     total = (cfg.rgb_weight * parts["rgb"] + cfg.depth_weight * parts["depth"] + cfg.normal_weight * parts["normal"]
-             + cfg.grad_weight * parts["grad"] + cfg.kl_weight * parts["kl"])
+             + cfg.grad_weight * parts["grad"] + cfg.rgb_grad_weight * parts["rgb_grad"] + cfg.kl_weight * parts["kl"])
     return total, {k: float(v.detach()) for k, v in parts.items()}
 
 
