@@ -699,6 +699,20 @@ def test_goals_table_reads_the_reports_numbers(two_checkpoints, tmp_path, capsys
     assert proc.wait() == 141 and "Traceback" not in err and "BrokenPipe" not in err, err
 
 
+def test_goals_show_every_autoencoder_ceiling_of_a_report():
+    """A run comparing decoders scores one ceiling per distinct autoencoder; --references shows each."""
+    from tesseract4d.evaluation.goals import columns
+
+    report = {"checkpoints": {"a": "/runs/v2_old", "b": "/runs/v2_new", "c": "/runs/student_new"},
+              "summary": {k: {} for k in ("a", "b", "c", "a_autoencoder", "b_autoencoder", "static")}}
+    labels = [c.label for c in columns(report, "tabletop", references=True)]
+    assert labels == ["tabletop: v2_old", "tabletop: v2_new", "tabletop: student_new",
+                      "tabletop: ceiling (v2_old's autoencoder)", "tabletop: ceiling (v2_new's autoencoder)",
+                      "tabletop: static world"]
+    del report["summary"]["b_autoencoder"]  # one autoencoder: the plain label, as before
+    assert [c.label for c in columns(report, "t", references=True)][3] == "t: ceiling (autoencoder)"
+
+
 def test_goals_refuses_what_is_not_a_heldout_report(tmp_path, capsys):
     from tesseract4d import cli
 

@@ -73,15 +73,18 @@ def load_report(folder: str | os.PathLike) -> dict:
 
 def columns(report: dict, set_label: str, references: bool = False) -> list[Column]:
     """The report's checkpoints (their predictions after the consistency step, as `demo` shows them),
-    labelled by their folder names; with ``references`` also the first checkpoint's autoencoder
-    ceiling and the static world."""
+    labelled by their folder names; with ``references`` also the autoencoder ceilings (one per distinct
+    autoencoder among the checkpoints, named after the first checkpoint with it where there are several)
+    and the static world."""
     cols = [Column(report, method, f"{set_label}: {Path(path).name}") for method, path in report["checkpoints"].items()]
     if references:
-        first = next(iter(report["checkpoints"]))
-        for method in ("autoencoder", f"{first}_autoencoder"):
-            if method in report["summary"]:
-                cols.append(Column(report, method, f"{set_label}: ceiling (autoencoder)"))
-                break
+        ceilings = [(m, Path(p).name) for m, p in report["checkpoints"].items() if f"{m}_autoencoder" in report["summary"]]
+        if "autoencoder" in report["summary"]:
+            cols.append(Column(report, "autoencoder", f"{set_label}: ceiling (autoencoder)"))
+        elif len(ceilings) == 1:
+            cols.append(Column(report, f"{ceilings[0][0]}_autoencoder", f"{set_label}: ceiling (autoencoder)"))
+        else:
+            cols += [Column(report, f"{m}_autoencoder", f"{set_label}: ceiling ({name}'s autoencoder)") for m, name in ceilings]
         if "static" in report["summary"]:
             cols.append(Column(report, "static", f"{set_label}: static world"))
     return cols
