@@ -201,6 +201,15 @@ def pixel_weights(target: torch.Tensor, mask: torch.Tensor, cfg: AutoencoderTrai
     return 1.0 + (cfg.object_weight - 1.0) * mask[:, None].float() + cfg.edge_weight * edge
 
 
+def _gradient_error(pairs: list[tuple[torch.Tensor, torch.Tensor]], w: torch.Tensor) -> torch.Tensor:
+    """Sum over (prediction, target) pairs of the weighted mean |forward difference error| along x and y."""
+    total = 0.0
+    for pred, target in pairs:
+        for gp, gt in zip(_grad_xy(pred), _grad_xy(target)):
+            total = total + _wmean((gp - gt).abs(), w)
+    return total
+
+
 def _wmean(err: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
     """Weighted mean of (n, c, h, w) errors with (n, 1, h, w) weights (cropped to match)."""
     w = w[..., : err.shape[-2], : err.shape[-1]]
@@ -221,12 +230,8 @@ def reconstruction_loss(pred: torch.Tensor, target: torch.Tensor, mask: torch.Te
     n_hat, n = pred[:, s["normal"]], target[:, s["normal"]]
     cos = F.cosine_similarity(n_hat, n, dim=1, eps=1e-6)[:, None]  # (n, 1, H, W)
     parts["normal"] = _wmean((n_hat - n).abs(), w) + _wmean(1.0 - cos, w)
-    grad = 0.0
-    for name in ("depth", "normal"):
-        for gp, gt in zip(_grad_xy(pred[:, s[name]]), _grad_xy(target[:, s[name]])):
-            grad = grad + _wmean((gp - gt).abs(), w)
-    parts["grad"] = grad
-    parts["rgb_grad"] = sum(_wmean((gp - gt).abs(), w) for gp, gt in zip(_grad_xy(pred[:, s["rgb"]]), _grad_xy(target[:, s["rgb"]])))
+    parts["grad"] = _gradient_error([(pred[:, s[k]], target[:, s[k]]) for k in ("depth", "normal")], w)
+    parts["rgb_grad"] = _gradient_error([(pred[:, s["rgb"]], target[:, s["rgb"]])], w)
     parts["kl"] = kl.mean()
     total = (cfg.rgb_weight * parts["rgb"] + cfg.depth_weight * parts["depth"] + cfg.normal_weight * parts["normal"]
              + cfg.grad_weight * parts["grad"] + cfg.rgb_grad_weight * parts["rgb_grad"] + cfg.kl_weight * parts["kl"])
