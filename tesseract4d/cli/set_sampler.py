@@ -8,6 +8,11 @@ into --to (a new folder; the checkpoint itself is never changed; its model card 
 the settings given here and the others kept, and records the change (`sampler_changed` in its
 tesseract4d_config.json). Score the copy beside the original with `evaluate --heldout`.
 
+Autoguidance (`--guide CKPT --autoguidance W`): the copy carries CKPT's transformer, a weaker network
+of the same latent space (an early checkpoint of the same training run), and every step adds W times
+the difference of the two networks' predictions, moving the sample away from what the weaker one gets
+wrong; one more network pass per step.
+
 Example (v2's 10 guided steps, guidance only at noise ≥ 0.5: 15 network passes per clip instead of 20):
   tesseract4d set-sampler --checkpoint tesseract4d/checkpoints/v2 --guidance-min-sigma 0.5 --to runs/v2_interval
   tesseract4d evaluate --heldout data/heldout_groups128 --checkpoint tesseract4d/checkpoints/v2 \\
@@ -28,6 +33,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--image-guidance", type=float, metavar="SCALE", help="first-frame guidance scale (1 = none)")
     parser.add_argument("--guidance-min-sigma", type=float, metavar="S",
                         help="guide only the steps at noise level ≥ S (0 = every step; 1 guides only the first)")
+    parser.add_argument("--autoguidance", type=float, metavar="W",
+                        help="autoguidance scale: every step adds W × (the network's x0 − the guide's x0), "
+                             "first frame and text given to both (0 = none; needs --guide or a copy that has one)")
+    parser.add_argument("--guide", type=Path, metavar="CKPT",
+                        help="checkpoint whose transformer becomes the copy's autoguidance network: a weaker "
+                             "model of the same latent space, e.g. an early checkpoint of the same training run")
     parser.add_argument("--overwrite", action="store_true",
                         help="replace an earlier copy in --to (files it did not write are never touched)")
 
@@ -37,7 +48,8 @@ def run(args: argparse.Namespace) -> int:
 
     settings = {name: value for name, value in (("num_steps", args.steps), ("text_guidance", args.text_guidance),
                                                 ("image_guidance", args.image_guidance),
-                                                ("guidance_min_sigma", args.guidance_min_sigma)) if value is not None}
-    to = write_sampler_copy(args.checkpoint, args.to, settings, overwrite=args.overwrite)
+                                                ("guidance_min_sigma", args.guidance_min_sigma),
+                                                ("autoguidance", args.autoguidance)) if value is not None}
+    to = write_sampler_copy(args.checkpoint, args.to, settings, overwrite=args.overwrite, guide=args.guide)
     print(f"checkpoint with the new sampler settings: {to}")
     return 0

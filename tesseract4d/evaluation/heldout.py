@@ -375,6 +375,8 @@ def sampler_settings(cfg: HeldoutConfig, pipeline) -> dict:
                 "text_guidance": float(p.text_guidance if cfg.text_guidance is None else cfg.text_guidance)}
     if p.guidance_min_sigma > 0:  # a guidance interval (named only where there is one)
         settings["guidance_min_sigma"] = float(p.guidance_min_sigma)
+    if p.autoguidance > 0:  # named only where the checkpoint has it
+        settings["autoguidance"] = float(p.autoguidance)
     if cfg.start_from_truth is not None:  # the diagnostic (named only where it ran)
         settings["start_from_truth"] = float(cfg.start_from_truth)
     return settings
@@ -384,6 +386,7 @@ def describe_sampler(settings: dict) -> str:
     """"10 steps, text guidance 1.5 at noise ≥ 0.2": one checkpoint's entry of a report's ``sampler``."""
     text = f"{settings['num_steps']} steps, text guidance {settings['text_guidance']:g}"
     text += f" at noise ≥ {settings['guidance_min_sigma']:g}" if settings.get("guidance_min_sigma") else ""
+    text += f", autoguidance {settings['autoguidance']:g}" if settings.get("autoguidance") else ""
     if settings.get("start_from_truth") is not None:
         text += f", started from the true future at noise ≤ {settings['start_from_truth']:g}"
     return text

@@ -5,6 +5,8 @@
     CKPT/transformer/config.json        TRANSFORMER_DIR: the RGBDNTransformer, diffusers format
     CKPT/transformer/diffusion_pytorch_model.safetensors     WEIGHTS_FILE (EMA weights)
     CKPT/scheduler/scheduler_config.json                     SCHEDULER_DIR: the sampler's settings
+    CKPT/guide_transformer/...          GUIDE_DIR (optional): a weaker network of the same latent space
+                                        that autoguidance steers away from (``set-sampler --guide``)
 
 Versions: 1 had no scheduler folder (it sampled with ``pipeline.make_scheduler()``'s settings, which are
 what it was trained for); 2 saves the scheduler with the weights. A checkpoint of another format or
@@ -25,6 +27,7 @@ READABLE_VERSIONS = (1, 2)
 INFERENCE_CONFIG_FILE = "tesseract4d_config.json"
 TRANSFORMER_DIR = "transformer"
 SCHEDULER_DIR = "scheduler"
+GUIDE_DIR = "guide_transformer"
 WEIGHTS_FILE = "diffusion_pytorch_model.safetensors"  # diffusers' name for safetensors weights
 MODEL_CONFIG_FILE = "config.json"  # diffusers' name for a model's config
 SCHEDULER_CONFIG_FILE = "scheduler_config.json"  # diffusers' name for a scheduler's config
@@ -115,12 +118,15 @@ def load_scheduler(checkpoint: str | os.PathLike, config: dict):
     return FlowMatchEulerDiscreteScheduler.from_pretrained(folder)
 
 
-def load_transformer(checkpoint: str | os.PathLike, preset, modality_channels: dict[str, int]):
+def load_transformer(checkpoint: str | os.PathLike, preset, modality_channels: dict[str, int],
+                     subfolder: str = TRANSFORMER_DIR):
     """The checkpoint's RGBDNTransformer (``from_pretrained``), checked against the preset and the
-    codec's ``modality_channels`` first, so a mismatch says which setting differs."""
+    codec's ``modality_channels`` first, so a mismatch says which setting differs. ``subfolder``
+    GUIDE_DIR loads the autoguidance network instead; it may be smaller than the preset's backbone
+    (its channels and text width must still fit)."""
     from tesseract4d.model.rgbdn_transformer import RGBDNTransformer
 
-    folder = Path(checkpoint) / TRANSFORMER_DIR
+    folder = Path(checkpoint) / subfolder
     try:
         saved = json.loads((folder / MODEL_CONFIG_FILE).read_text())
     except (OSError, ValueError) as e:
@@ -134,8 +140,10 @@ def load_transformer(checkpoint: str | os.PathLike, preset, modality_channels: d
         raise UserError(f"{folder} has modality channels {saved.get('modality_channels')} but preset "
                         f"{preset.name!r} needs {expected_channels}; the weights belong to another preset")
     if preset.backbone:
+        shape_only = subfolder == GUIDE_DIR  # a guide may have other layers, heads or widths
         mismatch = {k: (saved.get("backbone_config", {}).get(k), v) for k, v in preset.backbone.items()
-                    if saved.get("backbone_config", {}).get(k) != v}
+                    if saved.get("backbone_config", {}).get(k) != v
+                    and (not shape_only or k in GUIDE_MUST_MATCH)}
         if mismatch:
             raise UserError(f"{folder} does not match preset {preset.name!r}: "
                             + ", ".join(f"{k} is {a}, preset has {b}" for k, (a, b) in mismatch.items()))
@@ -154,8 +162,11 @@ def load_transformer(checkpoint: str | os.PathLike, preset, modality_channels: d
     return model.eval()
 
 
+# What a guide network must share with the checkpoint's backbone to see the same tokens and text.
+GUIDE_MUST_MATCH = ("patch_size", "patch_size_t", "text_embed_dim", "max_text_seq_length", "sample_width",
+                    "sample_height", "sample_frames")
 # The preset fields that only say how a checkpoint samples (the weights do not depend on them).
-SAMPLER_FIELDS = ("num_steps", "text_guidance", "image_guidance", "guidance_min_sigma")
+SAMPLER_FIELDS = ("num_steps", "text_guidance", "image_guidance", "guidance_min_sigma", "autoguidance")
 
 
 def check_sampler_settings(settings: dict) -> None:
@@ -163,48 +174,95 @@ def check_sampler_settings(settings: dict) -> None:
     import math
 
     flags = {"num_steps": "--steps", "text_guidance": "--text-guidance", "image_guidance": "--image-guidance",
-             "guidance_min_sigma": "--guidance-min-sigma"}
+             "guidance_min_sigma": "--guidance-min-sigma", "autoguidance": "--autoguidance"}
     for name, value in settings.items():
         if name not in SAMPLER_FIELDS:
             raise UserError(f"{name!r} is not a sampler setting (one of {', '.join(SAMPLER_FIELDS)})")
         if name == "num_steps":
             if int(value) != value or value < 1:
                 raise UserError(f"{flags[name]} must be a whole number of steps ≥ 1, got {value}")
+        elif name == "autoguidance":
+            if not math.isfinite(value) or value < 0:
+                raise UserError(f"--autoguidance must be a finite number ≥ 0 (0: none), got {value}")
         elif not math.isfinite(value) or value < 0 or (name != "guidance_min_sigma" and value == 0):
             what = "≥ 0 (0: guidance at every step)" if name == "guidance_min_sigma" else "> 0 (1: no guidance)"
             raise UserError(f"{flags[name]} must be a finite number {what}, got {value}")
 
 
+def _latent_lineage(config: dict) -> str | None:
+    """The autoencoder a checkpoint's transformer was trained with (its latent space), by hash."""
+    entry = config.get("autoencoder")
+    return None if entry is None else entry.get("trained_with_hash", entry["hash"])
+
+
+def check_guide(checkpoint: Path, config: dict, guide: Path) -> dict:
+    """The guide checkpoint's inference config, after checking that its network sees the same inputs
+    as ``checkpoint``'s: the same latent space (trained with the same autoencoder, or one whose
+    encoder is bit for bit the same), resolution, frames and text encoder."""
+    guide_config = read_inference_config(guide)
+    for key in ("resolution", "num_frames", "text_encoder"):
+        if guide_config.get(key) != config.get(key):
+            raise UserError(f"--guide {guide} has {key} {guide_config.get(key)}, {checkpoint} has {config.get(key)}; "
+                            f"a guide must be a checkpoint of the same data and text encoder")
+    if ("autoencoder" in guide_config) != ("autoencoder" in config):
+        raise UserError(f"--guide {guide} and {checkpoint} are not both latent checkpoints")
+    if "autoencoder" in config and _latent_lineage(guide_config) != _latent_lineage(config):
+        from tesseract4d.model.autoencoder import load_autoencoder
+        from tesseract4d.model.latent_checkpoint import checkpoint_autoencoder, encoder_differences
+
+        diff = encoder_differences(load_autoencoder(checkpoint_autoencoder(checkpoint, config["autoencoder"])),
+                                   load_autoencoder(checkpoint_autoencoder(guide, guide_config["autoencoder"])))
+        if diff:
+            raise UserError(f"--guide {guide} works in another latent space than {checkpoint} ({'; '.join(diff[:2])}); "
+                            f"take a checkpoint trained with the same autoencoder, e.g. an earlier one of its own run")
+    return guide_config
+
+
 def write_sampler_copy(checkpoint: str | os.PathLike, to: str | os.PathLike, settings: dict,
-                       overwrite: bool = False) -> Path:
+                       overwrite: bool = False, guide: str | os.PathLike | None = None) -> Path:
     """Write a copy of ``checkpoint`` into ``to`` (a new folder; the checkpoint is never changed) whose
-    preset samples with ``settings`` (SAMPLER_FIELDS: steps, guidance scales, guidance interval), the
-    weights byte for byte the same. The previous settings and the source are recorded in
-    INFERENCE_CONFIG_FILE under ``sampler_changed``; a model card is not copied (it describes the source)."""
+    preset samples with ``settings`` (SAMPLER_FIELDS: steps, guidance scales, guidance interval,
+    autoguidance), the weights byte for byte the same. ``guide``: a checkpoint whose transformer the
+    copy carries as its autoguidance network (GUIDE_DIR), byte for byte. The previous settings and the
+    source are recorded in INFERENCE_CONFIG_FILE under ``sampler_changed``; a model card is not copied
+    (it describes the source)."""
     import shutil
 
     from tesseract4d.model.presets import preset_from_dict
     from tesseract4d.outputs import OutputDir
 
-    if not settings:
-        raise UserError("nothing to change: give --steps, --text-guidance, --image-guidance or --guidance-min-sigma")
+    if not settings and guide is None:
+        raise UserError("nothing to change: give --steps, --text-guidance, --image-guidance, --guidance-min-sigma, "
+                        "--autoguidance or --guide")
     check_sampler_settings(settings)
     checkpoint = Path(checkpoint)
     config = read_inference_config(checkpoint)
     preset = dict(config["preset"])
     saved = preset_from_dict(preset)  # settings an older checkpoint lacks read as their defaults
     previous = {name: getattr(saved, name) for name in settings}
-    with OutputDir(to, "set-sampler", inputs=[checkpoint], overwrite=overwrite, flag="--to") as tmp:
+    guide_config = None if guide is None else check_guide(checkpoint, config, Path(guide))
+    if settings.get("autoguidance", saved.autoguidance) > 0 and guide is None and not (checkpoint / GUIDE_DIR).is_dir():
+        raise UserError(f"autoguidance needs a weaker network of the same latent space: add --guide CKPT (e.g. an "
+                        f"earlier checkpoint of {checkpoint}'s training run)")
+    inputs = [checkpoint] + ([Path(guide)] if guide is not None else [])
+    with OutputDir(to, "set-sampler", inputs=inputs, overwrite=overwrite, flag="--to") as tmp:
         for child in sorted(checkpoint.iterdir()):
             if child.name == INFERENCE_CONFIG_FILE or child.name.startswith(".") or child.name == "MODEL_CARD.md":
                 continue
+            if guide is not None and child.name == GUIDE_DIR:
+                continue  # replaced by the new guide below
             if child.is_dir():
                 shutil.copytree(child, tmp / child.name)
             else:
                 shutil.copy2(child, tmp / child.name)
         preset.update(settings)
-        changes = list(config.get("sampler_changed", []))
-        changes.append({"source": str(checkpoint), "previous": previous, "new": dict(settings)})
-        (tmp / INFERENCE_CONFIG_FILE).write_text(json.dumps({**config, "preset": preset, "sampler_changed": changes},
-                                                            indent=2))
+        change = {"source": str(checkpoint), "previous": previous, "new": dict(settings)}
+        out = {**config, "preset": preset}
+        if guide is not None:
+            shutil.copytree(Path(guide) / TRANSFORMER_DIR, tmp / GUIDE_DIR)
+            out["guide"] = {"source": str(guide), "digest": weights_digest(guide),
+                            "training": guide_config.get("training")}
+            change["guide"] = str(guide)
+        out["sampler_changed"] = list(config.get("sampler_changed", [])) + [change]
+        (tmp / INFERENCE_CONFIG_FILE).write_text(json.dumps(out, indent=2))
     return Path(to)

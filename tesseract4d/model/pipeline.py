@@ -8,6 +8,12 @@ Classifier-free guidance on text and first frame (InstructPix2Pix-style, on x0_h
 ``x0 = uncond + s_img (img - uncond) + s_txt (full - img)``, where ``img`` has the first frame but
 no text and ``uncond`` has neither. Passes that a guidance scale of 1 makes unnecessary are skipped.
 
+Autoguidance (Karras et al. 2024, "Guiding a diffusion model with a bad version of itself"): with a
+``guide_transformer`` (a weaker network of the same latent space, e.g. an early checkpoint of the same
+training run) and a scale ``w`` > 0, every step adds ``w (full - guide_full)``, the guide's x0 with the
+same first frame and text: the sample moves away from the errors the weaker network makes more of.
+One more network pass per step.
+
 Clips longer than the preset's clip continue autoregressively: each next clip is conditioned on the
 last frame predicted so far.
 """
@@ -50,8 +56,9 @@ class RGBDNPipeline:
 
     def __init__(self, transformer, scheduler, codec, text_encoder, preset: ModelPreset, model_space,
                  camera_name: str | None = None, bf16: bool = False, config: dict | None = None,
-                 prediction: str | None = None):
+                 prediction: str | None = None, guide_transformer=None):
         self.transformer = transformer.eval()
+        self.guide_transformer = None if guide_transformer is None else guide_transformer.eval()
         self.scheduler = scheduler
         self.codec = codec
         self.text_encoder = text_encoder
@@ -75,29 +82,39 @@ class RGBDNPipeline:
     def to(self, device: str | torch.device) -> "RGBDNPipeline":
         self.device = torch.device(device)
         self.transformer.to(self.device)
+        if self.guide_transformer is not None:
+            self.guide_transformer.to(self.device)
         self.codec.to(self.device)
         return self
 
-    def _predict_x0(self, x_t, sigma, cond, null_cond, text, null_text, text_guidance, image_guidance):
+    def _forward(self, network, x_t, conditions, texts, sigma):
+        """One batched forward of ``network`` over the conditionings stacked along the batch; outputs in
+        the network's target (x0, or a velocity for a velocity-prediction checkpoint)."""
+        n = len(conditions)
+        with torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=self.bf16):
+            out = network(x_t.repeat(n, 1, 1, 1, 1), torch.cat(conditions), torch.cat(texts),
+                          torch.full((n * x_t.shape[0],), float(sigma), device=self.device)).float()
+        if self.prediction == "velocity":  # each pass's output minus its own first frame is a velocity
+            out = out - torch.cat(conditions)[:, :1]
+        return out.split(x_t.shape[0])
+
+    def _predict_x0(self, x_t, sigma, cond, null_cond, text, null_text, text_guidance, image_guidance,
+                    autoguidance: float = 0.0):
         """Guided x0_hat (b, t', c, h, w) for the current noisy sample."""
         inputs = {"full": (cond, text), "image": (cond, null_text), "none": (null_cond, null_text)}
         passes = [inputs[name] for name in guidance_passes(text_guidance, image_guidance)]
-        n = len(passes)
-        b = x_t.shape[0]
-        with torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=self.bf16):
-            out = self.transformer(
-                x_t.repeat(n, 1, 1, 1, 1), torch.cat([p[0] for p in passes]), torch.cat([p[1] for p in passes]),
-                torch.full((n * b,), float(sigma), device=self.device),
-            ).float()
-        if self.prediction == "velocity":  # each pass's output minus its own first frame is a velocity
-            out = out - torch.cat([p[0] for p in passes])[:, :1]
-        preds = out.split(b)
-        if n == 1:
-            return preds[0]
-        if n == 2:
-            return preds[1] + text_guidance * (preds[0] - preds[1])
-        full, img, uncond = preds
-        return uncond + image_guidance * (img - uncond) + text_guidance * (full - img)
+        preds = self._forward(self.transformer, x_t, [p[0] for p in passes], [p[1] for p in passes], sigma)
+        if len(preds) == 1:
+            guided = preds[0]
+        elif len(preds) == 2:
+            guided = preds[1] + text_guidance * (preds[0] - preds[1])
+        else:
+            full, img, uncond = preds
+            guided = uncond + image_guidance * (img - uncond) + text_guidance * (full - img)
+        if autoguidance:
+            weak = self._forward(self.guide_transformer, x_t, [cond], [text], sigma)[0]
+            guided = guided + autoguidance * (preds[0] - weak)
+        return guided
 
     def latent_shape(self, batch: int) -> tuple[int, ...]:
         """Shape of one clip's initial noise in the network's space: (b, t', c, h, w)."""
@@ -107,12 +124,13 @@ class RGBDNPipeline:
 
     def _denoise_clip(self, first_frame, text, null_text, num_steps, text_guidance, image_guidance,
                       generator, progress, step_offset, total_steps, latents=None, guidance_min_sigma=0.0,
-                      start=None):
+                      start=None, autoguidance=0.0):
         """One clip of the preset's length from a (b, 7, H, W) first frame, in the network's space:
         (b, t', c, h, w). ``latents``: the initial noise (default: drawn from ``generator``).
         ``guidance_min_sigma``: steps at a lower noise level run unguided (one pass).
         ``start``: (clean clips (b, t', c, h, w), sigma): begin at the first noise level ``s`` ≤ sigma
-        from ``(1 - s) clean + s noise`` and run only the steps from there."""
+        from ``(1 - s) clean + s noise`` and run only the steps from there.
+        ``autoguidance``: the guide network's scale, at every step (0 = none)."""
         b = first_frame.shape[0]
         nt = self.codec.num_latent_frames(self.preset.num_frames)
         first = self.codec.encode(first_frame[:, None].to(self.device), generator=generator)  # (b, 1, c, h, w)
@@ -140,7 +158,8 @@ class RGBDNPipeline:
                 sigma = float(self.scheduler.sigmas[i])
                 guided = sigma >= guidance_min_sigma
                 pred = self._predict_x0(x, sigma, cond, null_cond, text, null_text,
-                                        text_guidance if guided else 1.0, image_guidance if guided else 1.0)
+                                        text_guidance if guided else 1.0, image_guidance if guided else 1.0,
+                                        autoguidance)
                 velocity = pred if self.prediction == "velocity" else (x - pred) / sigma
                 x = self.scheduler.step(velocity, timestep, x, return_dict=False)[0]
             if progress is not None:
@@ -171,6 +190,7 @@ class RGBDNPipeline:
         text_guidance: float | None = None,
         image_guidance: float | None = None,
         guidance_min_sigma: float | None = None,
+        autoguidance: float | None = None,
         generator: torch.Generator | None = None,
         progress: Callable[[int, int], None] | None = None,
         latents: torch.Tensor | None = None,
@@ -203,6 +223,7 @@ class RGBDNPipeline:
         text_guidance = p.text_guidance if text_guidance is None else float(text_guidance)
         image_guidance = p.image_guidance if image_guidance is None else float(image_guidance)
         guidance_min_sigma = p.guidance_min_sigma if guidance_min_sigma is None else float(guidance_min_sigma)
+        autoguidance = p.autoguidance if autoguidance is None else float(autoguidance)
         b = first_frame.shape[0]
         if first_frame.ndim != 4 or tuple(first_frame.shape[2:]) != self.resolution:
             raise ValueError(f"first_frame must be (b, 7, {p.height}, {p.width}), got {tuple(first_frame.shape)}")
@@ -210,6 +231,9 @@ class RGBDNPipeline:
             raise ValueError(f"{len(instructions)} instructions for {b} first frames")
         if num_frames < 1 or num_steps < 1:
             raise ValueError("num_frames and num_inference_steps must be >= 1")
+        if autoguidance and self.guide_transformer is None:
+            raise ValueError(f"autoguidance {autoguidance:g} needs a guide network: load a checkpoint written by "
+                             f"`tesseract4d set-sampler --guide CKPT --autoguidance W`, or pass autoguidance=0")
         if output_type not in ("clip", "latent"):
             raise ValueError(f"output_type must be 'clip' or 'latent', got {output_type!r}")
         if output_type == "latent" and num_frames != p.num_frames:
@@ -225,7 +249,8 @@ class RGBDNPipeline:
         if output_type == "latent":
             return self._denoise_clip(first_frame.float(), text, null_text, num_steps, text_guidance, image_guidance,
                                       generator, progress, 0, num_steps, latents=latents,
-                                      guidance_min_sigma=guidance_min_sigma, start=start).cpu()
+                                      guidance_min_sigma=guidance_min_sigma, start=start,
+                                      autoguidance=autoguidance).cpu()
 
         # 3. Sample clip after clip, each conditioned on the last frame so far.
         clip_len = p.num_frames
@@ -237,7 +262,8 @@ class RGBDNPipeline:
             clip = self._sample_clip(current, text, null_text, num_steps, text_guidance, image_guidance,
                                      generator, progress, k * num_steps, total,
                                      latents=latents if k == 0 else None,
-                                     guidance_min_sigma=guidance_min_sigma, start=start).cpu()
+                                     guidance_min_sigma=guidance_min_sigma, start=start,
+                                     autoguidance=autoguidance).cpu()
             frames.append(clip if k == 0 else clip[:, 1:])
             current = clip[:, -1]
         # 4. Stitch the clips.

@@ -23,7 +23,8 @@ from tesseract4d import dataset_format as df
 from tesseract4d.errors import UserError
 from tesseract4d.precision import announce, resolve_precision
 from tesseract4d.model.model_space import ModelSpace
-from tesseract4d.model.checkpoint import INFERENCE_CONFIG_FILE, load_scheduler, load_transformer, read_inference_config
+from tesseract4d.model.checkpoint import (GUIDE_DIR, INFERENCE_CONFIG_FILE, load_scheduler, load_transformer,
+                                          read_inference_config)
 from tesseract4d.model.pipeline import RGBDNPipeline
 from tesseract4d.model.presets import PRESETS, preset_from_dict
 
@@ -63,8 +64,14 @@ def load_pipeline(checkpoint: str | os.PathLike, device: str = "cpu", precision:
     if transformer.backbone.config.text_embed_dim != text_encoder.dim:
         raise UserError(f"{ckpt}: the transformer expects {transformer.backbone.config.text_embed_dim}-d text "
                         f"embeddings but the {preset.text_encoder} encoder gives {text_encoder.dim}")
+    guide = None
+    if (ckpt / GUIDE_DIR).is_dir():  # autoguidance's weaker network (`set-sampler --guide`)
+        guide = load_transformer(ckpt, preset, codec.modality_channels, subfolder=GUIDE_DIR)
+    elif preset.autoguidance:
+        raise UserError(f"{ckpt} samples with autoguidance {preset.autoguidance:g} but has no {GUIDE_DIR}/ folder; "
+                        f"write it again with `tesseract4d set-sampler --guide CKPT`")
     pipe = RGBDNPipeline(transformer, load_scheduler(ckpt, cfg), codec, text_encoder, preset, space,
-                         camera_name=cfg.get("camera_name"), bf16=chosen.bf16, config=cfg)
+                         camera_name=cfg.get("camera_name"), bf16=chosen.bf16, config=cfg, guide_transformer=guide)
     return pipe.to(device)
 
 

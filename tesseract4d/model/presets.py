@@ -65,6 +65,10 @@ class ModelPreset:
     # Guidance only at noise levels >= this (a guidance interval): lower-noise steps run one unguided
     # pass. 0 = every step guided.
     guidance_min_sigma: float = 0.0
+    # Autoguidance (Karras et al. 2024): every step adds this times (x0 of the network - x0 of a weaker
+    # network of the same latent space, the checkpoint's guide_transformer), both with first frame and
+    # text. 0 = none (one network only).
+    autoguidance: float = 0.0
 
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)
