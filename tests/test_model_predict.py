@@ -253,3 +253,101 @@ def test_set_sampler_refuses_bad_settings(checkpoint, tmp_path, capsys):
         assert cli.main(["set-sampler", "--checkpoint", str(checkpoint), *extra]) != 0
         assert message in capsys.readouterr().err
     assert not any((tmp_path / name).exists() for name in "abcd")
+
+
+@pytest.fixture(scope="module")
+def guide_checkpoint(micro_preset, tmp_path_factory) -> Path:
+    """A weaker network of the same data and space: the same preset trained for fewer steps."""
+    from tesseract4d.model.trainer import TrainConfig, Trainer
+
+    root = tmp_path_factory.mktemp("guide")
+    data = write_synthetic_dataset(root / "data", episodes=2)
+    return Trainer(TrainConfig(data=data, out=root / "run", preset=MICRO.name, max_steps=3, val_every=0,
+                               ckpt_every=0, progress=False, seed=1)).train()
+
+
+def test_autoguidance_adds_the_difference_to_the_guide(checkpoint, guide_checkpoint):
+    """Autoguidance W: the guided x0 plus W × (the network's x0 − the guide's x0), both given first
+    frame and text; W = 0 is the sampler without the guide."""
+    from tesseract4d.model.codec import make_condition
+    from tesseract4d.model.checkpoint import load_transformer
+
+    pipe = load_pipeline(checkpoint, precision="fp32")
+    guide = load_transformer(guide_checkpoint, pipe.preset, pipe.codec.modality_channels)
+    p, g = pipe.preset, torch.Generator().manual_seed(0)
+    first = pipe.codec.encode(torch.rand(2, 1, 7, p.height, p.width, generator=g) * 2 - 1)
+    nt = pipe.codec.num_latent_frames(p.num_frames)
+    cond = make_condition(first, nt, p.condition)
+    x = torch.randn((2, nt, *first.shape[2:]), generator=g)
+    text = pipe.text_encoder.encode(["push the square to the left", "keep still"])
+    null_cond, null_text, sigma = torch.zeros_like(cond), torch.zeros_like(text), 0.6
+    with torch.no_grad():
+        plain = pipe._predict_x0(x, sigma, cond, null_cond, text, null_text, 2.0, 1.0)
+        pipe.guide_transformer = guide
+        guided = pipe._predict_x0(x, sigma, cond, null_cond, text, null_text, 2.0, 1.0, autoguidance=1.5)
+        off = pipe._predict_x0(x, sigma, cond, null_cond, text, null_text, 2.0, 1.0, autoguidance=0.0)
+        full = pipe.transformer(x, cond, text, torch.full((2,), sigma)).float()
+        weak = guide(x, cond, text, torch.full((2,), sigma)).float()
+    assert not torch.allclose(full, weak)  # the guide is another network
+    torch.testing.assert_close(guided, plain + 1.5 * (full - weak), atol=1e-4, rtol=1e-4)
+    assert torch.equal(off, plain)
+
+
+def test_set_sampler_guide_writes_a_copy_that_autoguides(checkpoint, guide_checkpoint, tmp_path):
+    """set-sampler --guide: the copy carries the guide's transformer byte for byte and samples as the
+    original does with that guide and scale; the guide is recorded; the sources are unchanged."""
+    to = tmp_path / "ag"
+    weights = Path("transformer") / "diffusion_pytorch_model.safetensors"
+    guide_bytes = (guide_checkpoint / weights).read_bytes()
+    assert cli.main(["set-sampler", "--checkpoint", str(checkpoint), "--to", str(to), "--guide", str(guide_checkpoint),
+                     "--autoguidance", "1.5"]) == 0
+    assert (to / "guide_transformer" / weights.name).read_bytes() == guide_bytes
+    assert (to / weights).read_bytes() == (checkpoint / weights).read_bytes()
+    assert (guide_checkpoint / weights).read_bytes() == guide_bytes
+    config = json.loads((to / "tesseract4d_config.json").read_text())
+    assert config["preset"]["autoguidance"] == 1.5 and config["guide"]["source"] == str(guide_checkpoint)
+    assert config["sampler_changed"][-1]["guide"] == str(guide_checkpoint)
+    copy, original = load_pipeline(to, precision="fp32"), load_pipeline(checkpoint, precision="fp32")
+    assert copy.guide_transformer is not None and original.guide_transformer is None
+    original.guide_transformer = copy.guide_transformer
+    p = copy.preset
+    first = torch.rand(1, 7, p.height, p.width, generator=torch.Generator().manual_seed(0)) * 2 - 1
+
+    def sample(pipe, **kw):
+        return pipe(first, ["push the square to the right"], num_inference_steps=3,
+                    generator=torch.Generator().manual_seed(4), **kw)
+
+    assert torch.equal(sample(copy), sample(original, autoguidance=1.5))
+    assert not torch.equal(sample(copy), sample(copy, autoguidance=0.0))
+    # A copy of the copy keeps its guide; setting the scale to 0 samples as the original.
+    assert cli.main(["set-sampler", "--checkpoint", str(to), "--to", str(tmp_path / "off"), "--autoguidance", "0"]) == 0
+    off = load_pipeline(tmp_path / "off", precision="fp32")
+    assert (tmp_path / "off" / "guide_transformer").is_dir() and off.preset.autoguidance == 0.0
+    original.guide_transformer = None
+    assert torch.equal(sample(off), sample(original))
+
+
+def test_autoguidance_refuses_what_it_cannot_use(checkpoint, guide_checkpoint, tmp_path, capsys):
+    """No guide, a negative scale, a guide of other data: refused with the fix, nothing written; a copy
+    whose guide folder went missing does not load; the pipeline refuses autoguidance without a guide."""
+    other = shutil.copytree(guide_checkpoint, tmp_path / "other")
+    config = json.loads((other / "tesseract4d_config.json").read_text())
+    (other / "tesseract4d_config.json").write_text(json.dumps({**config, "num_frames": config["num_frames"] * 2}))
+    runs = [(["--to", str(tmp_path / "a"), "--autoguidance", "1"], "add --guide CKPT"),
+            (["--to", str(tmp_path / "b"), "--autoguidance", "-1", "--guide", str(guide_checkpoint)],
+             "--autoguidance must be"),
+            (["--to", str(tmp_path / "c"), "--autoguidance", "1", "--guide", str(other)], "num_frames")]
+    for extra, message in runs:
+        assert cli.main(["set-sampler", "--checkpoint", str(checkpoint), *extra]) != 0
+        assert message in capsys.readouterr().err
+    assert not any((tmp_path / name).exists() for name in "abc")
+    broken = tmp_path / "broken"
+    assert cli.main(["set-sampler", "--checkpoint", str(checkpoint), "--to", str(broken), "--guide",
+                     str(guide_checkpoint), "--autoguidance", "1"]) == 0
+    shutil.rmtree(broken / "guide_transformer")  # written by this test, inside its tmp_path
+    with pytest.raises(UserError, match="set-sampler --guide"):
+        load_pipeline(broken)
+    pipe = load_pipeline(checkpoint)
+    p = pipe.preset
+    with pytest.raises(ValueError, match="guide network"):
+        pipe(torch.zeros(1, 7, p.height, p.width), ["keep still"], autoguidance=1.0)
