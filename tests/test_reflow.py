@@ -232,3 +232,26 @@ def test_distill_with_counterfactual_swap(teacher, tmp_path, monkeypatch):
     assert main(["distill", "--teacher", str(ckpt), "--pairs", str(plain), "--out", str(tmp_path / "r2"),
                  "--counterfactual-swap", "0.5", "--no-progress"]) == 2
     assert not (tmp_path / "r2").exists()
+
+
+def test_pairs_of_an_autoguided_teacher_are_its_own(teacher, tmp_path):
+    """A teacher with autoguidance samples its pairs with its guide: they differ from the plain
+    teacher's, the manifest names the guide, and pairs of the plain teacher are refused for it."""
+    from tesseract4d.model.checkpoint import GUIDE_DIR, write_sampler_copy
+
+    ckpt, data = teacher
+    guide = Trainer(TrainConfig(data=data, out=tmp_path / "guide_run", preset=MICRO.name, max_steps=5, batch_size=4,
+                                val_every=0, ckpt_every=0, progress=False, seed=1)).train()
+    guided = write_sampler_copy(ckpt, tmp_path / "guided", {"autoguidance": 1.0}, guide=guide)
+    plain = ReflowPairs(generate_pairs(_pairs_cfg(ckpt, data, tmp_path / "plain", 2), progress=False))
+    auto = ReflowPairs(generate_pairs(_pairs_cfg(guided, data, tmp_path / "auto", 2), progress=False))
+    assert torch.equal(plain.noise, auto.noise) and not torch.allclose(plain.x0, auto.x0)
+    assert auto.manifest["autoguidance"] == 1.0 and plain.manifest["guide_digest"] is None
+    assert auto.manifest["guide_digest"] == weights_digest(guided, subfolder=GUIDE_DIR) == weights_digest(guide)
+    with pytest.raises(UserError, match="autoguidance"):
+        generate_pairs(_pairs_cfg(guided, data, tmp_path / "plain", 2), progress=False)
+    # Its student samples alone: no guide, one pass per step.
+    from tesseract4d.model.predict import load_pipeline
+    from tesseract4d.model.reflow import student_preset
+
+    assert student_preset(load_pipeline(guided).preset, STUDENT_STEPS).autoguidance == 0.0

@@ -67,13 +67,13 @@ def weights_to_half(weights: Path) -> None:
     save_file(tensors, str(weights), metadata=metadata)
 
 
-def weights_digest(checkpoint: str | os.PathLike) -> str:
+def weights_digest(checkpoint: str | os.PathLike, subfolder: str = TRANSFORMER_DIR) -> str:
     """SHA-256 (first 16 hex digits) of a checkpoint's transformer weights: what a run started from
-    (``train --init``) or distilled (reflow pairs) names it by."""
+    (``train --init``) or distilled (reflow pairs) names it by. ``subfolder`` GUIDE_DIR: its guide's."""
     import hashlib
 
     h = hashlib.sha256()
-    with open(Path(checkpoint) / TRANSFORMER_DIR / WEIGHTS_FILE, "rb") as f:
+    with open(Path(checkpoint) / subfolder / WEIGHTS_FILE, "rb") as f:
         for block in iter(lambda: f.read(1 << 20), b""):
             h.update(block)
     return h.hexdigest()[:16]

@@ -70,8 +70,8 @@ def _shard_path(out: Path, index: int) -> Path:
 
 
 # What a manifest written before a key existed meant by it: pairs before guidance intervals were
-# guided at every step.
-_MANIFEST_DEFAULTS = {"guidance_min_sigma": 0.0}
+# guided at every step, pairs before autoguidance had none.
+_MANIFEST_DEFAULTS = {"guidance_min_sigma": 0.0, "autoguidance": 0.0, "guide_digest": None}
 
 
 def _check_manifest(out: Path, manifest: dict) -> None:
@@ -81,12 +81,19 @@ def _check_manifest(out: Path, manifest: dict) -> None:
             raise UserError(f"{out} exists and is not a reflow pairs folder; choose a new --out")
         return
     saved = json.loads(path.read_text())
-    keys = ("teacher_digest", "teacher_steps", "text_guidance", "image_guidance", "guidance_min_sigma", "data", "seed",
-            "shard_size", "groups")
+    keys = ("teacher_digest", "teacher_steps", "text_guidance", "image_guidance", "guidance_min_sigma", "autoguidance",
+            "guide_digest", "data", "seed", "shard_size", "groups")
     differ = [k for k in keys if saved.get(k, _MANIFEST_DEFAULTS.get(k)) != manifest.get(k)]
     if differ:
         raise UserError(f"{out} holds pairs made with other settings ({', '.join(differ)} differ); "
                         f"choose a new --out for these settings")
+
+
+def _guide_digest(teacher, autoguidance: float) -> str | None:
+    """The teacher's autoguidance network by its weights' digest, where it samples with one."""
+    from tesseract4d.model.checkpoint import GUIDE_DIR, weights_digest
+
+    return weights_digest(teacher, subfolder=GUIDE_DIR) if autoguidance else None
 
 
 def generate_pairs(cfg: PairsConfig, progress: bool = True) -> Path:
@@ -116,7 +123,9 @@ def generate_pairs(cfg: PairsConfig, progress: bool = True) -> Path:
     out = Path(cfg.out)
     manifest = {"format": 1, "teacher": str(cfg.teacher), "teacher_digest": weights_digest(cfg.teacher),
                 "teacher_preset": p.to_dict(), "teacher_steps": steps, "text_guidance": text_g,
-                "image_guidance": image_g, "guidance_min_sigma": p.guidance_min_sigma, "data": plain(cfg.data),
+                "image_guidance": image_g, "guidance_min_sigma": p.guidance_min_sigma,
+                "autoguidance": p.autoguidance, "guide_digest": _guide_digest(cfg.teacher, p.autoguidance),
+                "data": plain(cfg.data),
                 "camera": data.camera, "seed": cfg.seed, "shard_size": cfg.shard_size, "groups": bool(cfg.groups), "config": cfg.to_dict()}
     _check_manifest(out, manifest)
     out.mkdir(parents=True, exist_ok=True)
