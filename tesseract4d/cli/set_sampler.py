@@ -17,6 +17,9 @@ Example (v2's 10 guided steps, guidance only at noise ≥ 0.5: 15 network passes
   tesseract4d set-sampler --checkpoint tesseract4d/checkpoints/v2 --guidance-min-sigma 0.5 --to runs/v2_interval
   tesseract4d evaluate --heldout data/heldout_groups128 --checkpoint tesseract4d/checkpoints/v2 \\
       --checkpoint runs/v2_interval --sample-seed 0 1 --out outputs/interval
+
+Example (autoguidance by an earlier export of the run that trained the checkpoint):
+  tesseract4d set-sampler --checkpoint tesseract4d/checkpoints/v2 --guide runs/v2/step_005596 --autoguidance 1 --to runs/v2_ag
 """
 
 from __future__ import annotations
