@@ -36,7 +36,7 @@ from typing import Callable
 import torch
 
 from tesseract4d.errors import UserError
-from tesseract4d.model.checkpoint import weights_digest
+from tesseract4d.model.checkpoint import GUIDE_DIR, weights_digest
 from tesseract4d.model.trainer import TrainConfig, Trainer
 
 MANIFEST = "reflow_pairs.json"
@@ -89,13 +89,6 @@ def _check_manifest(out: Path, manifest: dict) -> None:
                         f"choose a new --out for these settings")
 
 
-def _guide_digest(teacher, autoguidance: float) -> str | None:
-    """The teacher's autoguidance network by its weights' digest, where it samples with one."""
-    from tesseract4d.model.checkpoint import GUIDE_DIR, weights_digest
-
-    return weights_digest(teacher, subfolder=GUIDE_DIR) if autoguidance else None
-
-
 def generate_pairs(cfg: PairsConfig, progress: bool = True) -> Path:
     """Sample ``cfg.num_pairs`` teacher clips into ``cfg.out`` (resumes at the first missing shard)."""
     from safetensors.torch import save_file
@@ -124,7 +117,8 @@ def generate_pairs(cfg: PairsConfig, progress: bool = True) -> Path:
     manifest = {"format": 1, "teacher": str(cfg.teacher), "teacher_digest": weights_digest(cfg.teacher),
                 "teacher_preset": p.to_dict(), "teacher_steps": steps, "text_guidance": text_g,
                 "image_guidance": image_g, "guidance_min_sigma": p.guidance_min_sigma,
-                "autoguidance": p.autoguidance, "guide_digest": _guide_digest(cfg.teacher, p.autoguidance),
+                "autoguidance": p.autoguidance,  # and the guide it samples with, by its weights' digest
+                "guide_digest": weights_digest(cfg.teacher, subfolder=GUIDE_DIR) if p.autoguidance else None,
                 "data": plain(cfg.data),
                 "camera": data.camera, "seed": cfg.seed, "shard_size": cfg.shard_size, "groups": bool(cfg.groups), "config": cfg.to_dict()}
     _check_manifest(out, manifest)
