@@ -57,6 +57,9 @@ fi
 PY="${PYTHON:-python3.11}"
 command -v "$PY" >/dev/null || PY=python3
 [[ -x .venv/bin/python ]] || "$PY" -m venv .venv
+# No wheel cache: it would keep a second copy of every download (torch, Open3D, Ray, SAPIEN)
+# on a machine whose disk may be nearly full.
+export PIP_NO_CACHE_DIR=1
 # torch first, pinned to the CPU build, or a dependency pulls a multi-GB CUDA build.
 .venv/bin/pip install -q --upgrade pip
 .venv/bin/pip install -q torch==2.13.0
