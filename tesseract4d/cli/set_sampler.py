@@ -45,6 +45,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--guide", type=Path, metavar="CKPT",
                         help="checkpoint whose transformer becomes the copy's autoguidance network: a weaker "
                              "model of the same latent space, e.g. an early checkpoint of the same training run")
+    parser.add_argument("--guide-bits", type=int, choices=(16, 8), default=16, metavar="{16,8}",
+                        help="store the guide as it is (16) or its matrices in 8 bits, one scale per output "
+                             "row (8): half the bytes, loaded back as float32 (default: 16)")
     parser.add_argument("--overwrite", action="store_true",
                         help="replace an earlier copy in --to (files it did not write are never touched)")
 
@@ -56,6 +59,7 @@ def run(args: argparse.Namespace) -> int:
                                                 ("image_guidance", args.image_guidance),
                                                 ("guidance_min_sigma", args.guidance_min_sigma),
                                                 ("autoguidance", args.autoguidance)) if value is not None}
-    to = write_sampler_copy(args.checkpoint, args.to, settings, overwrite=args.overwrite, guide=args.guide)
+    to = write_sampler_copy(args.checkpoint, args.to, settings, overwrite=args.overwrite, guide=args.guide,
+                            guide_bits=args.guide_bits)
     print(f"checkpoint with the new sampler settings: {to}")
     return 0

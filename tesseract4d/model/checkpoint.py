@@ -6,7 +6,9 @@
     CKPT/transformer/diffusion_pytorch_model.safetensors     WEIGHTS_FILE (EMA weights)
     CKPT/scheduler/scheduler_config.json                     SCHEDULER_DIR: the sampler's settings
     CKPT/guide_transformer/...          GUIDE_DIR (optional): a weaker network of the same latent space
-                                        that autoguidance steers away from (``set-sampler --guide``)
+                                        that autoguidance steers away from (``set-sampler --guide``);
+                                        its weights may be stored in 8 bits (``--guide-bits 8``,
+                                        QUANTIZED_METADATA), loaded back as float32
 
 Versions: 1 had no scheduler folder (it sampled with ``pipeline.make_scheduler()``'s settings, which are
 what it was trained for); 2 saves the scheduler with the weights. A checkpoint of another format or
@@ -65,6 +67,56 @@ def weights_to_half(weights: Path) -> None:
         tensors = {k: f.get_tensor(k) for k in f.keys()}
     tensors = {k: v.half() if v.dtype == torch.float32 else v for k, v in tensors.items()}
     save_file(tensors, str(weights), metadata=metadata)
+
+
+# Safetensors metadata of weights stored in 8 bits: every float matrix as int8 with one float16 scale
+# per output row (the tensor NAME + QUANTIZED_SCALE_SUFFIX); vectors (biases, norms) kept as they are.
+QUANTIZED_METADATA = {"tesseract4d_weights": "int8-per-output-channel"}
+QUANTIZED_SCALE_SUFFIX = ".int8_scale"
+
+
+def weights_to_int8(weights: Path) -> None:
+    """Rewrite a safetensors file with each float tensor of ≥ 2 dimensions as int8 (symmetric, one
+    scale per output row, ``round(w / scale)`` in [-127, 127]): half the bytes of float16."""
+    import torch
+    from safetensors.torch import load_file, save_file
+
+    out = {}
+    for name, w in load_file(str(weights)).items():
+        if w.is_floating_point() and w.ndim >= 2:
+            rows = w.float().reshape(w.shape[0], -1)
+            scale = (rows.abs().amax(dim=1) / 127.0).clamp_min(1e-12).half()
+            out[name] = (rows / scale.float()[:, None]).round().clamp(-127, 127).to(torch.int8).reshape(w.shape)
+            out[name + QUANTIZED_SCALE_SUFFIX] = scale
+        else:
+            out[name] = w
+    save_file(out, str(weights), metadata=QUANTIZED_METADATA)
+
+
+def stored_in_8_bits(weights: Path) -> bool:
+    """Whether a safetensors file holds weights written by ``weights_to_int8``."""
+    from safetensors import safe_open
+
+    with safe_open(str(weights), "pt") as f:
+        return (f.metadata() or {}).items() >= QUANTIZED_METADATA.items()
+
+
+def read_weights(weights: Path) -> tuple[dict, bool]:
+    """A safetensors file's tensors, floats as float32 (8-bit ones dequantized), and whether it was
+    stored in 8 bits."""
+    from safetensors.torch import load_file
+
+    quantized = stored_in_8_bits(weights)
+    tensors = load_file(str(weights))
+    out = {}
+    for name, v in tensors.items():
+        if name.endswith(QUANTIZED_SCALE_SUFFIX):
+            continue
+        scale = tensors.get(name + QUANTIZED_SCALE_SUFFIX) if quantized else None
+        if scale is not None:
+            v = (v.float().reshape(v.shape[0], -1) * scale.float()[:, None]).reshape(v.shape)
+        out[name] = v.float() if v.is_floating_point() else v
+    return out, quantized
 
 
 def weights_digest(checkpoint: str | os.PathLike, subfolder: str = TRANSFORMER_DIR) -> str:
@@ -155,7 +207,11 @@ def load_transformer(checkpoint: str | os.PathLike, preset, modality_channels: d
     except (SafetensorError, OSError) as e:
         raise UserError(f"{folder / WEIGHTS_FILE} is corrupt or truncated ({e}); re-export the checkpoint") from e
     try:
-        model = RGBDNTransformer.from_pretrained(folder).float()  # weights may be stored in float16
+        if stored_in_8_bits(folder / WEIGHTS_FILE):  # `set-sampler --guide-bits 8`: not diffusers' own layout, built from the config
+            model = RGBDNTransformer.from_config(RGBDNTransformer.load_config(folder)).float()
+            model.load_state_dict(read_weights(folder / WEIGHTS_FILE)[0], strict=True)
+        else:
+            model = RGBDNTransformer.from_pretrained(folder).float()  # weights may be stored in float16
     except (RuntimeError, ValueError, OSError, TypeError) as e:
         raise UserError(f"{folder}: weights do not match the config of preset {preset.name!r} "
                         f"({str(e).splitlines()[0]} ...); re-export the checkpoint") from e
@@ -219,11 +275,15 @@ def check_guide(checkpoint: Path, config: dict, guide: Path) -> dict:
 
 
 def write_sampler_copy(checkpoint: str | os.PathLike, to: str | os.PathLike, settings: dict,
-                       overwrite: bool = False, guide: str | os.PathLike | None = None) -> Path:
+                       overwrite: bool = False, guide: str | os.PathLike | None = None,
+                       guide_bits: int = 16) -> Path:
     """Write a copy of ``checkpoint`` into ``to`` (a new folder; the checkpoint is never changed) whose
     preset samples with ``settings`` (SAMPLER_FIELDS: steps, guidance scales, guidance interval,
     autoguidance), the weights byte for byte the same. ``guide``: a checkpoint whose transformer the
-    copy carries as its autoguidance network (GUIDE_DIR), byte for byte. The previous settings and the
+    copy carries as its autoguidance network (GUIDE_DIR), byte for byte, or with ``guide_bits`` 8 its
+    matrices rounded to 8 bits per output row (half the bytes; a guide is a weaker network, and such a
+    guide samples nearly as its float16 original on the held-out screen, README "Autoguidance"). The
+    previous settings and the
     source are recorded in INFERENCE_CONFIG_FILE under ``sampler_changed``; a model card is not copied
     (it describes the source)."""
     import shutil
@@ -235,6 +295,10 @@ def write_sampler_copy(checkpoint: str | os.PathLike, to: str | os.PathLike, set
         raise UserError("nothing to change: give --steps, --text-guidance, --image-guidance, --guidance-min-sigma, "
                         "--autoguidance or --guide")
     check_sampler_settings(settings)
+    if guide_bits not in (8, 16):
+        raise UserError(f"--guide-bits must be 16 (the guide's weights as they are) or 8, got {guide_bits}")
+    if guide_bits != 16 and guide is None:
+        raise UserError("--guide-bits applies to the guide that --guide CKPT adds; give --guide too")
     checkpoint = Path(checkpoint)
     config = read_inference_config(checkpoint)
     preset = dict(config["preset"])
@@ -260,7 +324,9 @@ def write_sampler_copy(checkpoint: str | os.PathLike, to: str | os.PathLike, set
         out = {**config, "preset": preset}
         if guide is not None:
             shutil.copytree(Path(guide) / TRANSFORMER_DIR, tmp / GUIDE_DIR)
-            out["guide"] = {"source": str(guide), "digest": weights_digest(guide),
+            if guide_bits == 8:
+                weights_to_int8(tmp / GUIDE_DIR / WEIGHTS_FILE)
+            out["guide"] = {"source": str(guide), "digest": weights_digest(guide), "bits": guide_bits,
                             "training": guide_config.get("training")}
             change["guide"] = str(guide)
         out["sampler_changed"] = list(config.get("sampler_changed", [])) + [change]
