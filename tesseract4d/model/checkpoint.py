@@ -93,21 +93,19 @@ def weights_to_int8(weights: Path) -> None:
     save_file(out, str(weights), metadata=QUANTIZED_METADATA)
 
 
-def stored_in_8_bits(weights: Path) -> bool:
-    """Whether a safetensors file holds weights written by ``weights_to_int8``."""
-    from safetensors import safe_open
-
-    with safe_open(str(weights), "pt") as f:
-        return (f.metadata() or {}).items() >= QUANTIZED_METADATA.items()
+def _in_8_bits(metadata: dict | None) -> bool:
+    """Whether a safetensors file's metadata says ``weights_to_int8`` wrote it."""
+    return (metadata or {}).items() >= QUANTIZED_METADATA.items()
 
 
 def read_weights(weights: Path) -> tuple[dict, bool]:
     """A safetensors file's tensors, floats as float32 (8-bit ones dequantized), and whether it was
     stored in 8 bits."""
-    from safetensors.torch import load_file
+    from safetensors import safe_open
 
-    quantized = stored_in_8_bits(weights)
-    tensors = load_file(str(weights))
+    with safe_open(str(weights), "pt") as f:
+        quantized = _in_8_bits(f.metadata())
+        tensors = {k: f.get_tensor(k) for k in f.keys()}
     out = {}
     for name, v in tensors.items():
         if name.endswith(QUANTIZED_SCALE_SUFFIX):
@@ -204,10 +202,11 @@ def load_transformer(checkpoint: str | os.PathLike, preset, modality_channels: d
     try:  # the header lists every tensor's byte range: a truncated or garbled file fails here
         with safe_open(str(folder / WEIGHTS_FILE), "pt") as weights:
             weights.keys()
+            in_8_bits = _in_8_bits(weights.metadata())
     except (SafetensorError, OSError) as e:
         raise UserError(f"{folder / WEIGHTS_FILE} is corrupt or truncated ({e}); re-export the checkpoint") from e
     try:
-        if stored_in_8_bits(folder / WEIGHTS_FILE):  # `set-sampler --guide-bits 8`: not diffusers' own layout, built from the config
+        if in_8_bits:  # `set-sampler --guide-bits 8`: not diffusers' layout, so built from the config
             model = RGBDNTransformer.from_config(RGBDNTransformer.load_config(folder)).float()
             model.load_state_dict(read_weights(folder / WEIGHTS_FILE)[0], strict=True)
         else:
@@ -283,9 +282,8 @@ def write_sampler_copy(checkpoint: str | os.PathLike, to: str | os.PathLike, set
     copy carries as its autoguidance network (GUIDE_DIR), byte for byte, or with ``guide_bits`` 8 its
     matrices rounded to 8 bits per output row (half the bytes; a guide is a weaker network, and such a
     guide samples nearly as its float16 original on the held-out screen, README "Autoguidance"). The
-    previous settings and the
-    source are recorded in INFERENCE_CONFIG_FILE under ``sampler_changed``; a model card is not copied
-    (it describes the source)."""
+    previous settings and the source are recorded in INFERENCE_CONFIG_FILE under ``sampler_changed``;
+    a model card is not copied (it describes the source)."""
     import shutil
 
     from tesseract4d.model.presets import preset_from_dict
