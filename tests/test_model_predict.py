@@ -336,9 +336,11 @@ def test_set_sampler_guide_bits_8_stores_the_guide_in_8_bits(checkpoint, guide_c
     from tesseract4d.model.checkpoint import read_weights
 
     weights = Path("transformer") / "diffusion_pytorch_model.safetensors"
+    guide_bytes = (guide_checkpoint / weights).read_bytes()
     for bits in ("16", "8"):
         assert cli.main(["set-sampler", "--checkpoint", str(checkpoint), "--to", str(tmp_path / bits), "--guide",
                          str(guide_checkpoint), "--autoguidance", "1", "--guide-bits", bits]) == 0
+    assert (guide_checkpoint / weights).read_bytes() == guide_bytes  # only the copy is rewritten in 8 bits
     stored = tmp_path / "8" / "guide_transformer" / weights.name
     assert stored.stat().st_size < 0.6 * (tmp_path / "16" / "guide_transformer" / weights.name).stat().st_size
     assert json.loads((tmp_path / "8" / "tesseract4d_config.json").read_text())["guide"]["bits"] == 8
