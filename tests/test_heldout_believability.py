@@ -331,6 +331,12 @@ def test_a_guidance_interval_is_sampled_and_reported(two_checkpoints, tmp_path):
                                  "interval": {"num_steps": steps, "text_guidance": 2.0, "guidance_min_sigma": 0.5}}
     assert report["summary"]["guided"]["rgb_psnr_db"] != report["summary"]["interval"]["rgb_psnr_db"]
     assert "interval 10 steps, text guidance 2 at noise ≥ 0.5".replace("10", str(steps)) in format_markdown(report)
+    # An autoguidance interval is named after the scale it limits.
+    from tesseract4d.evaluation.heldout import describe_sampler
+
+    assert describe_sampler({"num_steps": 10, "text_guidance": 1.5, "guidance_min_sigma": 0.2, "autoguidance": 1.0,
+                             "autoguidance_min_sigma": 0.5}) == ("10 steps, text guidance 1.5 at noise ≥ 0.2, "
+                                                                 "autoguidance 1 at noise ≥ 0.5")
 
 
 def test_a_sampler_started_from_a_clip_begins_at_its_noise_level_and_runs_only_the_steps_from_there(two_checkpoints):

@@ -327,6 +327,34 @@ def test_set_sampler_guide_writes_a_copy_that_autoguides(checkpoint, guide_check
     assert torch.equal(sample(off), sample(original))
 
 
+def test_autoguidance_min_sigma_runs_the_guide_only_at_high_noise(checkpoint, guide_checkpoint, tmp_path, capsys):
+    """set-sampler --autoguidance-min-sigma S: the guide's pass runs only at the steps of noise level ≥ S
+    (3 steps: noise 1, 0.67, 0.33; S = 0.5 guides the first two); the copy samples as the original does
+    with that interval given; a negative S is refused."""
+    to = tmp_path / "interval"
+    assert cli.main(["set-sampler", "--checkpoint", str(checkpoint), "--to", str(to), "--guide", str(guide_checkpoint),
+                     "--autoguidance", "1.5", "--autoguidance-min-sigma", "0.5"]) == 0
+    copy = load_pipeline(to, precision="fp32")
+    assert copy.preset.autoguidance_min_sigma == 0.5 and copy.preset.autoguidance == 1.5
+    levels = []
+    copy.guide_transformer.register_forward_hook(lambda module, args, out: levels.append(float(args[3][0])))
+    p = copy.preset
+    first = torch.rand(1, 7, p.height, p.width, generator=torch.Generator().manual_seed(0)) * 2 - 1
+
+    def sample(**kw):
+        return copy(first, ["push the square to the right"], num_inference_steps=3,
+                    generator=torch.Generator().manual_seed(4), **kw)
+
+    interval = sample()
+    assert len(levels) == 2 and min(levels) >= 0.5, levels
+    every, off = sample(autoguidance_min_sigma=0.0), sample(autoguidance=0.0)
+    assert len(levels) == 2 + 3  # every step with the interval at 0, none with the scale at 0
+    assert not torch.equal(interval, every) and not torch.equal(interval, off)
+    assert cli.main(["set-sampler", "--checkpoint", str(to), "--to", str(tmp_path / "bad"),
+                     "--autoguidance-min-sigma", "-1"]) != 0
+    assert "--autoguidance-min-sigma must be" in capsys.readouterr().err and not (tmp_path / "bad").exists()
+
+
 def test_set_sampler_guide_bits_8_stores_the_guide_in_8_bits(checkpoint, guide_checkpoint, tmp_path, capsys):
     """--guide-bits 8: the guide's matrices stored as int8 with one scale per output row (about half the
     bytes of float16), loaded back within one quantisation step of every weight, vectors exact; the

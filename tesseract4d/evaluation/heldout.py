@@ -377,6 +377,8 @@ def sampler_settings(cfg: HeldoutConfig, pipeline) -> dict:
         settings["guidance_min_sigma"] = float(p.guidance_min_sigma)
     if p.autoguidance > 0:  # named only where the checkpoint has it
         settings["autoguidance"] = float(p.autoguidance)
+        if p.autoguidance_min_sigma > 0:
+            settings["autoguidance_min_sigma"] = float(p.autoguidance_min_sigma)
     if cfg.start_from_truth is not None:  # the diagnostic (named only where it ran)
         settings["start_from_truth"] = float(cfg.start_from_truth)
     return settings
@@ -387,6 +389,7 @@ def describe_sampler(settings: dict) -> str:
     text = f"{settings['num_steps']} steps, text guidance {settings['text_guidance']:g}"
     text += f" at noise ≥ {settings['guidance_min_sigma']:g}" if settings.get("guidance_min_sigma") else ""
     text += f", autoguidance {settings['autoguidance']:g}" if settings.get("autoguidance") else ""
+    text += f" at noise ≥ {settings['autoguidance_min_sigma']:g}" if settings.get("autoguidance_min_sigma") else ""
     if settings.get("start_from_truth") is not None:
         text += f", started from the true future at noise ≤ {settings['start_from_truth']:g}"
     return text

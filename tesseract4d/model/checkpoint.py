@@ -221,7 +221,10 @@ def load_transformer(checkpoint: str | os.PathLike, preset, modality_channels: d
 GUIDE_MUST_MATCH = ("patch_size", "patch_size_t", "text_embed_dim", "max_text_seq_length", "sample_width",
                     "sample_height", "sample_frames")
 # The preset fields that only say how a checkpoint samples (the weights do not depend on them).
-SAMPLER_FIELDS = ("num_steps", "text_guidance", "image_guidance", "guidance_min_sigma", "autoguidance")
+SAMPLER_FIELDS = ("num_steps", "text_guidance", "image_guidance", "guidance_min_sigma", "autoguidance",
+                  "autoguidance_min_sigma")
+# The preset fields of a noise-level interval (0: every step).
+_INTERVAL_FIELDS = ("guidance_min_sigma", "autoguidance_min_sigma")
 
 
 def check_sampler_settings(settings: dict) -> None:
@@ -229,7 +232,8 @@ def check_sampler_settings(settings: dict) -> None:
     import math
 
     flags = {"num_steps": "--steps", "text_guidance": "--text-guidance", "image_guidance": "--image-guidance",
-             "guidance_min_sigma": "--guidance-min-sigma", "autoguidance": "--autoguidance"}
+             "guidance_min_sigma": "--guidance-min-sigma", "autoguidance": "--autoguidance",
+             "autoguidance_min_sigma": "--autoguidance-min-sigma"}
     for name, value in settings.items():
         if name not in SAMPLER_FIELDS:
             raise UserError(f"{name!r} is not a sampler setting (one of {', '.join(SAMPLER_FIELDS)})")
@@ -239,8 +243,8 @@ def check_sampler_settings(settings: dict) -> None:
         elif name == "autoguidance":
             if not math.isfinite(value) or value < 0:
                 raise UserError(f"--autoguidance must be a finite number ≥ 0 (0: none), got {value}")
-        elif not math.isfinite(value) or value < 0 or (name != "guidance_min_sigma" and value == 0):
-            what = "≥ 0 (0: guidance at every step)" if name == "guidance_min_sigma" else "> 0 (1: no guidance)"
+        elif not math.isfinite(value) or value < 0 or (name not in _INTERVAL_FIELDS and value == 0):
+            what = "≥ 0 (0: guidance at every step)" if name in _INTERVAL_FIELDS else "> 0 (1: no guidance)"
             raise UserError(f"{flags[name]} must be a finite number {what}, got {value}")
 
 

@@ -12,7 +12,7 @@ Autoguidance (Karras et al. 2024, "Guiding a diffusion model with a bad version 
 ``guide_transformer`` (a weaker network of the same latent space, e.g. an early checkpoint of the same
 training run) and a scale ``w`` > 0, every step adds ``w (full - guide_full)``, the guide's x0 with the
 same first frame and text: the sample moves away from the errors the weaker network makes more of.
-One more network pass per step.
+One more network pass per step, or only at the steps of noise level ≥ ``autoguidance_min_sigma``.
 
 Clips longer than the preset's clip continue autoregressively: each next clip is conditioned on the
 last frame predicted so far.
@@ -124,13 +124,14 @@ class RGBDNPipeline:
 
     def _denoise_clip(self, first_frame, text, null_text, num_steps, text_guidance, image_guidance,
                       generator, progress, step_offset, total_steps, latents=None, guidance_min_sigma=0.0,
-                      start=None, autoguidance=0.0):
+                      start=None, autoguidance=0.0, autoguidance_min_sigma=0.0):
         """One clip of the preset's length from a (b, 7, H, W) first frame, in the network's space:
         (b, t', c, h, w). ``latents``: the initial noise (default: drawn from ``generator``).
         ``guidance_min_sigma``: steps at a lower noise level run unguided (one pass).
         ``start``: (clean clips (b, t', c, h, w), sigma): begin at the first noise level ``s`` ≤ sigma
         from ``(1 - s) clean + s noise`` and run only the steps from there.
-        ``autoguidance``: the guide network's scale, at every step (0 = none)."""
+        ``autoguidance``: the guide network's scale (0 = none), at the steps of noise level ≥
+        ``autoguidance_min_sigma``."""
         b = first_frame.shape[0]
         nt = self.codec.num_latent_frames(self.preset.num_frames)
         first = self.codec.encode(first_frame[:, None].to(self.device), generator=generator)  # (b, 1, c, h, w)
@@ -159,7 +160,7 @@ class RGBDNPipeline:
                 guided = sigma >= guidance_min_sigma
                 pred = self._predict_x0(x, sigma, cond, null_cond, text, null_text,
                                         text_guidance if guided else 1.0, image_guidance if guided else 1.0,
-                                        autoguidance)
+                                        autoguidance if sigma >= autoguidance_min_sigma else 0.0)
                 velocity = pred if self.prediction == "velocity" else (x - pred) / sigma
                 x = self.scheduler.step(velocity, timestep, x, return_dict=False)[0]
             if progress is not None:
@@ -191,6 +192,7 @@ class RGBDNPipeline:
         image_guidance: float | None = None,
         guidance_min_sigma: float | None = None,
         autoguidance: float | None = None,
+        autoguidance_min_sigma: float | None = None,
         generator: torch.Generator | None = None,
         progress: Callable[[int, int], None] | None = None,
         latents: torch.Tensor | None = None,
@@ -203,6 +205,8 @@ class RGBDNPipeline:
         num_frames: frames to return (default: one clip); longer rollouts continue autoregressively.
         guidance_min_sigma: guide only the steps at noise levels ≥ it; the steps below run one unguided
         pass (default: the preset's; 0 = every step guided).
+        autoguidance, autoguidance_min_sigma: the guide network's scale and the lowest noise level it runs
+        at (default: the preset's).
         generator: a CPU ``torch.Generator``; the same seed gives the same clips.
         progress: optional callable(step, total) called after every denoising step.
         latents: the first clip's initial noise (b, t', c, h, w) (see :meth:`latent_shape`); default:
@@ -224,6 +228,8 @@ class RGBDNPipeline:
         image_guidance = p.image_guidance if image_guidance is None else float(image_guidance)
         guidance_min_sigma = p.guidance_min_sigma if guidance_min_sigma is None else float(guidance_min_sigma)
         autoguidance = p.autoguidance if autoguidance is None else float(autoguidance)
+        autoguidance_min_sigma = (p.autoguidance_min_sigma if autoguidance_min_sigma is None
+                                  else float(autoguidance_min_sigma))
         b = first_frame.shape[0]
         if first_frame.ndim != 4 or tuple(first_frame.shape[2:]) != self.resolution:
             raise ValueError(f"first_frame must be (b, 7, {p.height}, {p.width}), got {tuple(first_frame.shape)}")
@@ -250,7 +256,8 @@ class RGBDNPipeline:
             return self._denoise_clip(first_frame.float(), text, null_text, num_steps, text_guidance, image_guidance,
                                       generator, progress, 0, num_steps, latents=latents,
                                       guidance_min_sigma=guidance_min_sigma, start=start,
-                                      autoguidance=autoguidance).cpu()
+                                      autoguidance=autoguidance,
+                                      autoguidance_min_sigma=autoguidance_min_sigma).cpu()
 
         # 3. Sample clip after clip, each conditioned on the last frame so far.
         clip_len = p.num_frames
@@ -263,7 +270,8 @@ class RGBDNPipeline:
                                      generator, progress, k * num_steps, total,
                                      latents=latents if k == 0 else None,
                                      guidance_min_sigma=guidance_min_sigma, start=start,
-                                     autoguidance=autoguidance).cpu()
+                                     autoguidance=autoguidance,
+                                     autoguidance_min_sigma=autoguidance_min_sigma).cpu()
             frames.append(clip if k == 0 else clip[:, 1:])
             current = clip[:, -1]
         # 4. Stitch the clips.

@@ -69,6 +69,9 @@ class ModelPreset:
     # network of the same latent space, the checkpoint's guide_transformer), both with first frame and
     # text. 0 = none (one network only).
     autoguidance: float = 0.0
+    # Autoguidance only at noise levels >= this (its own interval): lower-noise steps run without the
+    # guide's pass. 0 = every step.
+    autoguidance_min_sigma: float = 0.0
 
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)

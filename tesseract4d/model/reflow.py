@@ -71,7 +71,8 @@ def _shard_path(out: Path, index: int) -> Path:
 
 # What a manifest written before a key existed meant by it: pairs before guidance intervals were
 # guided at every step, pairs before autoguidance had none.
-_MANIFEST_DEFAULTS = {"guidance_min_sigma": 0.0, "autoguidance": 0.0, "guide_digest": None}
+_MANIFEST_DEFAULTS = {"guidance_min_sigma": 0.0, "autoguidance": 0.0, "autoguidance_min_sigma": 0.0,
+                      "guide_digest": None}
 
 
 def _check_manifest(out: Path, manifest: dict) -> None:
@@ -82,7 +83,7 @@ def _check_manifest(out: Path, manifest: dict) -> None:
         return
     saved = json.loads(path.read_text())
     keys = ("teacher_digest", "teacher_steps", "text_guidance", "image_guidance", "guidance_min_sigma", "autoguidance",
-            "guide_digest", "data", "seed", "shard_size", "groups")
+            "autoguidance_min_sigma", "guide_digest", "data", "seed", "shard_size", "groups")
     differ = [k for k in keys if saved.get(k, _MANIFEST_DEFAULTS.get(k)) != manifest.get(k)]
     if differ:
         raise UserError(f"{out} holds pairs made with other settings ({', '.join(differ)} differ); "
@@ -117,7 +118,8 @@ def generate_pairs(cfg: PairsConfig, progress: bool = True) -> Path:
     manifest = {"format": 1, "teacher": str(cfg.teacher), "teacher_digest": weights_digest(cfg.teacher),
                 "teacher_preset": p.to_dict(), "teacher_steps": steps, "text_guidance": text_g,
                 "image_guidance": image_g, "guidance_min_sigma": p.guidance_min_sigma,
-                "autoguidance": p.autoguidance,  # and the guide it samples with, by its weights' digest
+                "autoguidance": p.autoguidance, "autoguidance_min_sigma": p.autoguidance_min_sigma,
+                # and the guide it samples with, by its weights' digest
                 "guide_digest": weights_digest(cfg.teacher, subfolder=GUIDE_DIR) if p.autoguidance else None,
                 "data": plain(cfg.data),
                 "camera": data.camera, "seed": cfg.seed, "shard_size": cfg.shard_size, "groups": bool(cfg.groups), "config": cfg.to_dict()}
@@ -251,7 +253,8 @@ def student_preset(teacher_preset, student_steps: int):
     """The teacher's preset with the student's sampling defaults: ``student_steps`` Euler steps and no
     guidance (text = image = 1.0, no autoguidance), i.e. one network pass per step."""
     return dataclasses.replace(teacher_preset, num_steps=int(student_steps), text_guidance=1.0, image_guidance=1.0,
-                               guidance_min_sigma=0.0, autoguidance=0.0, text_dropout=0.0, image_dropout=0.0)
+                               guidance_min_sigma=0.0, autoguidance=0.0, autoguidance_min_sigma=0.0,
+                               text_dropout=0.0, image_dropout=0.0)
 
 
 class ReflowTrainer(Trainer):
