@@ -418,3 +418,40 @@ def test_autoguidance_refuses_what_it_cannot_use(checkpoint, guide_checkpoint, t
     p = pipe.preset
     with pytest.raises(ValueError, match="guide network"):
         pipe(torch.zeros(1, 7, p.height, p.width), ["keep still"], autoguidance=1.0)
+
+
+def test_blend_checkpoints_writes_a_guide_between_two_networks(checkpoint, guide_checkpoint, tmp_path, capsys):
+    """scripts/blend_checkpoints.py A B --weight w: every transformer tensor (1 - w) A + w B, the rest B's,
+    the blend recorded; w = 0 and 1 give A's and B's weights exactly; the blend serves as a guide; a
+    checkpoint of other data, a non-finite weight and an input as --out are refused with nothing written."""
+    from project_scripts import load_script
+    from safetensors.torch import load_file
+
+    blend = load_script("blend_checkpoints")
+    weights = Path("transformer") / "diffusion_pytorch_model.safetensors"
+    a, b = load_file(str(guide_checkpoint / weights)), load_file(str(checkpoint / weights))
+    assert blend.main([str(guide_checkpoint), str(checkpoint), "--weight", "0.25", "--out", str(tmp_path / "mix")]) == 0
+    mixed = load_file(str(tmp_path / "mix" / weights))
+    assert mixed.keys() == b.keys() and any(not torch.equal(a[k], b[k]) for k in b)
+    for k in b:
+        torch.testing.assert_close(mixed[k], 0.75 * a[k] + 0.25 * b[k], atol=1e-6, rtol=1e-6)
+        assert mixed[k].dtype == b[k].dtype
+    config = json.loads((tmp_path / "mix" / "tesseract4d_config.json").read_text())
+    assert config["blended"]["weight"] == 0.25 and config["blended"]["a"] == str(guide_checkpoint)
+    for w, source in (("0", a), ("1", b)):
+        assert blend.main([str(guide_checkpoint), str(checkpoint), "--weight", w, "--out", str(tmp_path / w)]) == 0
+        assert all(torch.equal(load_file(str(tmp_path / w / weights))[k], source[k]) for k in source)
+    assert cli.main(["set-sampler", "--checkpoint", str(checkpoint), "--to", str(tmp_path / "ag"), "--guide",
+                     str(tmp_path / "mix"), "--autoguidance", "1"]) == 0
+    assert load_pipeline(tmp_path / "ag").guide_transformer is not None
+    other = shutil.copytree(guide_checkpoint, tmp_path / "other")
+    config = json.loads((other / "tesseract4d_config.json").read_text())
+    (other / "tesseract4d_config.json").write_text(json.dumps({**config, "num_frames": config["num_frames"] * 2}))
+    runs = [([str(other), str(checkpoint), "--weight", "0.5", "--out", str(tmp_path / "x")], "num_frames"),
+            ([str(guide_checkpoint), str(checkpoint), "--weight", "nan", "--out", str(tmp_path / "y")], "--weight"),
+            ([str(guide_checkpoint), str(checkpoint), "--weight", "0.5", "--out", str(checkpoint)], "--out")]
+    capsys.readouterr()
+    for argv, message in runs:
+        assert blend.main(argv) != 0
+        assert message in capsys.readouterr().err
+    assert not (tmp_path / "x").exists() and not (tmp_path / "y").exists()
