@@ -39,6 +39,7 @@ def blend(a: Path, b: Path, weight: float, out: Path, overwrite: bool = False) -
     from tesseract4d.errors import UserError
     from tesseract4d.model.checkpoint import (INFERENCE_CONFIG_FILE, MODEL_CONFIG_FILE, TRANSFORMER_DIR, WEIGHTS_FILE,
                                               check_guide, read_inference_config, read_weights, weights_digest)
+    from tesseract4d.model.latent_checkpoint import own_autoencoder
     from tesseract4d.outputs import OutputDir
 
     if not math.isfinite(weight):
@@ -68,6 +69,7 @@ def blend(a: Path, b: Path, weight: float, out: Path, overwrite: bool = False) -
             dtype = torch.float16 if b_in_8_bits else stored[k].dtype
             blended[k] = ((1.0 - weight) * wa[k].float() + weight * vb).to(dtype).contiguous()
         save_file(blended, str(tmp / TRANSFORMER_DIR / WEIGHTS_FILE), metadata={"format": "pt"})
+        config = own_autoencoder(b, config, tmp)  # B's, where B shares the one of the checkpoint beside it
         config["blended"] = {"a": str(a), "b": str(b), "weight": weight, "a_digest": weights_digest(a),
                              "b_digest": weights_digest(b)}
         (tmp / INFERENCE_CONFIG_FILE).write_text(json.dumps(config, indent=2))

@@ -97,3 +97,43 @@ def test_version_1_without_a_scheduler_samples_with_the_training_sampler(v2_copy
     _edit_config(v2_copy, version=2)
     with pytest.raises(UserError, match="scheduler_config.json is missing"):
         ck.load_scheduler(v2_copy, ck.read_inference_config(v2_copy))
+
+
+def test_a_checkpoint_can_share_the_autoencoder_of_the_one_beside_it(tmp_path):
+    """share_autoencoder: a copy of the student without its own autoencoder, beside v2 whose identical one
+    it reads (the config names ../v2/autoencoder), samples exactly as the self-contained student; copies
+    written elsewhere (set-sampler, swap-decoder) carry the autoencoder again; a shared checkpoint moved
+    away from its sibling, a --to elsewhere and a sibling that shares itself are refused with the fix."""
+    from tesseract4d.model.latent_checkpoint import AUTOENCODER_DIR, replace_decoder, share_autoencoder
+    from tesseract4d.model.predict import load_pipeline
+
+    pair = tmp_path / "pair"
+    v2 = shutil.copytree(V2_CHECKPOINT, pair / "v2")
+    own = ck.write_sampler_copy(SHIPPED_CHECKPOINT, tmp_path / "own", {"num_steps": 2})  # self-contained
+    assert (own / AUTOENCODER_DIR / "model.safetensors").is_file()
+    shared = share_autoencoder(own, v2, pair / "student")
+    assert not (shared / AUTOENCODER_DIR).exists() and (shared / ck.TRANSFORMER_DIR / ck.WEIGHTS_FILE).is_file()
+    assert ck.read_inference_config(shared)["autoencoder"]["dir"] == "../v2/autoencoder"
+    first = torch.rand(1, 7, 128, 128, generator=torch.Generator().manual_seed(0)) * 2 - 1
+
+    def sample(folder):
+        return load_pipeline(folder, precision="fp32")(first, ["push the purple cube to the left"],
+                                                       generator=torch.Generator().manual_seed(1))
+
+    assert torch.equal(sample(shared), sample(own))
+    elsewhere = ck.write_sampler_copy(shared, tmp_path / "elsewhere", {"num_steps": 2})
+    swapped = replace_decoder(shared, v2 / AUTOENCODER_DIR, tmp_path / "swapped")
+    for copy in (elsewhere, swapped):
+        entry = ck.read_inference_config(copy)["autoencoder"]
+        assert entry["dir"] == AUTOENCODER_DIR and "shared_with" not in entry
+        assert (copy / AUTOENCODER_DIR / "model.safetensors").read_bytes() == (v2 / AUTOENCODER_DIR /
+                                                                               "model.safetensors").read_bytes()
+    assert torch.equal(sample(elsewhere), sample(own))
+    lonely = shutil.copytree(shared, tmp_path / "lonely")
+    with pytest.raises(UserError, match="side by side"):
+        load_pipeline(lonely)
+    with pytest.raises(UserError, match="same folder as"):
+        share_autoencoder(own, v2, tmp_path / "away")
+    with pytest.raises(UserError, match="shares another"):
+        share_autoencoder(own, shared, pair / "chain")
+    assert not (tmp_path / "away").exists() and not (pair / "chain").exists()

@@ -332,5 +332,8 @@ def write_sampler_copy(checkpoint: str | os.PathLike, to: str | os.PathLike, set
                             "training": guide_config.get("training")}
             change["guide"] = str(guide)
         out["sampler_changed"] = list(config.get("sampler_changed", [])) + [change]
+        from tesseract4d.model.latent_checkpoint import own_autoencoder
+
+        out = own_autoencoder(checkpoint, out, tmp)  # a copy elsewhere carries the autoencoder it shares
         (tmp / INFERENCE_CONFIG_FILE).write_text(json.dumps(out, indent=2))
     return Path(to)

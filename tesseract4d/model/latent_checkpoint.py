@@ -3,6 +3,11 @@
 The exported folder holds a copy of the autoencoder (``CKPT/autoencoder/``) and its hash in
 ``tesseract4d_config.json``; loading refuses a checkpoint whose autoencoder is missing or differs.
 A decoder fine-tuned on the same latents can replace the checkpoint's (``replace_decoder``).
+
+Two checkpoints side by side that carry the same autoencoder may store it once
+(``share_autoencoder``): the second's config then names its sibling's folder (``dir``:
+``../SIBLING/autoencoder``), and a copy written elsewhere (``set-sampler --to``, ``swap-decoder``)
+takes its own copy of it again (``own_autoencoder``).
 """
 
 from __future__ import annotations
@@ -46,6 +51,9 @@ def checkpoint_autoencoder(checkpoint_dir: Path, entry: dict) -> Path:
 
     folder = Path(checkpoint_dir) / entry.get("dir", AUTOENCODER_DIR)
     if not (folder / "config.json").is_file() or not (folder / "model.safetensors").is_file():
+        if entry.get("dir", AUTOENCODER_DIR) != AUTOENCODER_DIR:
+            raise UserError(f"{checkpoint_dir} shares the autoencoder of the checkpoint beside it ({folder}), which "
+                            f"is missing; keep the two folders side by side (copy both), as they were shipped")
         raise UserError(f"{checkpoint_dir} is a latent checkpoint without its autoencoder ({folder} is missing); "
                         f"re-export it with `tesseract4d train --export RUN --to {checkpoint_dir}`")
     found = autoencoder_hash(folder)
@@ -53,6 +61,58 @@ def checkpoint_autoencoder(checkpoint_dir: Path, entry: dict) -> Path:
         raise UserError(f"{folder} is autoencoder {found}, but {checkpoint_dir} was trained on {entry['hash']}; "
                         f"re-export the checkpoint with `tesseract4d train --export RUN` (it copies the right one)")
     return folder
+
+
+def shares_autoencoder(entry: dict) -> bool:
+    """Whether a checkpoint reads the autoencoder of the checkpoint beside it instead of its own copy."""
+    return entry.get("dir", AUTOENCODER_DIR) != AUTOENCODER_DIR
+
+
+def own_autoencoder(checkpoint: Path, config: dict, folder: Path) -> dict:
+    """For a copy of ``checkpoint`` being written into ``folder`` (anywhere): where the checkpoint
+    shares its sibling's autoencoder, copy that autoencoder into ``folder``/autoencoder and return the
+    config naming the copy's own; otherwise the config as it is."""
+    entry = config.get("autoencoder")
+    if entry is None or not shares_autoencoder(entry):
+        return config
+    source = checkpoint_autoencoder(checkpoint, entry)
+    shutil.copytree(source, Path(folder) / AUTOENCODER_DIR)
+    own = {k: v for k, v in entry.items() if k != "shared_with"}
+    return {**config, "autoencoder": {**own, "dir": AUTOENCODER_DIR}}
+
+
+def share_autoencoder(checkpoint: str | os.PathLike, sibling: str | os.PathLike, to: str | os.PathLike,
+                      overwrite: bool = False) -> Path:
+    """Write a copy of the latent ``checkpoint`` into ``to`` that stores no autoencoder of its own and
+    reads ``sibling``'s instead: ``sibling`` must sit in the same folder as ``to`` and carry, in its
+    own ``autoencoder/``, the very autoencoder the checkpoint carries (the same hash). The copy's
+    config names ``../SIBLING/autoencoder``; every other file is copied as it is, the model card too."""
+    from tesseract4d.model.checkpoint import INFERENCE_CONFIG_FILE, read_inference_config
+    from tesseract4d.outputs import OutputDir
+
+    checkpoint, sibling, to = Path(checkpoint), Path(sibling), Path(to)
+    config, theirs = read_inference_config(checkpoint), read_inference_config(sibling)
+    entry = config.get("autoencoder")
+    if entry is None or theirs.get("autoencoder") is None:
+        raise UserError(f"{checkpoint} and {sibling} must both be latent checkpoints to share an autoencoder")
+    if shares_autoencoder(theirs["autoencoder"]):
+        raise UserError(f"{sibling} shares another checkpoint's autoencoder itself; share that checkpoint's")
+    checkpoint_autoencoder(checkpoint, entry)  # there, and the one its config records
+    checkpoint_autoencoder(sibling, theirs["autoencoder"])
+    if entry["hash"] != theirs["autoencoder"]["hash"]:
+        raise UserError(f"{checkpoint} carries autoencoder {entry['hash']} but {sibling} carries "
+                        f"{theirs['autoencoder']['hash']}; only the same autoencoder can be stored once")
+    if to.resolve().parent != sibling.resolve().parent:
+        raise UserError(f"--to {to} must sit in the same folder as {sibling} (the copy reads "
+                        f"../{sibling.name}/{AUTOENCODER_DIR}); pass --to {sibling.parent / to.name}")
+    with OutputDir(to, "share-autoencoder", inputs=[checkpoint, sibling], overwrite=overwrite, flag="--to") as tmp:
+        for child in sorted(checkpoint.iterdir()):
+            if child.name in (INFERENCE_CONFIG_FILE, AUTOENCODER_DIR) or child.name.startswith("."):
+                continue
+            (shutil.copytree if child.is_dir() else shutil.copy2)(child, tmp / child.name)
+        shared = {**entry, "dir": f"../{sibling.name}/{AUTOENCODER_DIR}", "shared_with": sibling.name}
+        (tmp / INFERENCE_CONFIG_FILE).write_text(json.dumps({**config, "autoencoder": shared}, indent=2))
+    return to
 
 
 def encoder_differences(a, b) -> list[str]:
@@ -115,7 +175,8 @@ def replace_decoder(checkpoint: str | os.PathLike, autoencoder: str | os.PathLik
         save_file({k: v.contiguous() for k, v in merged.items()}, str(dst / AE_WEIGHTS))
         old = config["autoencoder"]
         config["autoencoder"] = {
-            **old, "hash": autoencoder_hash(dst), "source_dir": str(autoencoder),
+            **{k: v for k, v in old.items() if k != "shared_with"}, "dir": AUTOENCODER_DIR,
+            "hash": autoencoder_hash(dst), "source_dir": str(autoencoder),
             # The autoencoder the transformer was trained with: its encoder is this one's.
             "trained_with_hash": old.get("trained_with_hash", old["hash"]),
             "decoder_replaced": {"previous_hash": old["hash"], "source_hash": autoencoder_hash(autoencoder)},
