@@ -137,3 +137,23 @@ def test_a_checkpoint_can_share_the_autoencoder_of_the_one_beside_it(tmp_path):
     with pytest.raises(UserError, match="shares another"):
         share_autoencoder(own, shared, pair / "chain")
     assert not (tmp_path / "away").exists() and not (pair / "chain").exists()
+
+
+def test_v2_ships_an_8_bit_guide_that_autoguidance_turns_on(tmp_path):
+    """v2 carries an autoguidance guide in 8 bits (README "Autoguidance") but samples without it by
+    default; `set-sampler --autoguidance W` needs no --guide to turn it on. The default student reads
+    v2's autoencoder instead of storing a second copy."""
+    from tesseract4d import cli
+    from tesseract4d.model.latent_checkpoint import checkpoint_autoencoder
+    from tesseract4d.model.predict import load_pipeline
+
+    cfg = ck.read_inference_config(V2_CHECKPOINT)
+    assert preset_from_dict(cfg["preset"]).autoguidance == 0.0
+    assert cfg["guide"]["bits"] == 8 and cfg["guide"]["blended"]["weight"] == 0.75
+    assert ck.read_weights(V2_CHECKPOINT / ck.GUIDE_DIR / ck.WEIGHTS_FILE)[1]  # stored in 8 bits
+    student = ck.read_inference_config(SHIPPED_CHECKPOINT)["autoencoder"]
+    assert checkpoint_autoencoder(SHIPPED_CHECKPOINT, student).resolve() == (V2_CHECKPOINT / "autoencoder").resolve()
+    assert cli.main(["set-sampler", "--checkpoint", str(V2_CHECKPOINT), "--autoguidance", "1",
+                     "--to", str(tmp_path / "v2_ag")]) == 0
+    pipe = load_pipeline(tmp_path / "v2_ag")
+    assert pipe.preset.autoguidance == 1.0 and pipe.guide_transformer is not None

@@ -48,8 +48,10 @@ def test_shipped_checkpoints_are_small_and_self_describing():
         names = {p.relative_to(checkpoint).as_posix() for p in checkpoint.rglob("*") if p.is_file()}
         assert {"transformer/config.json", "transformer/diffusion_pytorch_model.safetensors", "tesseract4d_config.json",
                 "scheduler/scheduler_config.json", "MODEL_CARD.md"} <= names, checkpoint
-        if "autoencoder" in read_inference_config(checkpoint):  # a latent model carries its autoencoder
-            assert {"autoencoder/config.json", "autoencoder/model.safetensors"} <= names, checkpoint
+        entry = read_inference_config(checkpoint).get("autoencoder")
+        if entry is not None:  # a latent model carries its autoencoder, or shares the one beside it
+            assert {"autoencoder/config.json", "autoencoder/model.safetensors"} <= names or (
+                entry["dir"] == "../v2/autoencoder" and checkpoint != V2_CHECKPOINT), checkpoint
         assert not any(n.endswith((".pt", ".pth", ".pkl", ".bin")) for n in names), "weights must be safetensors"
 
 

@@ -290,6 +290,7 @@ def write_sampler_copy(checkpoint: str | os.PathLike, to: str | os.PathLike, set
     a model card is not copied (it describes the source)."""
     import shutil
 
+    from tesseract4d.model.latent_checkpoint import own_autoencoder
     from tesseract4d.model.presets import preset_from_dict
     from tesseract4d.outputs import OutputDir
 
@@ -330,10 +331,10 @@ def write_sampler_copy(checkpoint: str | os.PathLike, to: str | os.PathLike, set
                 weights_to_int8(tmp / GUIDE_DIR / WEIGHTS_FILE)
             out["guide"] = {"source": str(guide), "digest": weights_digest(guide), "bits": guide_bits,
                             "training": guide_config.get("training")}
+            if "blended" in guide_config:  # a guide made by scripts/blend_checkpoints.py: its recipe
+                out["guide"]["blended"] = guide_config["blended"]
             change["guide"] = str(guide)
         out["sampler_changed"] = list(config.get("sampler_changed", [])) + [change]
-        from tesseract4d.model.latent_checkpoint import own_autoencoder
-
         out = own_autoencoder(checkpoint, out, tmp)  # a copy elsewhere carries the autoencoder it shares
         (tmp / INFERENCE_CONFIG_FILE).write_text(json.dumps(out, indent=2))
     return Path(to)
