@@ -19,11 +19,13 @@ Example (v2's 10 guided steps, guidance only at noise ≥ 0.5: 15 network passes
   tesseract4d evaluate --heldout data/heldout_groups128 --checkpoint tesseract4d/checkpoints/v2 \\
       --checkpoint runs/v2_interval --sample-seed 0 1 --out outputs/interval
 
-Example (autoguidance by an earlier v2 of the same latent space, taken from git history; README
-"Autoguidance" compares guides):
+Example (v2 carries a guide, in 8 bits, off by default; this turns it on; README "Autoguidance"):
+  tesseract4d set-sampler --checkpoint tesseract4d/checkpoints/v2 --autoguidance 1 --to runs/v2_ag
+
+Example (another guide: an earlier v2 of the same latent space, taken from git history):
   mkdir -p runs/v2_step6 && git archive 66cad09 tesseract4d/checkpoints/v2 | tar -x -C runs/v2_step6
   tesseract4d set-sampler --checkpoint tesseract4d/checkpoints/v2 --guide runs/v2_step6/tesseract4d/checkpoints/v2 \\
-      --autoguidance 2 --to runs/v2_ag
+      --autoguidance 2 --to runs/v2_ag_step6
 """
 
 from __future__ import annotations
