@@ -141,7 +141,7 @@ def test_a_checkpoint_can_share_the_autoencoder_of_the_one_beside_it(tmp_path):
 
 def test_v2_ships_an_8_bit_guide_that_autoguidance_turns_on(tmp_path):
     """v2 carries an autoguidance guide in 8 bits (README "Autoguidance") but samples without it by
-    default; `set-sampler --autoguidance W` needs no --guide to turn it on. The default student reads
+    default (and does not load it); `set-sampler --autoguidance W` needs no --guide to turn it on. The default student reads
     v2's autoencoder instead of storing a second copy."""
     from tesseract4d import cli
     from tesseract4d.model.latent_checkpoint import checkpoint_autoencoder
@@ -157,3 +157,4 @@ def test_v2_ships_an_8_bit_guide_that_autoguidance_turns_on(tmp_path):
                      "--to", str(tmp_path / "v2_ag")]) == 0
     pipe = load_pipeline(tmp_path / "v2_ag")
     assert pipe.preset.autoguidance == 1.0 and pipe.guide_transformer is not None
+    assert load_pipeline(V2_CHECKPOINT).guide_transformer is None  # carried unused: not loaded

@@ -238,8 +238,9 @@ class RGBDNPipeline:
         if num_frames < 1 or num_steps < 1:
             raise ValueError("num_frames and num_inference_steps must be >= 1")
         if autoguidance and self.guide_transformer is None:
-            raise ValueError(f"autoguidance {autoguidance:g} needs a guide network: load a checkpoint written by "
-                             f"`tesseract4d set-sampler --guide CKPT --autoguidance W`, or pass autoguidance=0")
+            raise ValueError(f"autoguidance {autoguidance:g} needs a guide network: load a checkpoint whose sampler "
+                             f"uses one (`tesseract4d set-sampler --autoguidance W [--guide CKPT]`; a guide "
+                             f"it carries unused is not loaded), or pass autoguidance=0")
         if output_type not in ("clip", "latent"):
             raise ValueError(f"output_type must be 'clip' or 'latent', got {output_type!r}")
         if output_type == "latent" and num_frames != p.num_frames:
