@@ -51,7 +51,7 @@ def checkpoint_autoencoder(checkpoint_dir: Path, entry: dict) -> Path:
 
     folder = Path(checkpoint_dir) / entry.get("dir", AUTOENCODER_DIR)
     if not (folder / "config.json").is_file() or not (folder / "model.safetensors").is_file():
-        if entry.get("dir", AUTOENCODER_DIR) != AUTOENCODER_DIR:
+        if shares_autoencoder(entry):
             raise UserError(f"{checkpoint_dir} shares the autoencoder of the checkpoint beside it ({folder}), which "
                             f"is missing; keep the two folders side by side (copy both), as they were shipped")
         raise UserError(f"{checkpoint_dir} is a latent checkpoint without its autoencoder ({folder} is missing); "

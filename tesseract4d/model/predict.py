@@ -65,8 +65,9 @@ def load_pipeline(checkpoint: str | os.PathLike, device: str = "cpu", precision:
         raise UserError(f"{ckpt}: the transformer expects {transformer.backbone.config.text_embed_dim}-d text "
                         f"embeddings but the {preset.text_encoder} encoder gives {text_encoder.dim}")
     guide = None
-    if (ckpt / GUIDE_DIR).is_dir() and preset.autoguidance:  # autoguidance's weaker network (`set-sampler
-        # --guide`), loaded only for a sampler that uses it (v2 carries one, off by default)
+    # Autoguidance's weaker network (`set-sampler --guide`), loaded only for a sampler that uses it (the
+    # shipped v2 carries one, off by default).
+    if (ckpt / GUIDE_DIR).is_dir() and preset.autoguidance:
         guide = load_transformer(ckpt, preset, codec.modality_channels, subfolder=GUIDE_DIR)
     elif preset.autoguidance:
         raise UserError(f"{ckpt} samples with autoguidance {preset.autoguidance:g} but has no {GUIDE_DIR}/ folder; "
