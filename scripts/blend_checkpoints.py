@@ -4,8 +4,8 @@ Autoguidance (`tesseract4d set-sampler --guide CKPT --autoguidance W`) wants a w
 same latent space, ideally an earlier checkpoint of the same training run. Where that run's middle
 checkpoints are gone, the networks kept in git history still span its path: a network later trained
 from an earlier one lies, in weight space, on a nearly straight line from it. This writes a checkpoint
-whose transformer is ``(1 - weight) * A + weight * B`` (every tensor; an 8-bit guide's weights are read
-back as float32 first) and everything else B's (config, scheduler, autoencoder), stored in B's dtypes.
+whose transformer is ``(1 - weight) * A + weight * B`` (every float tensor, computed in float32 and
+stored in B's dtypes) and everything else B's (config, scheduler, autoencoder).
 The two must see the same inputs (resolution, frames, text encoder, latent space) and have the same
 tensors; the blend is recorded in the copy's tesseract4d_config.json under ``blended``.
 
@@ -33,12 +33,12 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 def blend(a: Path, b: Path, weight: float, out: Path, overwrite: bool = False) -> Path:
     """Write ``out``: checkpoint ``b`` with transformer weights ``(1 - weight) * a + weight * b``."""
-    import torch
     from safetensors.torch import load_file, save_file
 
     from tesseract4d.errors import UserError
-    from tesseract4d.model.checkpoint import (INFERENCE_CONFIG_FILE, MODEL_CONFIG_FILE, TRANSFORMER_DIR, WEIGHTS_FILE,
-                                              check_guide, read_inference_config, read_weights, weights_digest)
+    from tesseract4d.model.checkpoint import (INFERENCE_CONFIG_FILE, MODEL_CARD_FILE, MODEL_CONFIG_FILE,
+                                              TRANSFORMER_DIR, WEIGHTS_FILE, check_guide, copy_checkpoint_files,
+                                              read_inference_config, weights_digest)
     from tesseract4d.model.latent_checkpoint import own_autoencoder
     from tesseract4d.outputs import OutputDir
 
@@ -49,25 +49,16 @@ def blend(a: Path, b: Path, weight: float, out: Path, overwrite: bool = False) -
     check_guide(b, config, a)  # the same inputs and latent space, or a UserError naming what differs
     if read_inference_config(a)["preset"].get("backbone") != config["preset"].get("backbone"):
         raise UserError(f"{a} and {b} have different backbones; only networks of one architecture blend")
-    wa, _ = read_weights(a / TRANSFORMER_DIR / WEIGHTS_FILE)
-    wb, b_in_8_bits = read_weights(b / TRANSFORMER_DIR / WEIGHTS_FILE)
+    # A transformer folder holds float weights as exported (only guide folders are ever stored in 8 bits).
+    wa, wb = load_file(str(a / TRANSFORMER_DIR / WEIGHTS_FILE)), load_file(str(b / TRANSFORMER_DIR / WEIGHTS_FILE))
     if wa.keys() != wb.keys() or any(wa[k].shape != wb[k].shape for k in wb):
         raise UserError(f"{a} and {b} hold different tensors; only networks of one architecture blend")
-    stored = load_file(str(b / TRANSFORMER_DIR / WEIGHTS_FILE))  # B's dtypes (an 8-bit B: float16 instead)
     with OutputDir(out, "blend-checkpoints", inputs=[a, b], overwrite=overwrite) as tmp:
-        for child in sorted(b.iterdir()):
-            if child.name in (INFERENCE_CONFIG_FILE, TRANSFORMER_DIR, "MODEL_CARD.md") or child.name.startswith("."):
-                continue
-            (shutil.copytree if child.is_dir() else shutil.copy2)(child, tmp / child.name)
+        copy_checkpoint_files(b, tmp, skip=(TRANSFORMER_DIR, MODEL_CARD_FILE))
         (tmp / TRANSFORMER_DIR).mkdir()
         shutil.copy2(b / TRANSFORMER_DIR / MODEL_CONFIG_FILE, tmp / TRANSFORMER_DIR / MODEL_CONFIG_FILE)
-        blended = {}
-        for k, vb in wb.items():
-            if not vb.is_floating_point():
-                blended[k] = stored[k]
-                continue
-            dtype = torch.float16 if b_in_8_bits else stored[k].dtype
-            blended[k] = ((1.0 - weight) * wa[k].float() + weight * vb).to(dtype).contiguous()
+        blended = {k: ((1.0 - weight) * wa[k].float() + weight * vb.float()).to(vb.dtype).contiguous()
+                   if vb.is_floating_point() else vb for k, vb in wb.items()}
         save_file(blended, str(tmp / TRANSFORMER_DIR / WEIGHTS_FILE), metadata={"format": "pt"})
         config = own_autoencoder(b, config, tmp)  # B's, where B shares the one of the checkpoint beside it
         config["blended"] = {"a": str(a), "b": str(b), "weight": weight, "a_digest": weights_digest(a),

@@ -33,6 +33,7 @@ GUIDE_DIR = "guide_transformer"
 WEIGHTS_FILE = "diffusion_pytorch_model.safetensors"  # diffusers' name for safetensors weights
 MODEL_CONFIG_FILE = "config.json"  # diffusers' name for a model's config
 SCHEDULER_CONFIG_FILE = "scheduler_config.json"  # diffusers' name for a scheduler's config
+MODEL_CARD_FILE = "MODEL_CARD.md"  # a shipped checkpoint's description of itself
 CHECKPOINTS_DIR = Path(__file__).resolve().parent.parent / "checkpoints"  # what the package ships
 # The default of `predict`, `demo`, `evaluate --heldout`, `rollout` and the viewer's Generate panel:
 # v2 distilled into a 2-step sampler without guidance (one network pass per step).
@@ -277,6 +278,18 @@ def check_guide(checkpoint: Path, config: dict, guide: Path) -> dict:
     return guide_config
 
 
+def copy_checkpoint_files(checkpoint: Path, folder: Path, skip: tuple[str, ...] = ()) -> None:
+    """Copy a checkpoint folder's files and folders into ``folder`` (a new checkpoint being written),
+    all but its INFERENCE_CONFIG_FILE (the writer's to write), hidden files (an output marker) and
+    the names in ``skip``."""
+    import shutil
+
+    for child in sorted(Path(checkpoint).iterdir()):
+        if child.name == INFERENCE_CONFIG_FILE or child.name.startswith(".") or child.name in skip:
+            continue
+        (shutil.copytree if child.is_dir() else shutil.copy2)(child, Path(folder) / child.name)
+
+
 def write_sampler_copy(checkpoint: str | os.PathLike, to: str | os.PathLike, settings: dict,
                        overwrite: bool = False, guide: str | os.PathLike | None = None,
                        guide_bits: int = 16) -> Path:
@@ -313,15 +326,8 @@ def write_sampler_copy(checkpoint: str | os.PathLike, to: str | os.PathLike, set
                         f"earlier checkpoint of {checkpoint}'s training run)")
     inputs = [checkpoint] + ([Path(guide)] if guide is not None else [])
     with OutputDir(to, "set-sampler", inputs=inputs, overwrite=overwrite, flag="--to") as tmp:
-        for child in sorted(checkpoint.iterdir()):
-            if child.name == INFERENCE_CONFIG_FILE or child.name.startswith(".") or child.name == "MODEL_CARD.md":
-                continue
-            if guide is not None and child.name == GUIDE_DIR:
-                continue  # replaced by the new guide below
-            if child.is_dir():
-                shutil.copytree(child, tmp / child.name)
-            else:
-                shutil.copy2(child, tmp / child.name)
+        # The guide folder, where a new guide replaces it, is written below.
+        copy_checkpoint_files(checkpoint, tmp, skip=(MODEL_CARD_FILE,) + ((GUIDE_DIR,) if guide is not None else ()))
         preset.update(settings)
         change = {"source": str(checkpoint), "previous": previous, "new": dict(settings)}
         out = {**config, "preset": preset}

@@ -77,8 +77,12 @@ def own_autoencoder(checkpoint: Path, config: dict, folder: Path) -> dict:
         return config
     source = checkpoint_autoencoder(checkpoint, entry)
     shutil.copytree(source, Path(folder) / AUTOENCODER_DIR)
-    own = {k: v for k, v in entry.items() if k != "shared_with"}
-    return {**config, "autoencoder": {**own, "dir": AUTOENCODER_DIR}}
+    return {**config, "autoencoder": _own_entry(entry)}
+
+
+def _own_entry(entry: dict) -> dict:
+    """An autoencoder entry naming the checkpoint's own copy (AUTOENCODER_DIR), not a sibling's."""
+    return {**{k: v for k, v in entry.items() if k != "shared_with"}, "dir": AUTOENCODER_DIR}
 
 
 def share_autoencoder(checkpoint: str | os.PathLike, sibling: str | os.PathLike, to: str | os.PathLike,
@@ -87,7 +91,7 @@ def share_autoencoder(checkpoint: str | os.PathLike, sibling: str | os.PathLike,
     reads ``sibling``'s instead: ``sibling`` must sit in the same folder as ``to`` and carry, in its
     own ``autoencoder/``, the very autoencoder the checkpoint carries (the same hash). The copy's
     config names ``../SIBLING/autoencoder``; every other file is copied as it is, the model card too."""
-    from tesseract4d.model.checkpoint import INFERENCE_CONFIG_FILE, read_inference_config
+    from tesseract4d.model.checkpoint import INFERENCE_CONFIG_FILE, copy_checkpoint_files, read_inference_config
     from tesseract4d.outputs import OutputDir
 
     checkpoint, sibling, to = Path(checkpoint), Path(sibling), Path(to)
@@ -106,10 +110,7 @@ def share_autoencoder(checkpoint: str | os.PathLike, sibling: str | os.PathLike,
         raise UserError(f"--to {to} must sit in the same folder as {sibling} (the copy reads "
                         f"../{sibling.name}/{AUTOENCODER_DIR}); pass --to {sibling.parent / to.name}")
     with OutputDir(to, "share-autoencoder", inputs=[checkpoint, sibling], overwrite=overwrite, flag="--to") as tmp:
-        for child in sorted(checkpoint.iterdir()):
-            if child.name in (INFERENCE_CONFIG_FILE, AUTOENCODER_DIR) or child.name.startswith("."):
-                continue
-            (shutil.copytree if child.is_dir() else shutil.copy2)(child, tmp / child.name)
+        copy_checkpoint_files(checkpoint, tmp, skip=(AUTOENCODER_DIR,))
         shared = {**entry, "dir": f"../{sibling.name}/{AUTOENCODER_DIR}", "shared_with": sibling.name}
         (tmp / INFERENCE_CONFIG_FILE).write_text(json.dumps({**config, "autoencoder": shared}, indent=2))
     return to
@@ -175,8 +176,7 @@ def replace_decoder(checkpoint: str | os.PathLike, autoencoder: str | os.PathLik
         save_file({k: v.contiguous() for k, v in merged.items()}, str(dst / AE_WEIGHTS))
         old = config["autoencoder"]
         config["autoencoder"] = {
-            **{k: v for k, v in old.items() if k != "shared_with"}, "dir": AUTOENCODER_DIR,
-            "hash": autoencoder_hash(dst), "source_dir": str(autoencoder),
+            **_own_entry(old), "hash": autoencoder_hash(dst), "source_dir": str(autoencoder),
             # The autoencoder the transformer was trained with: its encoder is this one's.
             "trained_with_hash": old.get("trained_with_hash", old["hash"]),
             "decoder_replaced": {"previous_hash": old["hash"], "source_hash": autoencoder_hash(autoencoder)},
