@@ -248,11 +248,41 @@ def test_set_sampler_refuses_bad_settings(checkpoint, tmp_path, capsys):
             (["--to", str(tmp_path / "b"), "--guidance-min-sigma", "-0.1"], "--guidance-min-sigma must be"),
             (["--to", str(tmp_path / "c"), "--text-guidance", "0"], "--text-guidance must be"),
             (["--to", str(tmp_path / "d"), "--steps", "0"], "--steps must be"),
+            (["--to", str(tmp_path / "e"), "--static-tolerance", "-0.1"], "--static-tolerance must be"),
             (["--to", str(checkpoint), "--steps", "3"], "--to")]
     for extra, message in runs:
         assert cli.main(["set-sampler", "--checkpoint", str(checkpoint), *extra]) != 0
         assert message in capsys.readouterr().err
-    assert not any((tmp_path / name).exists() for name in "abcd")
+    assert not any((tmp_path / name).exists() for name in "abcde")
+
+
+def test_set_sampler_static_tolerance_keeps_the_first_frame_where_the_clip_is_still(checkpoint, tmp_path):
+    """set-sampler --static-tolerance T: the copy samples as the original given T (the same clip as the
+    original's where it moves by more than T, the given first frame where it stays within T / 2),
+    frame 0 is the given first frame exactly, and a clip longer than one continues from such a frame."""
+    from tesseract4d.model.static_composite import stillness
+
+    to = tmp_path / "still"
+    assert cli.main(["set-sampler", "--checkpoint", str(checkpoint), "--to", str(to), "--static-tolerance", "0.1"]) == 0
+    copy, original = load_pipeline(to, precision="fp32"), load_pipeline(checkpoint, precision="fp32")
+    assert copy.preset.static_tolerance == 0.1 and original.preset.static_tolerance == 0.0
+    p = copy.preset
+    first = torch.rand(1, 7, p.height, p.width, generator=torch.Generator().manual_seed(0)) * 2 - 1
+
+    def sample(pipe, **kw):
+        return pipe(first, ["push the square to the right"], num_inference_steps=3,
+                    generator=torch.Generator().manual_seed(4), **kw)
+
+    kept, plain = sample(copy), sample(original)
+    assert torch.equal(kept, sample(original, static_tolerance=0.1)) and torch.equal(sample(copy, static_tolerance=0.0), plain)
+    assert torch.equal(kept[:, 0], first) and not torch.equal(plain[:, 0], first)
+    m = stillness(plain, 0.1)[:, :, None].expand_as(plain)
+    assert (m == 1).any() and (m == 0).any()  # this clip has both
+    assert torch.equal(kept[m == 1], first[:, None].expand_as(plain)[m == 1]) and torch.equal(kept[m == 0], plain[m == 0])
+    longer = sample(copy, num_frames=2 * p.num_frames - 1)  # the second clip starts from frame 7, as composited
+    assert torch.equal(longer[:, :p.num_frames], kept)
+    with pytest.raises(ValueError, match="static_tolerance must be >= 0"):
+        sample(copy, static_tolerance=-1.0)
 
 
 @pytest.fixture(scope="module")

@@ -14,6 +14,10 @@ the difference of the two networks' predictions, moving the sample away from wha
 wrong; one more network pass per step. `--autoguidance-min-sigma S` runs that pass only at noise levels
 ≥ S, where the motion is laid out, and leaves the last, fine steps to the network alone.
 
+Static compositing (`--static-tolerance T`): where the decoded clip stays within T of its frame 0, the
+given first frame's own pixels are shown instead of the decoder's redrawing of them; the parts of the
+scene the model moves are left as predicted (README "Static compositing").
+
 Example (v2's 10 guided steps, guidance only at noise ≥ 0.5: 15 network passes per clip instead of 20):
   tesseract4d set-sampler --checkpoint tesseract4d/checkpoints/v2 --guidance-min-sigma 0.5 --to runs/v2_interval
   tesseract4d evaluate --heldout data/heldout_groups128 --checkpoint tesseract4d/checkpoints/v2 \\
@@ -48,6 +52,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--autoguidance-min-sigma", type=float, metavar="S",
                         help="autoguide only the steps at noise level ≥ S, where the motion is laid out; the "
                              "steps below run without the guide's pass (0 = every step)")
+    parser.add_argument("--static-tolerance", type=float, metavar="T",
+                        help="static compositing: where the decoded clip stays within T of its first frame "
+                             "(model-space units, channels in [-1, 1]), show the given first frame's own pixels "
+                             "instead of the decoder's redrawing of them (0 = off)")
     parser.add_argument("--guide", type=Path, metavar="CKPT",
                         help="checkpoint whose transformer becomes the copy's autoguidance network: a weaker "
                              "model of the same latent space, e.g. an early checkpoint of the same training run")
@@ -65,7 +73,8 @@ def run(args: argparse.Namespace) -> int:
                                                 ("image_guidance", args.image_guidance),
                                                 ("guidance_min_sigma", args.guidance_min_sigma),
                                                 ("autoguidance", args.autoguidance),
-                                                ("autoguidance_min_sigma", args.autoguidance_min_sigma))
+                                                ("autoguidance_min_sigma", args.autoguidance_min_sigma),
+                                                ("static_tolerance", args.static_tolerance))
                 if value is not None}
     to = write_sampler_copy(args.checkpoint, args.to, settings, overwrite=args.overwrite, guide=args.guide,
                             guide_bits=args.guide_bits)

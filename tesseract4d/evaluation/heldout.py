@@ -379,6 +379,8 @@ def sampler_settings(cfg: HeldoutConfig, pipeline) -> dict:
         settings["autoguidance"] = float(p.autoguidance)
         if p.autoguidance_min_sigma > 0:
             settings["autoguidance_min_sigma"] = float(p.autoguidance_min_sigma)
+    if p.static_tolerance > 0:
+        settings["static_tolerance"] = float(p.static_tolerance)
     if cfg.start_from_truth is not None:  # the diagnostic (named only where it ran)
         settings["start_from_truth"] = float(cfg.start_from_truth)
     return settings
@@ -390,6 +392,8 @@ def describe_sampler(settings: dict) -> str:
     text += f" at noise ≥ {settings['guidance_min_sigma']:g}" if settings.get("guidance_min_sigma") else ""
     text += f", autoguidance {settings['autoguidance']:g}" if settings.get("autoguidance") else ""
     text += f" at noise ≥ {settings['autoguidance_min_sigma']:g}" if settings.get("autoguidance_min_sigma") else ""
+    text += f", first frame kept where still (tolerance {settings['static_tolerance']:g})" if settings.get(
+        "static_tolerance") else ""
     if settings.get("start_from_truth") is not None:
         text += f", started from the true future at noise ≤ {settings['start_from_truth']:g}"
     return text

@@ -223,7 +223,7 @@ GUIDE_MUST_MATCH = ("patch_size", "patch_size_t", "text_embed_dim", "max_text_se
                     "sample_height", "sample_frames")
 # The preset fields that only say how a checkpoint samples (the weights do not depend on them).
 SAMPLER_FIELDS = ("num_steps", "text_guidance", "image_guidance", "guidance_min_sigma", "autoguidance",
-                  "autoguidance_min_sigma")
+                  "autoguidance_min_sigma", "static_tolerance")
 # The preset fields of a noise-level interval (0: every step).
 _INTERVAL_FIELDS = ("guidance_min_sigma", "autoguidance_min_sigma")
 
@@ -234,16 +234,16 @@ def check_sampler_settings(settings: dict) -> None:
 
     flags = {"num_steps": "--steps", "text_guidance": "--text-guidance", "image_guidance": "--image-guidance",
              "guidance_min_sigma": "--guidance-min-sigma", "autoguidance": "--autoguidance",
-             "autoguidance_min_sigma": "--autoguidance-min-sigma"}
+             "autoguidance_min_sigma": "--autoguidance-min-sigma", "static_tolerance": "--static-tolerance"}
     for name, value in settings.items():
         if name not in SAMPLER_FIELDS:
             raise UserError(f"{name!r} is not a sampler setting (one of {', '.join(SAMPLER_FIELDS)})")
         if name == "num_steps":
             if int(value) != value or value < 1:
                 raise UserError(f"{flags[name]} must be a whole number of steps ≥ 1, got {value}")
-        elif name == "autoguidance":
+        elif name in ("autoguidance", "static_tolerance"):
             if not math.isfinite(value) or value < 0:
-                raise UserError(f"--autoguidance must be a finite number ≥ 0 (0: none), got {value}")
+                raise UserError(f"{flags[name]} must be a finite number ≥ 0 (0: off), got {value}")
         elif not math.isfinite(value) or value < 0 or (name not in _INTERVAL_FIELDS and value == 0):
             what = "≥ 0 (0: guidance at every step)" if name in _INTERVAL_FIELDS else "> 0 (1: no guidance)"
             raise UserError(f"{flags[name]} must be a finite number {what}, got {value}")

@@ -14,6 +14,10 @@ training run) and a scale ``w`` > 0, every step adds ``w (full - guide_full)``, 
 same first frame and text: the sample moves away from the errors the weaker network makes more of.
 One more network pass per step, or only at the steps of noise level ≥ ``autoguidance_min_sigma``.
 
+Static compositing (``static_tolerance`` > 0, ``static_composite.py``): where the decoded clip does not
+change from its frame 0, the given first frame's own pixels are put back, so the still part of the
+scene is shown as given instead of as the decoder redraws it.
+
 Clips longer than the preset's clip continue autoregressively: each next clip is conditioned on the
 last frame predicted so far.
 """
@@ -26,6 +30,7 @@ import torch
 
 from tesseract4d.model.codec import make_condition
 from tesseract4d.model.presets import ModelPreset
+from tesseract4d.model.static_composite import composite_static
 
 def make_scheduler():
     """The few-step sampler: flow-matching Euler over sigmas 1 -> 0."""
@@ -176,9 +181,13 @@ class RGBDNPipeline:
         with torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=self.bf16):
             return self.codec.decode(z).float().clamp(-1.0, 1.0)
 
-    def _sample_clip(self, *args, **kwargs):
-        """One decoded clip (b, T, 7, H, W) in model space; arguments as :meth:`_denoise_clip`."""
-        return self.decode(self._denoise_clip(*args, **kwargs))
+    def _sample_clip(self, first_frame, *args, static_tolerance: float = 0.0, **kwargs):
+        """One decoded clip (b, T, 7, H, W) in model space; arguments as :meth:`_denoise_clip`;
+        ``static_tolerance`` > 0 puts the first frame back where the clip is still (static_composite.py)."""
+        clip = self.decode(self._denoise_clip(first_frame, *args, **kwargs))
+        if static_tolerance > 0:
+            clip = composite_static(clip, first_frame.float().to(clip.device), static_tolerance)
+        return clip
 
     @torch.no_grad()
     def __call__(
@@ -193,6 +202,7 @@ class RGBDNPipeline:
         guidance_min_sigma: float | None = None,
         autoguidance: float | None = None,
         autoguidance_min_sigma: float | None = None,
+        static_tolerance: float | None = None,
         generator: torch.Generator | None = None,
         progress: Callable[[int, int], None] | None = None,
         latents: torch.Tensor | None = None,
@@ -207,18 +217,21 @@ class RGBDNPipeline:
         pass (default: the preset's; 0 = every step guided).
         autoguidance, autoguidance_min_sigma: the guide network's scale and the lowest noise level it runs
         at (default: the preset's).
+        static_tolerance: put the given first frame back where the decoded clip stays within this
+        (model-space units) of its frame 0 (static_composite.py; 0 = off; default: the preset's).
         generator: a CPU ``torch.Generator``; the same seed gives the same clips.
         progress: optional callable(step, total) called after every denoising step.
         latents: the first clip's initial noise (b, t', c, h, w) (see :meth:`latent_shape`); default:
         drawn from ``generator``.
         output_type: "clip" (decoded frames) or "latent": the first clip's final sample in the
-        network's space, (b, t', c, h, w), before decoding (one clip only).
+        network's space, (b, t', c, h, w), before decoding (one clip only; static compositing acts on
+        decoded frames, so not on these).
         start: a diagnostic, one clip only: (clean clips in the network's space (b, t', c, h, w), such
         as a true future through ``codec.encode``, and a noise level 0 < sigma ≤ 1): the sampler begins
         at its first noise level ``s`` ≤ sigma (its last, if none is) from ``(1 - s) clips + s noise``
         and runs only the steps from there; how much of a right future the network keeps.
         Returns (b, num_frames, 7, H, W) model-space clips; frame 0 is the model's reconstruction
-        of the first frame.
+        of the first frame (the first frame itself with static compositing on).
         """
         # 1. Check inputs.
         p = self.preset
@@ -230,6 +243,7 @@ class RGBDNPipeline:
         autoguidance = p.autoguidance if autoguidance is None else float(autoguidance)
         autoguidance_min_sigma = (p.autoguidance_min_sigma if autoguidance_min_sigma is None
                                   else float(autoguidance_min_sigma))
+        static_tolerance = p.static_tolerance if static_tolerance is None else float(static_tolerance)
         b = first_frame.shape[0]
         if first_frame.ndim != 4 or tuple(first_frame.shape[2:]) != self.resolution:
             raise ValueError(f"first_frame must be (b, 7, {p.height}, {p.width}), got {tuple(first_frame.shape)}")
@@ -237,6 +251,8 @@ class RGBDNPipeline:
             raise ValueError(f"{len(instructions)} instructions for {b} first frames")
         if num_frames < 1 or num_steps < 1:
             raise ValueError("num_frames and num_inference_steps must be >= 1")
+        if not static_tolerance >= 0:
+            raise ValueError(f"static_tolerance must be >= 0 (0 = off), got {static_tolerance}")
         if autoguidance and self.guide_transformer is None:
             raise ValueError(f"autoguidance {autoguidance:g} needs a guide network: load a checkpoint whose sampler "
                              f"uses one (`tesseract4d set-sampler --autoguidance W [--guide CKPT]`; a guide "
@@ -272,7 +288,8 @@ class RGBDNPipeline:
                                      latents=latents if k == 0 else None,
                                      guidance_min_sigma=guidance_min_sigma, start=start,
                                      autoguidance=autoguidance,
-                                     autoguidance_min_sigma=autoguidance_min_sigma).cpu()
+                                     autoguidance_min_sigma=autoguidance_min_sigma,
+                                     static_tolerance=static_tolerance).cpu()
             frames.append(clip if k == 0 else clip[:, 1:])
             current = clip[:, -1]
         # 4. Stitch the clips.

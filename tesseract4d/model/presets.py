@@ -72,6 +72,9 @@ class ModelPreset:
     # Autoguidance only at noise levels >= this (its own interval): lower-noise steps run without the
     # guide's pass. 0 = every step.
     autoguidance_min_sigma: float = 0.0
+    # Static compositing (static_composite.py): where the decoded clip stays within this of its frame 0
+    # (model-space units, channels in [-1, 1]), the given first frame's pixels are put back. 0 = off.
+    static_tolerance: float = 0.0
 
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)

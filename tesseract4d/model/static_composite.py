@@ -1,0 +1,46 @@
+"""Keep the given first frame where a predicted clip does not change.
+
+A latent model redraws every pixel of every frame through its decoder, so even the parts of the
+scene it predicts to stay put come out as the autoencoder draws them: a softer table grain, rounder
+cube corners, slightly off depth and normals. The first frame itself is known exactly. Where the
+prediction does not change over time, the composite puts the first frame's own pixels back:
+
+    out_t = (1 - m_t) pred_t + m_t first
+
+``m_t`` in [0, 1] says how still pixel (t, y, x) is predicted to be: 1 where the largest change of
+``pred_t`` from ``pred_0`` (the model's own drawing of the first frame) over the channels, taken over a
+small neighbourhood (``STATIC_MARGIN_PX``, so that the blurred rim of something moving is not counted as
+still), stays below half the tolerance, 0 above the tolerance, linear between. A pixel the model moves
+is left exactly as predicted; a still one becomes exactly the first frame's; frame 0 becomes the first
+frame. The composite takes nothing from the future: it decides from the prediction and the first frame.
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+
+# Pixels within this many pixels of a predicted change count as changing too.
+STATIC_MARGIN_PX = 2
+
+
+def stillness(clip: torch.Tensor, tolerance: float, margin_px: int = STATIC_MARGIN_PX) -> torch.Tensor:
+    """(b, T, H, W) in [0, 1]: 1 where ``clip`` (b, T, C, H, W) stays within ``tolerance / 2`` of its
+    frame 0 in every channel (and so does every pixel within ``margin_px``), 0 where it moves by more
+    than ``tolerance``, linear between."""
+    if tolerance <= 0:
+        raise ValueError(f"tolerance must be > 0, got {tolerance}")
+    change = (clip - clip[:, :1]).abs().amax(dim=2)  # (b, T, H, W)
+    if margin_px > 0:
+        change = F.max_pool2d(change, 2 * margin_px + 1, stride=1, padding=margin_px)
+    return ((tolerance - change) / (tolerance / 2)).clamp(0.0, 1.0)
+
+
+def composite_static(clip: torch.Tensor, first_frame: torch.Tensor, tolerance: float,
+                     margin_px: int = STATIC_MARGIN_PX) -> torch.Tensor:
+    """``clip`` (b, T, C, H, W) with ``first_frame`` (b, C, H, W) put back where it is still (see the
+    module); both in model space, the result clamped to [-1, 1] as decoded clips are."""
+    if first_frame.shape != clip[:, 0].shape:
+        raise ValueError(f"first_frame must be {tuple(clip[:, 0].shape)}, got {tuple(first_frame.shape)}")
+    m = stillness(clip, tolerance, margin_px)[:, :, None]
+    return torch.lerp(clip, first_frame.to(clip)[:, None], m).clamp(-1.0, 1.0)
