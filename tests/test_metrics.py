@@ -84,6 +84,14 @@ def test_moving_region_mask_of_sliding_box():
     still = copy.deepcopy(ep.cameras["base_camera"])
     still.rgb[:], still.depth_m[:] = still.rgb[:1], still.depth_m[:1]
     assert not M.moving_region_mask(still).any()
+    # A few pixels of render noise (a speck in frame 0 only) are no motion: the region stays empty ...
+    n = M.MIN_MOVING_PIXELS_PER_FRAME
+    speck = copy.deepcopy(still)
+    speck.rgb[0, 10, 10:10 + n - 1] = 255 - still.rgb[0, 10, 10:10 + n - 1]
+    assert not M.moving_region_mask(speck).any()
+    # ... while as many pixels per frame as MIN_MOVING_PIXELS_PER_FRAME make one.
+    speck.rgb[0, 10, 10:10 + n] = 255 - still.rgb[0, 10, 10:10 + n]
+    assert M.moving_region_mask(speck).sum() == n * 6
 
 
 @pytest.fixture(scope="module")

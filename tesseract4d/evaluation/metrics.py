@@ -28,6 +28,10 @@ __all__ = ["PSNR_MAX_DB", "rgb_psnr", "chamfer_l1_m", "depth_metrics", "normal_m
 
 DELTA = 1.25
 NORMAL_GOOD_DEG = 11.25
+# A ground truth in which fewer pixels than this change per frame on average is still: what changes is a
+# pixel or two of render noise (a frame-0 speck at an edge), not motion, and its moving region is empty.
+# (Measured over one flickering pixel, a moving-region metric says nothing about the motion.)
+MIN_MOVING_PIXELS_PER_FRAME = 4
 
 
 def chamfer_l1_m(points_a: np.ndarray, points_b: np.ndarray) -> float:
@@ -118,7 +122,8 @@ def moving_region_mask(frames, rgb_tol: float = MOVING_RGB_TOL, depth_tol_m: flo
     ``frames``: a CameraFrames (or anything with ``rgb`` (T, H, W, 3) and ``depth_m`` (T, H, W)).
     Frame t > 0: pixels whose RGB (any channel) or depth differs from frame 0 beyond the
     tolerances (:mod:`tesseract4d.motion`). Frame 0 has nothing to differ from; it gets the pixels that change in any later
-    frame (what is about to move, or be uncovered).
+    frame (what is about to move, or be uncovered). Fewer than ``MIN_MOVING_PIXELS_PER_FRAME`` changing
+    pixels per frame on average: a still clip, no moving region.
     """
     rgb = np.asarray(frames.rgb, np.int16)
     depth = np.asarray(frames.depth_m, np.float64)
@@ -127,4 +132,6 @@ def moving_region_mask(frames, rgb_tol: float = MOVING_RGB_TOL, depth_tol_m: flo
     depth_change = np.abs(depth - depth[:1]) > depth_tolerance_m(np.maximum(depth, depth[:1]), depth_tol_m, depth_tol_rel)
     moving = rgb_change | depth_change
     moving[0] = moving[1:].any(0) if len(moving) > 1 else False
+    if moving.sum() < MIN_MOVING_PIXELS_PER_FRAME * len(moving):
+        moving[:] = False
     return moving
