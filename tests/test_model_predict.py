@@ -35,6 +35,17 @@ def pipe(checkpoint):
     return load_pipeline(checkpoint)
 
 
+def _first_frame(preset) -> torch.Tensor:
+    """A (1, 7, H, W) model-space first frame of seeded noise."""
+    return torch.rand(1, 7, preset.height, preset.width, generator=torch.Generator().manual_seed(0)) * 2 - 1
+
+
+def _push_right(pipe, first, steps: int, **kw) -> torch.Tensor:
+    """One clip of "push the square to the right" from noise seed 4 (``kw``: sampler settings)."""
+    return pipe(first, ["push the square to the right"], num_inference_steps=steps,
+                generator=torch.Generator().manual_seed(4), **kw)
+
+
 def test_load_pipeline_attributes(pipe, checkpoint):
     assert pipe.resolution == (32, 32) and pipe.num_frames == 8 and pipe.camera_name == "close"
     # Save -> load round trip: the loaded transformer holds the exported (EMA) weights exactly.
@@ -186,7 +197,7 @@ def test_guidance_interval_guides_only_the_noisy_steps(checkpoint):
     none is (the clip of text guidance 1)."""
     pipe = load_pipeline(checkpoint, precision="fp32")
     p = pipe.preset
-    first = torch.rand(1, 7, p.height, p.width, generator=torch.Generator().manual_seed(0)) * 2 - 1
+    first = _first_frame(p)
     batches = []
     hook = pipe.transformer.register_forward_pre_hook(lambda m, args: batches.append(args[0].shape[0]))
 
@@ -233,11 +244,10 @@ def test_set_sampler_writes_a_copy_that_samples_with_the_new_settings(checkpoint
     copy, original = load_pipeline(to, precision="fp32"), load_pipeline(source, precision="fp32")
     assert copy.preset.guidance_min_sigma == 0.5 and original.preset.guidance_min_sigma == 0.0
     p = copy.preset
-    first = torch.rand(1, 7, p.height, p.width, generator=torch.Generator().manual_seed(0)) * 2 - 1
+    first = _first_frame(p)
 
     def sample(pipe, **kw):
-        return pipe(first, ["push the square to the right"], num_inference_steps=4,
-                    generator=torch.Generator().manual_seed(4), **kw)
+        return _push_right(pipe, first, 4, **kw)
 
     assert torch.equal(sample(copy), sample(original, text_guidance=2.0, guidance_min_sigma=0.5))
     assert not torch.equal(sample(copy), sample(original, text_guidance=2.0))  # the interval changes the clip
@@ -267,11 +277,10 @@ def test_set_sampler_static_tolerance_keeps_the_first_frame_where_the_clip_is_st
     copy, original = load_pipeline(to, precision="fp32"), load_pipeline(checkpoint, precision="fp32")
     assert copy.preset.static_tolerance == 0.1 and original.preset.static_tolerance == 0.0
     p = copy.preset
-    first = torch.rand(1, 7, p.height, p.width, generator=torch.Generator().manual_seed(0)) * 2 - 1
+    first = _first_frame(p)
 
     def sample(pipe, **kw):
-        return pipe(first, ["push the square to the right"], num_inference_steps=3,
-                    generator=torch.Generator().manual_seed(4), **kw)
+        return _push_right(pipe, first, 3, **kw)
 
     kept, plain = sample(copy), sample(original)
     assert torch.equal(kept, sample(original, static_tolerance=0.1)) and torch.equal(sample(copy, static_tolerance=0.0), plain)
@@ -341,11 +350,10 @@ def test_set_sampler_guide_writes_a_copy_that_autoguides(checkpoint, guide_check
     assert copy.guide_transformer is not None and original.guide_transformer is None
     original.guide_transformer = copy.guide_transformer
     p = copy.preset
-    first = torch.rand(1, 7, p.height, p.width, generator=torch.Generator().manual_seed(0)) * 2 - 1
+    first = _first_frame(p)
 
     def sample(pipe, **kw):
-        return pipe(first, ["push the square to the right"], num_inference_steps=3,
-                    generator=torch.Generator().manual_seed(4), **kw)
+        return _push_right(pipe, first, 3, **kw)
 
     assert torch.equal(sample(copy), sample(original, autoguidance=1.5))
     assert not torch.equal(sample(copy), sample(copy, autoguidance=0.0))
@@ -369,11 +377,10 @@ def test_autoguidance_min_sigma_runs_the_guide_only_at_high_noise(checkpoint, gu
     levels = []
     copy.guide_transformer.register_forward_hook(lambda module, args, out: levels.append(float(args[3][0])))
     p = copy.preset
-    first = torch.rand(1, 7, p.height, p.width, generator=torch.Generator().manual_seed(0)) * 2 - 1
+    first = _first_frame(p)
 
     def sample(**kw):
-        return copy(first, ["push the square to the right"], num_inference_steps=3,
-                    generator=torch.Generator().manual_seed(4), **kw)
+        return _push_right(copy, first, 3, **kw)
 
     interval = sample()
     assert len(levels) == 2 and min(levels) >= 0.5, levels
@@ -416,8 +423,7 @@ def test_set_sampler_guide_bits_8_stores_the_guide_in_8_bits(checkpoint, guide_c
     loaded = pipe.guide_transformer.state_dict()
     assert all(torch.equal(loaded[k], restored[k]) for k in restored)
     p = pipe.preset
-    first = torch.rand(1, 7, p.height, p.width, generator=torch.Generator().manual_seed(0)) * 2 - 1
-    clip = pipe(first, ["push the square to the right"], num_inference_steps=2, generator=torch.Generator().manual_seed(4))
+    clip = _push_right(pipe, _first_frame(p), 2)
     assert torch.isfinite(clip).all()
     assert cli.main(["set-sampler", "--checkpoint", str(checkpoint), "--to", str(tmp_path / "none"),
                      "--autoguidance", "1", "--guide-bits", "8"]) != 0
