@@ -251,7 +251,9 @@ class ReflowConfig(TrainConfig):
 
 def student_preset(teacher_preset, student_steps: int):
     """The teacher's preset with the student's sampling defaults: ``student_steps`` Euler steps and no
-    guidance (text = image = 1.0, no autoguidance), i.e. one network pass per step."""
+    guidance (text = image = 1.0, no autoguidance), i.e. one network pass per step. The teacher's
+    static compositing (``static_tolerance``, on decoded frames, after the network) is kept: the pairs
+    are latents, which it never touches."""
     return dataclasses.replace(teacher_preset, num_steps=int(student_steps), text_guidance=1.0, image_guidance=1.0,
                                guidance_min_sigma=0.0, autoguidance=0.0, autoguidance_min_sigma=0.0,
                                text_dropout=0.0, image_dropout=0.0)
