@@ -246,6 +246,11 @@ def test_evaluate_scores_several_checkpoints_side_by_side(two_checkpoints, tmp_p
     assert disc["chance"] == pytest.approx(1 / 3) and "static" not in report["discrimination"]
     words = disc["words_over_sample"]
     assert words["pairs"] == 3 * 2 and 0 <= words["words"] <= words["pairs"] and words["t"] == 0.5
+    # Where permanence is lost: the static world keeps every object that stays put, and the instructed one
+    # only in the frames before it has moved away from where it stood.
+    static = report["summary"]["static"]
+    assert static["objects_present_others"] == 1.0 and 0 < static["objects_present_instructed"] < 1
+    assert {r["target"] for r in report["rows"]} == {"red_cube", "green_cube", None}
     assert report["contrast"]["static"]["per_skill"] == {"keep_still": 1.0, "push": 0.0}
     assert report["contrast"]["static"]["per_task"] == {"Synthetic-v0": pytest.approx(1 / 3)}
     md = (out / "report.md").read_text()
@@ -253,6 +258,7 @@ def test_evaluate_scores_several_checkpoints_side_by_side(two_checkpoints, tmp_p
         assert label in md
     assert "object permanence" in md and "instruction contrast" in md and "✗" in md and "per skill" in md
     assert "the moved object found whole" in md and "instruction discrimination" in md
+    assert "frames with the instructed object, per object" in md and "frames with each other object" in md
     assert "words over the noisy sample" in md
     assert "| keep_still | 1 |" in md and "| Synthetic-v0 | 3 |" in md
 

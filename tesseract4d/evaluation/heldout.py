@@ -522,7 +522,7 @@ def evaluate_heldout(cfg: HeldoutConfig, progress: bool = True) -> dict:
                 row = {"episode": str(path.relative_to(data)), "task": gt.env_id, "seed": gt.seed,
                        "sample_seed": seed, "group_id": gt.group_id, "skill": skill,
                        "variant": (gt.intent or {}).get("variant"), "instruction": gt.instruction,
-                       "metrics": {}, "direction": {}, "objects": {},
+                       "target": (gt.intent or {}).get("target"), "metrics": {}, "direction": {}, "objects": {},
                        "token_grid_ratio_gt": gt_believe["metrics"]["token_grid_ratio"]}
                 if gt_believe["contrast_entry"] is not None:
                     contrast_entries["ground_truth"].append((group, gt_believe["contrast_entry"]))
@@ -570,6 +570,7 @@ def build_report(cfg, rows: list[dict], methods: list[str], labels: dict, scores
     for m in methods:
         summary[m]["contrast"] = contrast[m]["share"]
         summary[m]["contrast_whole"] = contrast[m]["share_whole"]
+        summary[m].update(presence_by_role(rows, m))
     config = {k: (str(v) if isinstance(v, Path) else [str(x) for x in v] if isinstance(v, (list, tuple)) else v)
               for k, v in dataclasses.asdict(cfg).items()}
     return {
@@ -588,6 +589,19 @@ def build_report(cfg, rows: list[dict], methods: list[str], labels: dict, scores
         "discrimination": discrimination or {},
         "rows": rows,
     }
+
+
+def presence_by_role(rows: list[dict], method: str) -> dict:
+    """Where object permanence is lost: the mean share of judged frames in which the instructed object
+    (its intent's target) is present, and the same over every other scene object, over the rows that
+    name a target; NaN where there is none."""
+    instructed, others = [], []
+    for r in rows:
+        target = r.get("target")
+        for name, share in (r.get("objects", {}).get(method) or {}).items():
+            if target is not None and share is not None:
+                (instructed if name == target else others).append(share)
+    return {"objects_present_instructed": _finite_mean(instructed), "objects_present_others": _finite_mean(others)}
 
 
 def _fmt(value, key: str) -> str:
@@ -668,6 +682,9 @@ def format_markdown(report: dict) -> str:
                  + " | ".join(_fmt(follow[m].get("mean_cosine"), "") for m in methods) + " |")
     believe = (
         ("objects_present", f"object permanence: frames with every object (goal ≥ {PRESENCE_GOAL:.0%})", "scene objects"),
+        ("objects_present_instructed", "object permanence: frames with the instructed object, per object",
+         "instructed object"),
+        ("objects_present_others", "object permanence: frames with each other object, per object", "other objects"),
         ("contrast", f"instruction contrast: instructions right (goal ≥ {CONTRAST_GOAL:.0%})", "held-out groups"),
         ("contrast_whole", "instruction contrast, the moved object found whole", "held-out groups"),
         ("token_grid_ratio", f"token grid ratio (goal {TOKEN_GRID_GOAL[0]:g}–{TOKEN_GRID_GOAL[1]:g}; "
