@@ -186,7 +186,7 @@ class RGBDNPipeline:
         ``static_tolerance`` > 0 puts the first frame back where the clip is still (static_composite.py)."""
         clip = self.decode(self._denoise_clip(first_frame, *args, **kwargs))
         if static_tolerance > 0:
-            clip = composite_static(clip, first_frame.float().to(clip.device), static_tolerance)
+            clip = composite_static(clip, first_frame, static_tolerance)
         return clip
 
     @torch.no_grad()
