@@ -8,7 +8,8 @@ episodes. This packs the caches of one or more datasets into ``header_<tag>.json
 - latents: rounded to int8 with the scale 8/127 (normalised latents stay within ±8), each frame
   stored as its difference to frame 0 (modulo 256, exact), which compresses about 3x; the error is at
   most half a step (0.031), and decoded frames move by about 53 dB RGB PSNR and 0.8 mm of depth;
-- object shares (multiples of 1/64 per latent cell): exact.
+- object shares, of the robot and objects and (where the cache has them) of the scene's objects alone
+  (multiples of 1/64 per latent cell): exact.
 
   .venv/bin/python scripts/latent_cache_8bit.py pack --out PACKED data/v2_tabletop data/v2_tasks
   python3 scripts/latent_cache_8bit.py unpack PACKED --out DATA_DIR      # on the other machine
@@ -46,7 +47,8 @@ def pack(datasets: list[Path], out: Path, camera: str = "close", chunk_mb: float
         tensors = load_file(str(cache / LATENTS_FILE))
         n = len(meta["episodes"])
         lat = [tensors[f"{i}.latents"] for i in range(n)]  # (T, C, h, w) float16
-        obj = [tensors[f"{i}.objects"] for i in range(n)]  # (T, h, w) float16
+        keys = ["objects"] + (["scene_objects"] if meta.get("scene_objects") else [])
+        obj = [tensors[f"{i}.{key}"] for key in keys for i in range(n)]  # (T, h, w) float16 each
         parts = []
         for z in lat:
             q = np.clip(np.round(z.astype(np.float32) / SCALE), -127, 127).astype(np.int16)
@@ -57,7 +59,8 @@ def pack(datasets: list[Path], out: Path, camera: str = "close", chunk_mb: float
             parts.append(o8.tobytes())
         blob = lzma.compress(b"".join(parts), preset=6)
         header["datasets"].append({"name": d.name, "info": json.loads((d / "info.json").read_text()), "cache": meta,
-                                   "lat_shapes": [list(z.shape) for z in lat], "obj_shapes": [list(o.shape) for o in obj],
+                                   "lat_shapes": [list(z.shape) for z in lat], "obj_keys": keys,
+                                   "obj_shapes": [list(o.shape) for o in obj],
                                    "offset": offset, "size": len(blob)})
         blobs.append(blob)
         offset += len(blob)
@@ -92,11 +95,13 @@ def unpack(src: Path, out: Path, camera: str = "close") -> list[Path]:
                 pos += n
                 q = np.concatenate([u[:1], u[:1] + u[1:]]).astype(np.uint8).view(np.int8)  # undo the modulo
                 tensors[f"{i}.latents"] = torch.from_numpy((q.astype(np.float32) * header["scale"]).astype(np.float16))
-            for i, shape in enumerate(d["obj_shapes"]):
+            count = len(d["lat_shapes"])
+            for k, shape in enumerate(d["obj_shapes"]):
                 n = int(np.prod(shape))
                 o = np.frombuffer(raw, np.uint8, n, pos).reshape(shape)
                 pos += n
-                tensors[f"{i}.objects"] = torch.from_numpy((o / 64).astype(np.float16))
+                key = d.get("obj_keys", ["objects"])[k // count]
+                tensors[f"{k % count}.{key}"] = torch.from_numpy((o / 64).astype(np.float16))
             folder = out / d["name"]
             cache = default_cache_dir(folder, camera)
             if folder.exists():

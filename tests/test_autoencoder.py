@@ -297,6 +297,8 @@ def test_latent_cache_reused_when_valid_rebuilt_when_autoencoder_changes(tmp_pat
                                for k in ("rgb", "depth_m", "normal_cam")))
     assert torch.allclose(lat.float(), ae.encode(x), atol=1e-2)
     assert float(cache.episodes[0].objects.max()) > 0  # the square is an object
+    # ... and the scene's only object: its shares are those of the robot/object mask (no robot here)
+    assert torch.equal(cache.episodes[0].scene_objects, cache.episodes[0].objects)
     mtime = (cache.folder / "latents.safetensors").stat().st_mtime_ns
     again, built = ensure_latent_cache(data, tmp_path / "ae_a")
     assert not built and (again.folder / "latents.safetensors").stat().st_mtime_ns == mtime
@@ -313,7 +315,50 @@ def test_latent_cache_reused_when_valid_rebuilt_when_autoencoder_changes(tmp_pat
     assert not list(cache.folder.parent.glob(".*tmp*"))
     clips = LatentClipDataset(rebuilt, num_frames=4)
     batch, texts, objects = clips.sample_batch(3, torch.Generator().manual_seed(0), with_objects=True)
-    assert tuple(batch.shape) == (3, 4, 4, 4, 4) and len(texts) == 3 and tuple(objects.shape) == (3, 4, 4, 4)
+    assert tuple(batch.shape) == (3, 4, 4, 4, 4) and len(texts) == 3 and tuple(objects.shape) == (3, 4, 2, 4, 4)
+    assert clips.has_scene_objects and torch.equal(objects[:, :, 0], objects[:, :, 1])
+
+
+def _strip_scene_objects(folder):
+    """Rewrite a latent cache as it was written before it carried the scene objects' shares."""
+    import json
+
+    from safetensors.torch import load_file, save_file
+
+    tensors = load_file(str(folder / "latents.safetensors"))
+    save_file({k: v for k, v in tensors.items() if not k.endswith(".scene_objects")}, str(folder / "latents.safetensors"))
+    meta = json.loads((folder / "cache.json").read_text())
+    del meta["scene_objects"]
+    (folder / "cache.json").write_text(json.dumps(meta))
+
+
+def test_a_cache_without_scene_objects_is_rebuilt_beside_its_episodes_and_refused_for_their_weight_without(tmp_path):
+    import shutil
+    from types import SimpleNamespace
+
+    from tesseract4d.model.latent_cache import LatentClipDataset, ensure_latent_cache
+    from tesseract4d.model.recipe import check_scene_objects
+
+    data = write_segmented_dataset(tmp_path / "data", episodes=2)
+    torch.manual_seed(0)
+    save_autoencoder(RGBDNAutoencoder(get_autoencoder_preset("ae-test")), tmp_path / "ae")
+    cache, _ = ensure_latent_cache(data, tmp_path / "ae")
+    _strip_scene_objects(cache.folder)
+    rebuilt, built = ensure_latent_cache(data, tmp_path / "ae")  # the episodes are there: built anew, with them
+    assert built and all(e.scene_objects is not None for e in rebuilt.episodes)
+    # a cache that travelled without its episodes is used as it is; the weight that needs the shares says what to run
+    travelled = tmp_path / "travelled"
+    travelled.mkdir()
+    shutil.copy(data / "info.json", travelled / "info.json")
+    shutil.copytree(cache.folder, travelled / "latent_cache" / "close")
+    _strip_scene_objects(travelled / "latent_cache" / "close")
+    old, built = ensure_latent_cache(travelled, tmp_path / "ae")
+    assert not built and old.episodes[0].scene_objects is None
+    clips = LatentClipDataset(old, num_frames=4)
+    assert not clips.has_scene_objects and not clips.objects(0)[:, 1].any()
+    check_scene_objects(clips, SimpleNamespace(scene_object_weight=1.0))  # not asked for: fine
+    with pytest.raises(UserError, match="encode-latents .*--rebuild"):
+        check_scene_objects(clips, SimpleNamespace(scene_object_weight=8.0))
 
 
 def test_latent_cache_outlives_a_decoder_swap_but_not_an_encoder_change(tmp_path):

@@ -81,7 +81,7 @@ def test_difference_cells_mark_where_a_groups_futures_differ():
 
 
 def test_difference_weight_adds_to_the_moving_and_object_weights():
-    cfg = SimpleNamespace(moving_weight=1.0, object_weight=1.0, difference_weight=4.0)
+    cfg = SimpleNamespace(moving_weight=1.0, object_weight=1.0, scene_object_weight=1.0, difference_weight=4.0)
     x0 = torch.zeros(2, 4, 2, 10, 10)
     x0[0, 2:, :, 3:5, 3:5] = 1.0
     w = cell_weights(x0, None, cfg, [0, 0])
@@ -90,6 +90,23 @@ def test_difference_weight_adds_to_the_moving_and_object_weights():
     cfg.moving_weight = 2.0
     w = cell_weights(x0, None, cfg, [0, 0])
     assert w[0, 3, 0, 4, 4] == 2.0 + 3.0 and w[1, 3, 0, 4, 4] == 4.0  # clip 1 keeps still there
+
+
+def test_scene_object_weight_adds_to_the_robot_and_object_weight_on_the_objects_alone():
+    cfg = SimpleNamespace(moving_weight=1.0, object_weight=2.0, scene_object_weight=8.0, difference_weight=1.0)
+    x0 = torch.zeros(1, 3, 2, 6, 6)  # a still clip: no moving cells
+    objects = torch.zeros(1, 3, 2, 6, 6)
+    objects[:, :, 0, 0, :3] = 1.0  # the robot: three cells
+    objects[:, :, 0, 4, 4] = objects[:, :, 1, 4, 4] = 0.5  # a cube covering half a cell
+    w = cell_weights(x0, objects, cfg)
+    assert w.shape == (1, 3, 1, 6, 6)
+    assert w[0, 1, 0, 0, 1] == 2.0  # robot: the object weight only
+    assert w[0, 1, 0, 4, 4] == pytest.approx(1.0 + 1.0 * 0.5 + 7.0 * 0.5)  # cube: both, by its share
+    assert w[0, 1, 0, 2, 2] == 1.0  # table
+    cfg.scene_object_weight = 1.0
+    assert cell_weights(x0, objects, cfg)[0, 1, 0, 4, 4] == pytest.approx(1.5)
+    cfg.object_weight = 1.0
+    assert cell_weights(x0, objects, cfg) is None  # every weight 1: no weighting at all
 
 
 def test_counterfactual_swap_shows_a_sibling_only_at_high_noise():

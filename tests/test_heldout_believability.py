@@ -14,7 +14,7 @@ import pytest
 
 from tesseract4d import dataset_format as df
 from tesseract4d.evaluation.heldout_believability import (breakdown, clip_motion, commanded_px, contrast_by_group,
-                                                          contrast_entry, episode_believability, scene_object_ids)
+                                                          contrast_entry, episode_believability)
 
 SIZE, FRAMES, F_PX = 32, 8, 32.0  # image size, frames, focal length (pixels); the scene lies at 1 m
 SEG = {0: "background", 3: "panda_hand", 5: "table-workspace", 6: "goal_region", 18: "red_cube", 19: "green_cube"}
@@ -63,14 +63,6 @@ def group_episode(k: int, seed: int = 100000, scale: int = 1) -> df.Episode:
 
 def static(rgb: np.ndarray) -> np.ndarray:
     return np.repeat(rgb[:1], len(rgb), axis=0)
-
-
-def test_scene_objects_leave_out_robot_table_ground_and_goals():
-    assert scene_object_ids(SEG) == [18, 19]
-    pick = {0: "background", 16: "table-workspace", 17: "ground", 18: "cube", 19: "goal_site", 1: "panda_link0",
-            14: "camera_link", 12: "panda_leftfinger"}
-    assert scene_object_ids(pick) == [18]
-    assert scene_object_ids({18: "cube", 19: "l_shape_tool", 20: "goal_marker", 21: "red_cylinder"}) == [18, 19, 21]
 
 
 def test_commanded_displacement_is_projected_into_the_image():

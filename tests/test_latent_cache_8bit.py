@@ -24,4 +24,5 @@ def test_pack_unpack_round_trip_trains_from_the_unpacked_cache(tmp_path):
     assert not built and len(moved.episodes) == len(cache.episodes) == 3
     for a, b in zip(moved.episodes, cache.episodes):
         assert a.instruction == b.instruction and torch.equal(a.objects, b.objects)
+        assert torch.equal(a.scene_objects, b.scene_objects)
         assert float((a.latents.float() - b.latents.float()).abs().max()) <= tool.SCALE / 2 + 1e-3

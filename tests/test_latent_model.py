@@ -116,9 +116,11 @@ def test_checkpoint_save_load_identical_samples_and_autoencoder_checks(tmp_path)
 
     data = write_segmented_dataset(tmp_path / "data", episodes=2)
     ae = _autoencoder(tmp_path / "ae")
-    final = Trainer(_config(data, tmp_path / "run", ae, condition_noise=0.1, moving_weight=2.0, object_weight=2.0)).train()
+    final = Trainer(_config(data, tmp_path / "run", ae, condition_noise=0.1, moving_weight=2.0, object_weight=2.0,
+                            scene_object_weight=4.0)).train()
     cfg = json.loads((final / "tesseract4d_config.json").read_text())
-    assert cfg["recipe"]["object_weight"] == 2.0 and len(cfg["autoencoder"]["hash"]) == 16
+    assert cfg["recipe"]["object_weight"] == 2.0 and cfg["recipe"]["scene_object_weight"] == 4.0
+    assert len(cfg["autoencoder"]["hash"]) == 16
     assert (default_cache_dir(data, "close") / "cache.json").is_file()
     first = torch.rand(1, 7, 32, 32) * 2 - 1
     samples = []
@@ -316,6 +318,10 @@ def test_bad_inputs_are_user_errors(tmp_path):
     for shift in (0.0, float("nan")):
         with pytest.raises(UserError, match="--time-shift"):
             Trainer(_config(data, tmp_path / "run4", ae, time_shift=shift))
+    for weight in (0.0, float("inf")):
+        with pytest.raises(UserError, match="--scene-object-weight"):
+            Trainer(_config(data, tmp_path / "run5", ae, scene_object_weight=weight))
+    assert not any((tmp_path / f"run{k}").exists() for k in range(1, 6))
 
 
 def test_init_fine_tunes_a_checkpoint_in_its_own_latent_space(tmp_path):

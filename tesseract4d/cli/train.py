@@ -49,6 +49,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="loss weight of moving cells (default %(default)s)")
     parser.add_argument("--object-weight", type=float, default=d.object_weight,
                         help="loss weight of robot/object cells, latent presets (default %(default)s)")
+    parser.add_argument("--scene-object-weight", type=float, default=d.scene_object_weight, metavar="W",
+                        help="added loss weight of the cells of the scene's objects alone (cubes, cylinders; not the "
+                             "robot), latent presets: the few cells of a small moved object otherwise weigh about 1 %% "
+                             "of the loss (default %(default)s = off)")
     parser.add_argument("--prediction", choices=("x0", "velocity"), default=d.prediction,
                         help="network target: clean clip (x0) or velocity (default %(default)s)")
     parser.add_argument("--time-shift", type=float, default=d.time_shift,
@@ -118,6 +122,7 @@ def run(args: argparse.Namespace) -> int:
         precision=args.precision, resume=args.resume, val_every=args.val_every, ckpt_every=args.ckpt_every, seed=args.seed,
         camera=args.camera, progress=not args.no_progress, loss_weights=weights, autoencoder=args.autoencoder,
         condition_noise=args.condition_noise, moving_weight=args.moving_weight, object_weight=args.object_weight,
+        scene_object_weight=args.scene_object_weight,
         prediction=args.prediction, text_dropout=args.text_dropout, init=args.init, time_shift=args.time_shift,
         time_logit_normal=args.time_logit_normal,
         group_batches=args.group_batches, difference_weight=args.difference_weight,

@@ -5,7 +5,7 @@ Per episode and per method (a predicted clip against the episode's ground truth)
 - ``objects_present``: share of frames in which every scene object that the ground truth shows is
   in the prediction, in its colour, where it should be (goal ≥ ``PRESENCE_GOAL``). Scene objects
   are the segmentation's ids whose names are not the robot, the table, the ground, the background
-  or a goal marker (:func:`scene_object_ids`).
+  or a goal marker (:func:`tesseract4d.segments.scene_object_ids`).
 - ``token_grid_ratio``: gradient energy across the checkpoint's token boundaries over that inside
   tokens (≈ 1 for the ground truth; the ground truth's own value is ``token_grid_ratio_gt``).
 - ``edge_sharpness``: the prediction's gradient on the ground truth's strongest edges relative to
@@ -32,13 +32,12 @@ from tesseract4d.evaluation.believability import (MIN_OBJECT_PIXELS, OBJECT_COLO
                                                   edge_sharpness, instruction_contrast, objects_present, token_grid_ratio)
 from tesseract4d.evaluation.instruction_following import object_pixel_track
 from tesseract4d.intervals import wilson_interval
+from tesseract4d.segments import scene_object_ids
 
 PRESENCE_GOAL = 0.95  # goal: every visible object present in at least 95 % of frames
 CONTRAST_GOAL = 0.70  # goal: at least 70 % of a group's instructions right
 TOKEN_GRID_GOAL = (0.8, 1.25)  # ground truth at 64-128 px measures 0.95-1.16; outside this a grid shows
 EDGE_SHARPNESS_GOAL = 0.8  # the prediction keeps at least 80 % of the ground truth's edge contrast
-# Names (prefixes) in a segmentation map that are not scene objects.
-NOT_OBJECTS = ("background", "table", "ground", "panda_", "camera_", "goal")
 # Skills whose intent moves no object (the gripper's goal is what they fix): no contrast entry.
 GRIPPER_ONLY_SKILLS = ("hover", "reach")
 # A tracked displacement shorter than this (pixels) is noise, not motion (as instruction_following).
@@ -52,11 +51,6 @@ WHOLE_PIXELS = (0.3, 3.0)
 WHOLE_MAX_SPREAD = 1.6
 WHOLE_SPREAD_SLACK_PX = 1.0
 BELIEVABILITY_METRICS = ("objects_present", "token_grid_ratio", "edge_sharpness", "motion")
-
-
-def scene_object_ids(seg_id_to_name: dict) -> list[int]:
-    """Segmentation ids of the scene's objects (not robot links, table, ground, background, goal)."""
-    return sorted(int(i) for i, n in seg_id_to_name.items() if not str(n).startswith(NOT_OBJECTS))
 
 
 def clip_motion(rgb: np.ndarray) -> float:

@@ -50,6 +50,7 @@ from tesseract4d import dataset_format as df
 from tesseract4d.configs import config_dict, folder_list
 from tesseract4d.errors import UserError
 from tesseract4d.precision import announce, resolve_precision
+from tesseract4d.segments import robot_object_mask
 from tesseract4d.model.autoencoder import (
     FIDELITY_FILE, AutoencoderConfig, RGBDNAutoencoder, get_autoencoder_preset, load_autoencoder, save_autoencoder,
 )
@@ -60,8 +61,6 @@ CONFIG_FILE = "ae_train_config.json"
 CHECKPOINT_PREFIX = "checkpoint-"
 STATE_FILE = "trainer_state.json"
 EXPORT_DIR = "autoencoder"
-# Segmentation names that are scenery; every other named segment is the robot or an object.
-SCENERY_SEGMENTS = frozenset({"background", "ground", "table-workspace", "goal_site"})
 DEPTH_EDGE_THRESHOLD = 0.02  # model-space depth step between neighbours (~13 mm over 0.2-1.5 m)
 LATENT_STATS_FRAMES = 256
 
@@ -114,12 +113,6 @@ class AutoencoderTrainConfig:
 
 
 # --------------------------------------------------------------------------- data
-
-
-def robot_object_mask(segmentation: np.ndarray, seg_id_to_name: dict[int, str]) -> np.ndarray:
-    """(..., H, W) bool: pixels whose segment is the robot or an object (not scenery)."""
-    ids = [i for i, n in seg_id_to_name.items() if n not in SCENERY_SEGMENTS]
-    return np.isin(segmentation, np.asarray(ids, dtype=segmentation.dtype))
 
 
 @dataclass

@@ -4,12 +4,15 @@ the encoder.
 A cache folder (default ``DATASET/latent_cache/<camera>/``) holds::
 
     cache.json            autoencoder hash, dataset fingerprint (episode files, sizes, mtimes), shapes
-    latents.safetensors   per episode: "<i>.latents" (T, C, h, w) float16 normalised latents and
+    latents.safetensors   per episode: "<i>.latents" (T, C, h, w) float16 normalised latents,
                           "<i>.objects" (T, h, w) float16 share of robot/object pixels per latent cell
+                          and "<i>.scene_objects" (T, h, w) float16 share of the scene's objects'
+                          pixels (cubes, cylinders; not the robot: ``segments.scene_object_mask``)
 
 The cache is valid only for the autoencoder whose ``autoencoder_hash`` it records (or a decoder-only
 fine-tune of it: the same ``latents_hash``, so `swap-decoder` keeps the caches) and the dataset
-files it was built from; ``ensure_latent_cache`` rebuilds it when either changed, writing into a
+files it was built from; ``ensure_latent_cache`` rebuilds it when either changed (or when it
+predates the scene objects' shares), writing into a
 temporary sibling that is renamed into place (never half-written). A dataset folder copied with
 only its ``info.json`` and its cache (no episodes: training on another machine) uses the cache as it
 is, for its own autoencoder only. ``open_latent_cache`` only
@@ -53,6 +56,7 @@ class LatentEpisode:
     instruction: str
     latents: torch.Tensor  # (T, C, h, w) float16, normalised latents
     objects: torch.Tensor  # (T, h, w) float16, share of robot/object pixels per latent cell
+    scene_objects: torch.Tensor | None = None  # (T, h, w) float16, share of the scene's objects' pixels (None: an older cache)
 
 
 @dataclass
@@ -70,7 +74,7 @@ def _build(dataset: Path, autoencoder_dir: Path, camera: str, folder: Path, prog
     from safetensors.torch import save_file
 
     from tesseract4d.model.autoencoder import autoencoder_hash, latents_hash, load_autoencoder
-    from tesseract4d.model.autoencoder_trainer import robot_object_mask
+    from tesseract4d.segments import robot_object_mask, scene_object_mask
 
     model = load_autoencoder(autoencoder_dir)
     info = df.read_info(dataset)
@@ -93,13 +97,14 @@ def _build(dataset: Path, autoencoder_dir: Path, camera: str, folder: Path, prog
         cam = ep.cameras[camera]
         x = model.model_space.encode(cam.rgb, cam.depth_m, cam.normal_cam)  # (T, 7, H, W)
         z = torch.cat([model.encode(x[k:k + 16]) for k in range(0, len(x), 16)])  # (T, C, h, w)
+        masks = torch.zeros(x.shape[0], 2, x.shape[2], x.shape[3])  # (T, 2, H, W): robot/objects, scene objects
         if cam.segmentation is not None:
-            mask = torch.from_numpy(robot_object_mask(cam.segmentation, cam.seg_id_to_name)).float()  # (T, H, W)
-        else:
-            mask = torch.zeros(x.shape[0], x.shape[2], x.shape[3])
-        objects = F.avg_pool2d(mask[:, None], f)[:, 0]  # (T, h, w)
+            masks[:, 0] = torch.from_numpy(robot_object_mask(cam.segmentation, cam.seg_id_to_name))
+            masks[:, 1] = torch.from_numpy(scene_object_mask(cam.segmentation, cam.seg_id_to_name))
+        shares = F.avg_pool2d(masks, f)  # (T, 2, h, w)
         tensors[f"{i}.latents"] = z.half().contiguous()
-        tensors[f"{i}.objects"] = objects.half().contiguous()
+        tensors[f"{i}.objects"] = shares[:, 0].half().contiguous()
+        tensors[f"{i}.scene_objects"] = shares[:, 1].half().contiguous()
         episodes.append({"episode_id": ep.episode_id, "instruction": ep.instruction, "file": str(path.relative_to(dataset))})
     folder.mkdir(parents=True)
     save_file(tensors, str(folder / LATENTS_FILE))
@@ -107,7 +112,7 @@ def _build(dataset: Path, autoencoder_dir: Path, camera: str, folder: Path, prog
         "format": FORMAT, "autoencoder_hash": autoencoder_hash(autoencoder_dir), "autoencoder_dir": str(autoencoder_dir),
         "latents_hash": latents_hash(autoencoder_dir),
         "camera": camera, "latent_shape": list(model.config.latent_shape), "resolution": [info.height, info.width],
-        "dataset_fingerprint": dataset_fingerprint(dataset), "episodes": episodes,
+        "dataset_fingerprint": dataset_fingerprint(dataset), "episodes": episodes, "scene_objects": True,
     }
     (folder / CACHE_FILE).write_text(json.dumps(meta, indent=1))
 
@@ -149,8 +154,8 @@ def open_latent_cache(folder: str | os.PathLike, autoencoder_dir: str | os.PathL
                             f"({meta.get('autoencoder_dir')}), not {want} ({autoencoder_dir}); rebuild it with "
                             f"`tesseract4d encode-latents --data DATASET --autoencoder {autoencoder_dir} --rebuild`")
     tensors = load_file(str(folder / LATENTS_FILE))
-    episodes = [LatentEpisode(e["episode_id"], e["instruction"], tensors[f"{i}.latents"], tensors[f"{i}.objects"])
-                for i, e in enumerate(meta["episodes"])]
+    episodes = [LatentEpisode(e["episode_id"], e["instruction"], tensors[f"{i}.latents"], tensors[f"{i}.objects"],
+                              tensors.get(f"{i}.scene_objects")) for i, e in enumerate(meta["episodes"])]
     return LatentCache(folder, meta, episodes)
 
 
@@ -182,7 +187,7 @@ def ensure_latent_cache(dataset: str | os.PathLike, autoencoder_dir: str | os.Pa
                             f"camera {camera}); copy the episodes there too, or pass the autoencoder it was built with")
         return open_latent_cache(folder), False
     valid = (meta is not None and not rebuild and meta["camera"] == camera and _made_by(meta, autoencoder_dir, want)
-             and meta["dataset_fingerprint"] == dataset_fingerprint(dataset))
+             and meta["dataset_fingerprint"] == dataset_fingerprint(dataset) and meta.get("scene_objects", False))
     if valid:
         return open_latent_cache(folder), False
     # Build in a fresh temporary sibling of our own, then move its two files into place: the cache
@@ -225,16 +230,24 @@ class LatentClipDataset:
         src = self.sources[index]
         return src.latents[start:start + self.num_frames].float(), src.instruction
 
+    @property
+    def has_scene_objects(self) -> bool:
+        """Whether every episode carries the scene objects' shares (caches built before them do not)."""
+        return all(s.scene_objects is not None for s in self.sources)
+
     def objects(self, index: int, start: int = 0) -> torch.Tensor:
-        """Robot/object share per latent cell of one clip, (T, h, w) float32."""
-        return self.sources[index].objects[start:start + self.num_frames].float()
+        """(T, 2, h, w) float32 shares per latent cell of one clip: the robot and objects (channel 0)
+        and the scene's objects alone (channel 1; zeros where the cache predates them)."""
+        src, end = self.sources[index], start + self.num_frames
+        scene = src.scene_objects[start:end] if src.scene_objects is not None else torch.zeros_like(src.objects[start:end])
+        return torch.stack([src.objects[start:end], scene], dim=1).float()
 
     def frame_count(self, index: int) -> int:
         return int(self.sources[index].latents.shape[0])
 
     def sample_group_batch(self, batch_size: int, generator: torch.Generator):
         """(b, T, C, h, w) latent clips of whole counterfactual groups, their instructions, the
-        (b, T, h, w) robot/object shares and each clip's group leader (``clips.draw_group_batch``)."""
+        (b, T, 2, h, w) shares of :meth:`objects` and each clip's group leader (``clips.draw_group_batch``)."""
         from tesseract4d.model.clips import grouped_batch_plan
 
         indices, starts, leaders = grouped_batch_plan(self, batch_size, generator)
@@ -245,7 +258,7 @@ class LatentClipDataset:
     def sample_batch(self, batch_size: int, generator: torch.Generator,
                      with_objects: bool = False):
         """(b, T, C, h, w) latent clips at random episodes and starts, their instructions and, with
-        ``with_objects``, the (b, T, h, w) robot/object share per latent cell."""
+        ``with_objects``, the (b, T, 2, h, w) shares of :meth:`objects`."""
         idx = torch.randint(len(self.sources), (batch_size,), generator=generator).tolist()
         clips, texts, objects = [], [], []
         for i in idx:

@@ -8,6 +8,11 @@
   frame by more than ``MOVING_TOL`` on average over channels, in model-space or normalised-latent
   units) or hold the robot/objects (latent presets: share of robot/object pixels per latent cell, from
   the cached segmentation) is weighted up.
+- ``scene_object_weight``: the loss of the cells that hold the scene's objects alone (cubes,
+  cylinders; not the robot: share of their pixels per latent cell, from the cached segmentation) is
+  weighted up on top. A 5-pixel cube covers about a third of a latent cell at 128², so the few cells
+  of the objects a task moves weigh about 1 % of the loss beside the arm and the table, and v2 turns
+  a moved object into a smear at middle noise (README, "Handed the true future part-way").
 - ``prediction``: the network's target. ``x0`` (the clean clip as "first frame + correction") or
   ``velocity`` (``noise - x0``, the same output read as a velocity after removing the first frame).
 - ``time_shift``: where training draws the diffusion time. ``t = s u / (1 + (s - 1) u)`` with
@@ -63,6 +68,8 @@ def check_recipe(cfg, preset: ModelPreset) -> None:
         raise UserError(f"--prediction must be one of {', '.join(PREDICTIONS)}, got {cfg.prediction!r}")
     if cfg.condition_noise < 0 or cfg.moving_weight <= 0 or cfg.object_weight <= 0:
         raise UserError("--condition-noise must be >= 0 and --moving-weight/--object-weight > 0")
+    if not (math.isfinite(cfg.scene_object_weight) and cfg.scene_object_weight > 0):
+        raise UserError(f"--scene-object-weight must be a finite number > 0 (1 = off), got {cfg.scene_object_weight}")
     if not (math.isfinite(cfg.time_shift) and cfg.time_shift > 0):
         raise UserError(f"--time-shift must be a finite number > 0 (1 = uniform diffusion times), got {cfg.time_shift}")
     if not (math.isfinite(cfg.time_logit_normal) and cfg.time_logit_normal >= 0):
@@ -80,8 +87,18 @@ def check_recipe(cfg, preset: ModelPreset) -> None:
     if preset.space == AUTOENCODER and cfg.autoencoder is None:
         raise UserError(f"preset {preset.name!r} works in an RGB-D-N autoencoder's latent space: pass --autoencoder DIR "
                         f"(RUN/autoencoder of `tesseract4d train-autoencoder --data DATA --out RUN`)")
-    if preset.space != AUTOENCODER and cfg.object_weight != 1.0:
-        raise UserError("--object-weight needs the segmentation of a latent cache: use a latent preset (latent-128)")
+    if preset.space != AUTOENCODER and (cfg.object_weight != 1.0 or cfg.scene_object_weight != 1.0):
+        raise UserError("--object-weight and --scene-object-weight need the segmentation of a latent cache: use a "
+                        "latent preset (latent-128)")
+
+
+def check_scene_objects(data, cfg) -> None:
+    """UserError when ``--scene-object-weight`` asks for shares that a latent cache does not carry (a cache
+    that travelled without its episodes, built before the shares existed, cannot be rebuilt)."""
+    if cfg.scene_object_weight != 1.0 and getattr(data, "encoded", False) and not data.has_scene_objects:
+        raise UserError("--scene-object-weight needs the scene objects' shares in every latent cache, and a cache "
+                        "without episodes beside it predates them; rebuild it where the episodes are with "
+                        "`tesseract4d encode-latents --data DATASET --autoencoder AE_DIR --rebuild` and copy it again")
 
 
 def load_training_data(cfg, preset: ModelPreset, model_space, codec, progress: bool = False):
@@ -170,15 +187,20 @@ def difference_cells(x0: torch.Tensor, leaders: list[int]) -> torch.Tensor:
 
 def cell_weights(x0: torch.Tensor, objects: torch.Tensor | None, cfg,
                  leaders: list[int] | None = None) -> torch.Tensor | None:
-    """(b, t, 1, h, w) loss weights of clean clips ``x0`` (b, t, c, h, w): moving, robot/object and
-    (with groups) group-difference cells count more; None when every weight is 1."""
+    """(b, t, 1, h, w) loss weights of clean clips ``x0`` (b, t, c, h, w): moving, robot/object, scene
+    object and (with groups) group-difference cells count more; None when every weight is 1.
+    ``objects``: (b, t, 2, h, w) shares per cell of the robot and objects (channel 0) and of the scene's
+    objects alone (channel 1), as ``LatentClipDataset.objects`` gives them; None without a cache."""
     difference = cfg.difference_weight if leaders is not None else 1.0
-    if cfg.moving_weight == 1.0 and cfg.object_weight == 1.0 and difference == 1.0:
+    if (cfg.moving_weight == 1.0 and cfg.object_weight == 1.0 and cfg.scene_object_weight == 1.0
+            and difference == 1.0):
         return None
     moving = ((x0 - x0[:, :1]).abs().mean(dim=2, keepdim=True) > MOVING_TOL).float()
     w = 1.0 + (cfg.moving_weight - 1.0) * moving
     if objects is not None and cfg.object_weight != 1.0:
-        w = w + (cfg.object_weight - 1.0) * objects[:, :, None].to(w)
+        w = w + (cfg.object_weight - 1.0) * objects[:, :, :1].to(w)
+    if objects is not None and cfg.scene_object_weight != 1.0:
+        w = w + (cfg.scene_object_weight - 1.0) * objects[:, :, 1:2].to(w)
     if difference != 1.0:
         w = w + (difference - 1.0) * difference_cells(x0, leaders)
     return w

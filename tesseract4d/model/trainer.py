@@ -98,6 +98,7 @@ class TrainConfig:
     condition_noise: float = 0.0  # max std of Gaussian noise on the conditioning first frame (per sample U(0, max))
     moving_weight: float = 1.0  # loss weight of moving cells (differ from the first frame) relative to static ones
     object_weight: float = 1.0  # loss weight of robot/object cells (latent presets: from the cached segmentation)
+    scene_object_weight: float = 1.0  # added loss weight of the scene's objects' cells (not the robot; latent presets)
     prediction: str = "x0"  # network target: "x0" (clean clip, first frame + correction) or "velocity"
     time_shift: float = 1.0  # diffusion times t = s u / (1 + (s - 1) u), u ~ U(0, 1); > 1 trains more at high noise
     time_logit_normal: float = 0.0  # > 0: u logit-normal with this std instead of uniform (trains most at middle noise)
@@ -154,7 +155,8 @@ class TrainConfig:
 
     def recipe(self) -> dict:
         """The recipe levers, saved in the inference config (sampling needs ``prediction``)."""
-        return {k: getattr(self, k) for k in ("condition_noise", "moving_weight", "object_weight", "prediction",
+        return {k: getattr(self, k) for k in ("condition_noise", "moving_weight", "object_weight",
+                                              "scene_object_weight", "prediction",
                                               "text_dropout", "time_shift", "time_logit_normal", "group_batches",
                                               "difference_weight", "counterfactual_swap", "rephrase")}
 
@@ -346,10 +348,12 @@ class Trainer:
     def _build_data(self, cfg: TrainConfig):
         """The training data source: clips of a dataset folder, or latent clips from its cache
         (``self.codec`` is built before this is called)."""
-        from tesseract4d.model.recipe import load_training_data
+        from tesseract4d.model.recipe import check_scene_objects, load_training_data
 
-        return load_training_data(cfg, self.preset, self.model_space, self.codec,
+        data = load_training_data(cfg, self.preset, self.model_space, self.codec,
                                   progress=cfg.progress and self.accelerator.is_main_process)
+        check_scene_objects(data, cfg)
+        return data
 
     def _check_init(self, cfg: TrainConfig) -> TrainConfig:
         """With ``init``: refuse a checkpoint of another preset or prediction target, or a latent one
@@ -502,8 +506,8 @@ class Trainer:
                        shown: list[int] | None = None) -> tuple[torch.Tensor, dict[str, float]]:
         """The weighted per-group loss of the recipe's target at ``x_t = (1 - t) x0 + t noise``. x0,
         noise: (b, t', c, h, w) network space; first: (b, 1, c, h, w) encoded first frame (zeros =
-        dropped); text: (b, L, d) embeddings; t: (b,) in [0, 1]; objects: (b, t', h, w) robot/object
-        cells of a latent cache, or None. With group batches, ``leaders`` gives each clip's group (its
+        dropped); text: (b, L, d) embeddings; t: (b,) in [0, 1]; objects: (b, t', 2, h, w) robot/object
+        and scene-object shares of a latent cache (``recipe.cell_weights``), or None. With group batches, ``leaders`` gives each clip's group (its
         leader's batch position) and ``shown`` the clip whose clean sample builds each clip's ``x_t``
         (recipe.swap_sources); the target stays the clip's own."""
         from tesseract4d.model.codec import make_condition
