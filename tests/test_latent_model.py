@@ -522,3 +522,31 @@ def test_heldout_evaluation_scores_the_autoencoder_ceiling_once_per_autoencoder(
     x = pipe.model_space.encode(cam.rgb, cam.depth_m, cam.normal_cam)[None]
     rgb, _, _ = pipe.model_space.decode(pipe.codec.decode(pipe.codec.encode(x))[0])
     assert np.array_equal(trip.rgb, rgb) and trip.rgb.shape == cam.rgb.shape
+
+
+def test_text_noise_is_relative_keeps_padding_and_is_recorded(tmp_path):
+    """``--text-noise``: noise of at most S times each token's size, none on padding, nothing drawn at 0; the
+    lever travels with the checkpoint, and a negative or NaN value is refused before anything is written."""
+    from tesseract4d.model.predict import load_pipeline
+    from tesseract4d.model.recipe import augment_text
+    from tesseract4d.model.trainer import Trainer
+
+    text = torch.zeros(64, 6, 32)
+    text[:, :4] = torch.randn(64, 4, 32) * torch.tensor([0.5, 2.0, 8.0, 1.0])[None, :, None]  # 2 padding tokens
+    g = torch.Generator().manual_seed(0)
+    assert augment_text(text, 0.0, g) is text and torch.equal(torch.rand(1, generator=g),
+                                                              torch.rand(1, generator=torch.Generator().manual_seed(0)))
+    out = augment_text(text, 0.5, torch.Generator().manual_seed(1))
+    assert torch.equal(out[:, 4:], text[:, 4:])  # padding stays zero
+    rms = text[:, :4].pow(2).mean(-1).sqrt()
+    rel = (out[:, :4] - text[:, :4]).pow(2).mean(-1).sqrt() / rms  # (64, 4): one relative std per clip
+    assert float(rel.max()) < 0.5 * 1.6 and float(rel.mean()) > 0.25 * 0.6  # std U(0, 0.5), estimated from 32 values
+    assert float((rel.std(1) / rel.mean(1)).median()) < 0.35  # the same relative size on a small and a large token
+
+    data = write_segmented_dataset(tmp_path / "data", episodes=1)
+    final = Trainer(_config(data, tmp_path / "run", _autoencoder(tmp_path / "ae"), text_noise=0.3)).train()
+    assert load_pipeline(final).config["recipe"]["text_noise"] == 0.3
+    for bad in (-0.1, float("nan")):
+        with pytest.raises(UserError, match="--text-noise"):
+            Trainer(_config(data, tmp_path / "run2", _autoencoder(tmp_path / "ae"), text_noise=bad))
+    assert not (tmp_path / "run2").exists()

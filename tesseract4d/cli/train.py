@@ -73,6 +73,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--rephrase", type=float, default=d.rephrase, metavar="P",
                         help="probability of training a clip under another training wording of its instruction (same "
                              "object, direction and distance, from the datagen's train templates) (default %(default)s)")
+    parser.add_argument("--text-noise", type=float, default=d.text_noise, metavar="S",
+                        help="max std of noise on the instruction's token embeddings in training, relative to each "
+                             "token's size, drawn per clip from U(0, S): nearby wordings then read the same "
+                             "(default %(default)s = off)")
     parser.add_argument("--text-dropout", type=float, help="share of steps without text, for guidance (default: the preset's)")
     add_max_steps_argument(parser, d.max_steps)
     parser.add_argument("--max-minutes", type=float, help="stop with a checkpoint after this many minutes of this invocation")
@@ -126,7 +130,7 @@ def run(args: argparse.Namespace) -> int:
         prediction=args.prediction, text_dropout=args.text_dropout, init=args.init, time_shift=args.time_shift,
         time_logit_normal=args.time_logit_normal,
         group_batches=args.group_batches, difference_weight=args.difference_weight,
-        counterfactual_swap=args.counterfactual_swap, rephrase=args.rephrase,
+        counterfactual_swap=args.counterfactual_swap, rephrase=args.rephrase, text_noise=args.text_noise,
     )
     from datagen.paraphrases import train_paraphrases
 

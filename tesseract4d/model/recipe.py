@@ -43,6 +43,12 @@
   network to read what the words say rather than which of a few sentences it saw: a model trained
   long on three wordings per skill kept still only under those three (README, "v2 trained with many
   wordings").
+- ``text_noise``: Gaussian noise on the instruction's token embeddings during training, of std
+  ``U(0, text_noise)`` per sample times each token's own root-mean-square (padding stays zero;
+  sampling uses the clean words). Long training on a few hundred sentences learns those sentences:
+  a held-out wording whose embedding sits between two training meanings was lost (README, "v2 trained
+  on a lent GPU"); noise fills the space around each training sentence so that nearby wordings read
+  the same.
 - ``text_dropout`` (TrainConfig) and the guidance scales (``tesseract4d predict``) already exist.
 
 Also here: which data a preset trains on (pixels, or a latent cache of an autoencoder).
@@ -80,6 +86,8 @@ def check_recipe(cfg, preset: ModelPreset) -> None:
         raise UserError(f"--difference-weight must be a finite number > 0, got {cfg.difference_weight}")
     if not 0.0 <= cfg.counterfactual_swap <= 1.0:
         raise UserError(f"--counterfactual-swap is a probability in [0, 1], got {cfg.counterfactual_swap}")
+    if not (math.isfinite(cfg.text_noise) and cfg.text_noise >= 0):
+        raise UserError(f"--text-noise must be a finite number >= 0 (0 = off), got {cfg.text_noise}")
     if not 0.0 <= cfg.rephrase <= 1.0:
         raise UserError(f"--rephrase is a probability in [0, 1], got {cfg.rephrase}")
     if not cfg.group_batches and (cfg.difference_weight != 1.0 or cfg.counterfactual_swap > 0):
@@ -145,6 +153,18 @@ def augment_condition(first: torch.Tensor, max_std: float, generator: torch.Gene
     std = torch.rand(b, generator=generator) * max_std
     noise = torch.randn(first.shape, generator=generator)
     return first + (std[:, None, None, None, None] * noise).to(first.device)
+
+
+def augment_text(text: torch.Tensor, max_rel_std: float, generator: torch.Generator) -> torch.Tensor:
+    """Token embeddings (b, L, d) plus noise of std ``U(0, max_rel_std)`` per sample times each token's
+    root-mean-square over d; zero (padding) tokens stay zero. Unchanged, drawing nothing, when 0."""
+    if max_rel_std <= 0:
+        return text
+    b = text.shape[0]
+    rel = torch.rand(b, generator=generator) * max_rel_std
+    noise = torch.randn(text.shape, generator=generator).to(text.device)
+    rms = text.pow(2).mean(-1, keepdim=True).sqrt()  # (b, L, 1), 0 on padding
+    return text + rel.to(text.device)[:, None, None] * rms * noise
 
 
 def sample_times(b: int, shift: float, generator: torch.Generator, logit_normal: float = 0.0) -> torch.Tensor:

@@ -281,7 +281,7 @@ class ReflowTrainer(Trainer):
         # The student inherits the teacher's target and, for a latent preset, its autoencoder (the
         # copy inside the teacher checkpoint, hash-checked); it sees the clean first frame, as at sampling.
         recipe = self.teacher_config.get("recipe") or {}
-        config = dataclasses.replace(config, text_dropout=0.0, image_dropout=0.0, condition_noise=0.0,
+        config = dataclasses.replace(config, text_dropout=0.0, image_dropout=0.0, condition_noise=0.0, text_noise=0.0,
                                      prediction=recipe.get("prediction", "x0"), init=config.teacher,
                                      pretrained=config.pretrained or self.teacher_config.get("pretrained_dir"))
         super().__init__(config, paraphrases)

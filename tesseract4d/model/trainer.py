@@ -106,6 +106,7 @@ class TrainConfig:
     difference_weight: float = 1.0  # with group_batches: loss weight of cells where a group's futures differ
     counterfactual_swap: float = 0.0  # with group_batches: probability of showing a clip a sibling's noisy sample
     rephrase: float = 0.0  # probability of training a clip under another training wording of its instruction
+    text_noise: float = 0.0  # max std of noise on the instruction's token embeddings, relative to each token's RMS
     max_steps_fit: dict | None = None  # set by the trainer when --max-steps auto fitted the schedule
 
     def resolved(self, preset: ModelPreset) -> "TrainConfig":
@@ -158,7 +159,7 @@ class TrainConfig:
         return {k: getattr(self, k) for k in ("condition_noise", "moving_weight", "object_weight",
                                               "scene_object_weight", "prediction",
                                               "text_dropout", "time_shift", "time_logit_normal", "group_batches",
-                                              "difference_weight", "counterfactual_swap", "rephrase")}
+                                              "difference_weight", "counterfactual_swap", "rephrase", "text_noise")}
 
 
 class EMA:
@@ -462,7 +463,8 @@ class Trainer:
         """The loss of training step ``step`` (its batch and noise depend only on seed and step)."""
         cfg = self.cfg
         g = self._step_generator(step)
-        from tesseract4d.model.recipe import augment_condition, sample_times, share_within_groups, swap_sources
+        from tesseract4d.model.recipe import (augment_condition, augment_text, sample_times, share_within_groups,
+                                              swap_sources)
 
         objects = leaders = shown = None
         encoded = getattr(self.data, "encoded", False)  # a latent cache: the encoder never runs in a step
@@ -482,7 +484,7 @@ class Trainer:
             first = self.codec.encode(clips[:, :1].to(self.device), generator=g)  # (b, 1, c, h, w)
         b = x0.shape[0]
         first = augment_condition(first, cfg.condition_noise, g)
-        text = self.text_encoder.encode(self.rephrased(texts, g))  # (b, L, d)
+        text = augment_text(self.text_encoder.encode(self.rephrased(texts, g)), cfg.text_noise, g)  # (b, L, d)
         keep_text = (torch.rand(b, generator=g) >= cfg.text_dropout).float()
         keep_image = (torch.rand(b, generator=g) >= cfg.image_dropout).float()
         text = (text * keep_text[:, None, None]).to(self.device)
