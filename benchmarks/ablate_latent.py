@@ -51,6 +51,8 @@ VARIANTS: dict[str, tuple[str, list[str] | None, list[str]]] = {
                             ["--group-batches", "--difference-weight", "4"], []),
     "counterfactual_swap_0.5": ("group batches, counterfactual swap 0.5",
                                 ["--group-batches", "--counterfactual-swap", "0.5"], []),
+    "text_noise_0.5": ("noise on the instruction's token embeddings (0.5 of their size at most)",
+                       ["--text-noise", "0.5"], []),
     "guidance_1": ("text guidance 1 (none)", None, ["--text-guidance", "1"]),
     "guidance_3": ("text guidance 3", None, ["--text-guidance", "3"]),
     "small_2_layers": ("2 layers, same minutes", ["--preset", "latent-128-small"], []),

@@ -46,8 +46,8 @@
 - ``text_noise``: Gaussian noise on the instruction's token embeddings during training, of std
   ``U(0, text_noise)`` per sample times each token's own root-mean-square (padding stays zero;
   sampling uses the clean words). Long training on a few hundred sentences learns those sentences:
-  a held-out wording whose embedding sits between two training meanings was lost (README, "v2 trained
-  on a lent GPU"); noise fills the space around each training sentence so that nearby wordings read
+  a held-out wording whose embedding sits between two training meanings was lost (README, "Step 14
+  trained on for 6 minutes on a lent GPU"); noise fills the space around each training sentence so that nearby wordings read
   the same.
 - ``text_dropout`` (TrainConfig) and the guidance scales (``tesseract4d predict``) already exist.
 
