@@ -47,8 +47,8 @@
   ``U(0, text_noise)`` per sample times each token's own root-mean-square (padding stays zero;
   sampling uses the clean words). Long training on a few hundred sentences learns those sentences:
   a held-out wording whose embedding sits between two training meanings was lost (README, "Step 14
-  trained on for 6 minutes on a lent GPU"); noise fills the space around each training sentence so that nearby wordings read
-  the same.
+  trained on for 6 minutes on a lent GPU"); noise fills the space around each training sentence so
+  that nearby wordings read the same.
 - ``text_dropout`` (TrainConfig) and the guidance scales (``tesseract4d predict``) already exist.
 
 Also here: which data a preset trains on (pixels, or a latent cache of an autoencoder).
@@ -145,14 +145,18 @@ def _load_folder(folder, cfg, preset: ModelPreset, model_space, codec, progress:
     return LatentClipDataset(cache, num_frames=preset.num_frames)
 
 
+def per_sample_noise(shape: torch.Size, max_std: float, generator: torch.Generator) -> torch.Tensor:
+    """Gaussian noise of ``shape`` (b, ...) with one std drawn from U(0, max_std) per sample (CPU)."""
+    std = torch.rand(shape[0], generator=generator) * max_std
+    noise = torch.randn(shape, generator=generator)
+    return std.view(-1, *[1] * (len(shape) - 1)) * noise
+
+
 def augment_condition(first: torch.Tensor, max_std: float, generator: torch.Generator) -> torch.Tensor:
     """First frames (b, 1, c, h, w) plus noise of std U(0, max_std) per sample (unchanged when 0)."""
     if max_std <= 0:
         return first
-    b = first.shape[0]
-    std = torch.rand(b, generator=generator) * max_std
-    noise = torch.randn(first.shape, generator=generator)
-    return first + (std[:, None, None, None, None] * noise).to(first.device)
+    return first + per_sample_noise(first.shape, max_std, generator).to(first.device)
 
 
 def augment_text(text: torch.Tensor, max_rel_std: float, generator: torch.Generator) -> torch.Tensor:
@@ -160,11 +164,8 @@ def augment_text(text: torch.Tensor, max_rel_std: float, generator: torch.Genera
     root-mean-square over d; zero (padding) tokens stay zero. Unchanged, drawing nothing, when 0."""
     if max_rel_std <= 0:
         return text
-    b = text.shape[0]
-    rel = torch.rand(b, generator=generator) * max_rel_std
-    noise = torch.randn(text.shape, generator=generator).to(text.device)
     rms = text.pow(2).mean(-1, keepdim=True).sqrt()  # (b, L, 1), 0 on padding
-    return text + rel.to(text.device)[:, None, None] * rms * noise
+    return text + rms * per_sample_noise(text.shape, max_rel_std, generator).to(text.device)
 
 
 def sample_times(b: int, shift: float, generator: torch.Generator, logit_normal: float = 0.0) -> torch.Tensor:
