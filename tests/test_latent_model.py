@@ -4,6 +4,7 @@ clip, checkpoint save -> load -> identical samples, and the bad-input errors (se
 from __future__ import annotations
 
 import json
+import re
 import shutil
 from pathlib import Path
 
@@ -355,6 +356,8 @@ def test_init_fine_tunes_a_checkpoint_in_its_own_latent_space(tmp_path):
     assert cli.main(["train", "--export", str(tmp_path / "more"), "--to", str(tmp_path / "ckpt2"), "--half"]) == 0
     with pytest.raises(UserError, match="started from .* resume with --init naming those weights"):
         Trainer(_config(data, tmp_path / "more", None, init=tmp_path / "ckpt2", max_steps=3, resume=True))
+    with pytest.raises(UserError, match=re.escape(f"started from --init {ckpt}; resume it with --init {ckpt} --resume")):
+        Trainer(_config(data, tmp_path / "more", None, max_steps=3, resume=True))
     assert Trainer(_config(data, tmp_path / "more", None, init=ckpt, max_steps=3, resume=True)).step == 2
 
     with pytest.raises(UserError, match="--prediction x0"):

@@ -304,6 +304,21 @@ def export_checkpoint(run: str | os.PathLike, to: str | os.PathLike | None = Non
 # --------------------------------------------------------------------------- trainer
 
 
+def _check_resume_names_init(cfg: TrainConfig) -> None:
+    """A run started from ``--init`` resumes only with it (its weights and autoencoder come from there):
+    say so before any other check asks for what --init would have given."""
+    if not cfg.resume or cfg.init is not None:
+        return
+    saved = Path(cfg.out) / "train_config.json"
+    try:
+        started = json.loads(saved.read_text()).get("init")
+    except (OSError, ValueError):
+        return
+    if started:
+        raise UserError(f"{cfg.out} started from --init {started}; resume it with --init {started} --resume "
+                        f"and the options it started with")
+
+
 class Trainer:
     """Owns model, EMA, optimiser, data and the loss; ``train()`` runs until max_steps/max_minutes."""
 
@@ -313,6 +328,7 @@ class Trainer:
         """paraphrases: instruction -> its training wordings (itself included), for ``config.rephrase``;
         the command line passes ``datagen.paraphrases.train_paraphrases``."""
         self.paraphrases = paraphrases
+        _check_resume_names_init(config)
         self.preset = self._resolve_preset(config)
         self.cfg = self._check_init(config.resolved(self.preset))
         cfg = self.cfg
