@@ -306,14 +306,18 @@ def export_checkpoint(run: str | os.PathLike, to: str | os.PathLike | None = Non
 
 def _check_resume_names_init(cfg: TrainConfig) -> None:
     """A run started from ``--init`` resumes only with it (its weights and autoencoder come from there):
-    say so before any other check asks for what --init would have given."""
+    say so before any other check asks for what --init would have given. Reads the record that
+    ``Trainer._check_same_start`` compares against: the newest checkpoint's inference config."""
     if not cfg.resume or cfg.init is not None:
         return
-    saved = Path(cfg.out) / "train_config.json"
+    checkpoints = list_checkpoints(cfg.out)
+    if not checkpoints:
+        return  # the trainer says there is nothing to resume
     try:
-        started = json.loads(saved.read_text()).get("init")
+        state = json.loads((checkpoints[-1] / STATE_FILE).read_text())
     except (OSError, ValueError):
-        return
+        return  # a damaged checkpoint: _resume reports it
+    started = (state.get("inference_config") or {}).get("training", {}).get("init")
     if started:
         raise UserError(f"{cfg.out} started from --init {started}; resume it with --init {started} --resume "
                         f"and the options it started with")
