@@ -304,6 +304,12 @@ def export_checkpoint(run: str | os.PathLike, to: str | os.PathLike | None = Non
 # --------------------------------------------------------------------------- trainer
 
 
+def _start_record(state: dict) -> dict:
+    """What a checkpoint's run started from (``init``, ``init_digest``; empty for a random start), as its
+    trainer state records it in the inference config's training summary."""
+    return (state.get("inference_config") or {}).get("training", {})
+
+
 def _check_resume_names_init(cfg: TrainConfig) -> None:
     """A run started from ``--init`` resumes only with it (its weights and autoencoder come from there):
     say so before any other check asks for what --init would have given. Reads the record that
@@ -317,7 +323,7 @@ def _check_resume_names_init(cfg: TrainConfig) -> None:
         state = json.loads((checkpoints[-1] / STATE_FILE).read_text())
     except (OSError, ValueError):
         return  # a damaged checkpoint: _resume reports it
-    started = (state.get("inference_config") or {}).get("training", {}).get("init")
+    started = _start_record(state).get("init")
     if started:
         raise UserError(f"{cfg.out} started from --init {started}; resume it with --init {started} --resume "
                         f"and the options it started with")
@@ -589,7 +595,7 @@ class Trainer:
     def _check_same_start(self, ckpt: Path, state: dict) -> None:
         """A resumed run keeps the record of what it started from: --init must name the same weights
         (by digest) as when the run began, or the export would name another checkpoint as its start."""
-        started = (state.get("inference_config") or {}).get("training", {})
+        started = _start_record(state)
         digest = started.get("init_digest")
         if digest is not None and self.init_digest != digest:
             now = f"--init {self.cfg.init} holds weights {self.init_digest}" if self.cfg.init else "no --init was given"
