@@ -93,3 +93,28 @@ def test_autoencoder_trains_on_gpu_and_reconstructs_alike_on_cpu(tmp_path):
     cpu, gpu = load_autoencoder(tmp_path / "ae" / "autoencoder"), load_autoencoder(tmp_path / "ae" / "autoencoder").cuda()
     a, b = cpu.decode(cpu.encode(frames)), gpu.decode(gpu.encode(frames)).cpu()
     assert np.abs((a - b).numpy()).mean() < 1e-3
+
+
+
+def test_distill_samples_pairs_and_trains_the_student_on_gpu(tmp_path, monkeypatch):
+    # On a GPU machine the teacher samples the pairs there (the CPU's clips up to kernel rounding) and the
+    # student trains there, its validation (student against teacher clips, decoded) included.
+    from tesseract4d.model.reflow import PairsConfig, ReflowPairs, generate_pairs
+    from tesseract4d.model.trainer import TrainConfig, Trainer
+
+    data = write_synthetic_dataset(tmp_path / "data", episodes=2)
+    teacher = Trainer(TrainConfig(data=data, out=tmp_path / "teacher", preset=MICRO.name, max_steps=4, val_every=0,
+                                  ckpt_every=0, progress=False)).train()
+    run = tmp_path / "student"
+    assert cli.main(["distill", "--teacher", str(teacher), "--data", str(data), "--pairs", str(tmp_path / "pairs"),
+                     "--num-pairs", "4", "--teacher-steps", "2", "--precision", "fp32", "--out", str(run),
+                     "--max-steps", "4", "--val-every", "2", "--ckpt-every", "0", "--batch-size", "2",
+                     "--no-progress"]) == 0
+    state = json.loads((run / "checkpoint-000004" / "trainer_state.json").read_text())
+    assert state["step"] == 4 and state["config"]["val_every"] == 2
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)  # the same pairs sampled on the CPU
+    cpu = ReflowPairs(generate_pairs(PairsConfig(teacher=teacher, data=data, out=tmp_path / "cpu_pairs", num_pairs=4,
+                                                 teacher_steps=2, precision="fp32"), progress=False))
+    gpu = ReflowPairs(tmp_path / "pairs")
+    assert gpu.instructions == cpu.instructions and torch.equal(gpu.noise, cpu.noise)
+    assert (gpu.x0 - cpu.x0).abs().mean() < 1e-3

@@ -102,7 +102,8 @@ def generate_pairs(cfg: PairsConfig, progress: bool = True) -> Path:
 
     if cfg.num_pairs < 1 or cfg.shard_size < 1 or cfg.batch_size < 1:
         raise UserError("--num-pairs, --shard-size and --batch-size must be at least 1")
-    pipe = load_pipeline(cfg.teacher, precision=cfg.precision)
+    # On a GPU machine the teacher samples there, as the trainers train there (CUDA_VISIBLE_DEVICES= keeps it on the CPU).
+    pipe = load_pipeline(cfg.teacher, device="cuda" if torch.cuda.is_available() else "cpu", precision=cfg.precision)
     p = pipe.preset
     steps = cfg.teacher_steps or p.num_steps
     text_g = p.text_guidance if cfg.text_guidance is None else cfg.text_guidance
@@ -153,7 +154,7 @@ def generate_pairs(cfg: PairsConfig, progress: bool = True) -> Path:
                            image_guidance=image_g, latents=noise[sl], output_type="latent", generator=g))
             bar.update(len(texts[sl]))
         tensors = {"first": first.half().contiguous(), "noise": noise.contiguous(),
-                   "x0": torch.cat(x0).float().contiguous()}
+                   "x0": torch.cat(x0).float().cpu().contiguous()}
         if leaders is not None:
             tensors["leader"] = torch.tensor(leaders, dtype=torch.int64)
         tmp_st = path.with_name(f".{path.name}.tmp")
@@ -370,4 +371,4 @@ def model_space_psnr(codec, a: torch.Tensor, b: torch.Tensor) -> float:
     with torch.no_grad():
         da = ((codec.decode(a.float()) + 1) / 2).clamp(0, 1)
         db = ((codec.decode(b.float()) + 1) / 2).clamp(0, 1)
-    return rgb_psnr(da, db)
+    return rgb_psnr(da.cpu(), db.cpu())  # the student's batch may be on a GPU
