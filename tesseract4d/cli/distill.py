@@ -8,8 +8,8 @@
       --counterfactual-swap 0.5 --out runs/student   # keeps reading the future from the words (as v2-2step)
 
 Two stages, each resumable:
-1. pairs: the teacher samples --num-pairs clips with its full sampler (its preset's steps and
-   guidance, or --teacher-steps and --teacher-guidance) from stored noise, first frames and
+1. pairs: the teacher samples --num-pairs clips (on the GPU where torch sees one) with its full
+   sampler (its preset's steps and guidance, or --teacher-steps and --teacher-guidance) from stored noise, first frames and
    instructions of --data, into --pairs (shards written whole; a rerun continues at the first
    missing shard, and refuses a folder made with other settings). Skipped when --data is not given and --pairs is complete.
 2. student: initialised with the teacher's weights, trained on the straight path between each
