@@ -15,8 +15,13 @@ refuses, before writing anything, when an episode file it would write exists alr
 
 About 10 KB per 128x128 frame (16 frames of an episode compress together).
 
+With ``--first-frame`` every camera's images are its first frame repeated (poses, actions and
+attributes kept): all that ``tesseract4d distill`` reads of an episode for its pairs is the first
+frame and the instruction, and an episode packed so takes about 60 KB at 128x128 and 16 frames.
+
   .venv/bin/python scripts/episodes_pack.py pack data/v2_tabletop data/v2_tasks --episodes 1000 \\
       --frame-stride 2 --out PACKED
+  .venv/bin/python scripts/episodes_pack.py pack data/v2_tabletop --camera close --first-frame --out PAIRS_IN
   python3 scripts/episodes_pack.py unpack PACKED --out DATA_DIR       # on the other machine
 """
 
@@ -111,8 +116,19 @@ def _spread(files: list[Path], count: int | None) -> list[Path]:
     return [files[i] for i in np.linspace(0, len(files) - 1, count).round().astype(int)]
 
 
+def first_frame_only(ep):
+    """The episode with every camera's images replaced by its first frame, repeated to its length."""
+    def repeat(a):
+        return None if a is None else np.repeat(a[:1], len(a), axis=0)
+
+    cameras = {name: dataclasses.replace(cam, rgb=repeat(cam.rgb), depth_m=repeat(cam.depth_m),
+                                         normal_cam=repeat(cam.normal_cam), segmentation=repeat(cam.segmentation))
+               for name, cam in ep.cameras.items()}
+    return dataclasses.replace(ep, cameras=cameras)
+
+
 def pack(datasets: list[Path], out: Path, episodes: int | None = None, frame_stride: int = 1,
-         camera: str | None = None, part_mb: float = 44.0) -> list[Path]:
+         camera: str | None = None, part_mb: float = 44.0, first_frame: bool = False) -> list[Path]:
     from tqdm import tqdm
 
     from tesseract4d import dataset_format as df
@@ -140,7 +156,7 @@ def pack(datasets: list[Path], out: Path, episodes: int | None = None, frame_str
 
     for d, f in tqdm(todo, desc="packing", unit="ep"):
         ep = df.read_episode(f, cameras=None if camera is None else [camera], frames=slice(None, None, frame_stride))
-        blob = encode_episode(ep)
+        blob = encode_episode(first_frame_only(ep) if first_frame else ep)
         if len(buf) + len(blob) > part_mb * 1e6:
             flush()
         records.append({"dataset": d.name, "file": f.relative_to(d).as_posix(), "offset": len(buf), "size": len(blob)})
@@ -198,6 +214,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--out", type=Path, required=True, help="a new folder for the parts")
     p.add_argument("--episodes", type=int, default=None, help="episodes of each dataset, evenly spread (default all)")
     p.add_argument("--frame-stride", type=int, default=1, help="keep every k-th frame (default 1)")
+    p.add_argument("--first-frame", action="store_true",
+                   help="every camera's images its first frame repeated (enough for `distill`'s pairs)")
     p.add_argument("--camera", default=None, help="keep only this camera (default all)")
     p.add_argument("--part-mb", type=float, default=44.0, help="largest part written, in MB (default 44)")
     u = sub.add_parser("unpack", help="write the parts back as dataset folders")
@@ -206,7 +224,7 @@ def main(argv: list[str] | None = None) -> int:
     u.add_argument("--workers", type=int, default=None, help="processes (default: one per CPU)")
     args = parser.parse_args(argv)
     if args.command == "pack":
-        pack(args.datasets, args.out, args.episodes, args.frame_stride, args.camera, args.part_mb)
+        pack(args.datasets, args.out, args.episodes, args.frame_stride, args.camera, args.part_mb, args.first_frame)
     else:
         unpack(args.packed, args.out, args.workers)
     return 0

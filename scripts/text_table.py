@@ -25,14 +25,21 @@ TABLE_FILE, META_FILE = "text_table.safetensors", "text_table.json"
 
 
 def wordings(datasets: list[Path], camera: str = "close") -> list[str]:
-    """Every instruction of the datasets' latent caches and its training paraphrases, sorted."""
+    """Every instruction of the datasets (from their latent caches, or their episodes where they have none:
+    ``distill``'s pairs read episodes) and its training paraphrases, sorted."""
     from datagen.paraphrases import train_paraphrases
+    from tesseract4d import dataset_format as df
     from tesseract4d.model.latent_cache import CACHE_FILE, default_cache_dir
 
     texts: set[str] = set()
     for d in datasets:
-        for e in json.loads((default_cache_dir(d, camera) / CACHE_FILE).read_text())["episodes"]:
-            texts.update(train_paraphrases(e["instruction"]))
+        cache = default_cache_dir(d, camera) / CACHE_FILE
+        if cache.is_file():
+            instructions = [e["instruction"] for e in json.loads(cache.read_text())["episodes"]]
+        else:
+            instructions = [df.read_episode_attrs(f)["instruction"] for f in df.list_episode_files(d)]
+        for instruction in instructions:
+            texts.update(train_paraphrases(instruction))
     return sorted(texts)
 
 

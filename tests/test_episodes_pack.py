@@ -65,6 +65,29 @@ def test_pack_spreads_a_subset_and_refuses_a_used_folder(tmp_path):
         tool.pack([data], tmp_path / "packed")
 
 
+def test_first_frame_pack_keeps_what_reflow_pairs_read(tmp_path):
+    # distill's pairs read an episode's first frame and instruction (its groups from the ids): the copy has
+    # those, every frame being the first, in far fewer bytes than the whole episodes.
+    from tesseract4d.model.clips import ClipDataset
+    from tesseract4d.model.model_space import ModelSpace
+
+    tool = load_script("episodes_pack")
+    data = write_grouped_dataset(tmp_path / "groups", scenes=2, frames=8)
+    whole = tool.pack([data], tmp_path / "whole")
+    first = tool.pack([data], tmp_path / "first", first_frame=True)
+    assert first[0].stat().st_size < whole[0].stat().st_size
+    (there,) = tool.unpack(tmp_path / "first", tmp_path / "there", workers=1)
+    kw = dict(num_frames=8, height=32, width=32, model_space=ModelSpace())
+    a, b = ClipDataset(data, **kw), ClipDataset(there, **kw)
+    assert [s.episode_id for s in a.sources] == [s.episode_id for s in b.sources]
+    for i in range(len(a)):
+        clip_a, text_a = a.clip(i)
+        clip_b, text_b = b.clip(i)
+        assert text_a == text_b and clip_b.shape == clip_a.shape
+        assert (clip_b - clip_b[:1]).abs().max() == 0  # every frame the first
+        assert (clip_b[0] - clip_a[0]).abs().max() < 0.02  # the first frame, within the depth/normal steps
+
+
 def test_unpack_never_replaces_an_episode_file(tmp_path):
     # Unpacked over the originals, the quantised copies would replace them: refused before anything is written.
     tool = load_script("episodes_pack")

@@ -36,6 +36,8 @@ def test_the_table_encodes_as_the_encoder_and_a_command_trains_with_it(cached, t
     table = tool.make([data], tmp_path / "table", preset=MICRO_LATENT.name)
     texts = tool.wordings([data])
     assert texts == ["push the square to the left", "push the square to the right"]  # no train template writes them
+    episodes_only = write_segmented_dataset(tmp_path / "episodes_only", episodes=2)  # no latent cache (distill's data)
+    assert tool.wordings([episodes_only]) == texts
     carried = tool.TableEncoder(table).encode(texts)
     own = build_text_encoder(MICRO_LATENT).encode(texts)
     assert carried.shape == own.shape and float((carried - own).abs().max()) < 3e-3
