@@ -9,8 +9,8 @@
 
 Two stages, each resumable:
 1. pairs: the teacher samples --num-pairs clips (on the GPU where torch sees one) with its full
-   sampler (its preset's steps and guidance, or --teacher-steps and --teacher-guidance) from stored noise, first frames and
-   instructions of --data, into --pairs (shards written whole; a rerun continues at the first
+   sampler (its preset's steps and guidance, or --teacher-steps and --teacher-guidance) from stored
+   noise, first frames and instructions of --data, into --pairs (shards written whole; a rerun continues at the first
    missing shard, and refuses a folder made with other settings). Skipped when --data is not given and --pairs is complete.
 2. student: initialised with the teacher's weights, trained on the straight path between each
    pair's noise and the teacher's clip (with --counterfactual-swap P, on --group-pairs pairs: in
