@@ -95,7 +95,6 @@ def test_autoencoder_trains_on_gpu_and_reconstructs_alike_on_cpu(tmp_path):
     assert np.abs((a - b).numpy()).mean() < 1e-3
 
 
-
 def test_distill_samples_pairs_and_trains_the_student_on_gpu(tmp_path, monkeypatch):
     # On a GPU machine the teacher samples the pairs there (the CPU's clips up to kernel rounding) and the
     # student trains there, its validation (student against teacher clips, decoded) included.

@@ -67,7 +67,7 @@ def test_pack_spreads_a_subset_and_refuses_a_used_folder(tmp_path):
 
 def test_first_frame_pack_keeps_what_reflow_pairs_read(tmp_path):
     # distill's pairs read an episode's first frame and instruction (its groups from the ids): the copy has
-    # those, every frame being the first, in far fewer bytes than the whole episodes.
+    # those, every frame being the first, in fewer bytes than the whole episodes.
     from tesseract4d.model.clips import ClipDataset
     from tesseract4d.model.model_space import ModelSpace
 
