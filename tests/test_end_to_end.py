@@ -143,10 +143,11 @@ def test_shipped_checkpoint_beats_the_static_world_on_the_moving_region(heldout,
     assert ceiling["chamfer_l1_m_moving"] < model["chamfer_l1_m_moving"]
 
 
-# Measured with the shipped default (v2-2step, the 2-step student of v2 step 15, session 37, 2026-11-28) on this set
+# Measured with the shipped default (v2-2step, the 2-step student of v2 step 16, session 39, 2026-11-28) on this set
 # (seeded, its 2 steps, bf16 on an AMX CPU, each scene with its own noise), model vs static world on the moving
-# region: RGB PSNR 17.50 vs 15.93 dB, normal error 48.3 vs 65.5 deg, depth AbsRel 0.40 vs 1.60, Chamfer 56.8 vs 249.9 mm.
-# The margins are about half of each gap. (The student of step 14, until commit 52f7959: 17.66 dB, 46.9 deg, 0.37, 54.1 mm;
+# region: RGB PSNR 17.58 vs 15.93 dB, normal error 47.3 vs 65.5 deg, depth AbsRel 0.39 vs 1.60, Chamfer 55.2 vs 249.9 mm.
+# The margins are about half of each gap. (The student of step 15, until commit 24888c2: 17.50 dB, 48.3 deg, 0.40, 56.8 mm;
+# the student of step 14, until commit 52f7959: 17.66 dB, 46.9 deg, 0.37, 54.1 mm;
 # the student of step 13, until commit 9b510f0: 17.86 dB, 44.3 deg, 0.35,
 # 50.3 mm; the student of step 12, until commit 025961c: 18.15 dB, 42.1 deg, 0.33,
 # 50.5 mm; step 11's student, weights of step 7, GPU-trained decoder, until commit
@@ -155,5 +156,5 @@ def test_shipped_checkpoint_beats_the_static_world_on_the_moving_region(heldout,
 # 228897b: 17.35 dB, 49.7 deg, 0.49, 69.1 mm; the first, until dbf3f47: 17.10 dB, 52.6 deg, 0.64, 102.0 mm; tiny
 # 18.59 vs 15.94 dB, 37.4 vs 65.5 deg, 0.32 vs 1.58, 41.8 vs 251.4 mm at 64x64.) The truth through the same
 # autoencoder (the ceiling): 22.59 dB, 7.3 deg, 0.017, 5.4 mm (the previous decoder 22.55 dB, 7.7 deg, 0.019, 5.4 mm).
-MARGINS: dict[str, float] = {"rgb_psnr_db_moving": 0.8, "normal_mean_deg_moving": 8.5, "depth_abs_rel_moving": 0.6,
+MARGINS: dict[str, float] = {"rgb_psnr_db_moving": 0.8, "normal_mean_deg_moving": 9.0, "depth_abs_rel_moving": 0.6,
                              "chamfer_l1_m_moving": 0.095}
