@@ -6,6 +6,8 @@
   tesseract4d train --export runs/student --to checkpoints/v2-2step --half   # the student in float16
   tesseract4d distill --teacher tesseract4d/checkpoints/v2 --data data/groups --pairs runs/gpairs --group-pairs \\
       --counterfactual-swap 0.5 --out runs/student   # keeps reading the future from the words (as v2-2step)
+  tesseract4d distill --teacher tesseract4d/checkpoints/v2 --pairs runs/gpairs --counterfactual-swap 0.5 \\
+      --keep-following --out runs/student2   # only the teacher clips that do what their words say
 
 Two stages, each resumable:
 1. pairs: the teacher samples --num-pairs clips (on the GPU where torch sees one) with its full
@@ -17,7 +19,8 @@ Two stages, each resumable:
    batches of whole groups, and at noise >= 0.3 shown, with probability P, a sibling's noisy
    sample while its target stays its own teacher clip, as `train --counterfactual-swap`). RUN/final
    is an inference checkpoint whose preset samples in --student-steps steps without guidance, and
-   which records the teacher it was distilled from.
+   which records the teacher it was distilled from. With --keep-following it trains only on the pairs whose
+   teacher clip passes the held-out contrast check on the pair's own episode (evaluation/pair_following.py).
 """
 
 from __future__ import annotations
@@ -53,6 +56,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--counterfactual-swap", type=float, default=d.counterfactual_swap, metavar="P",
                         help="train the student in batches of whole groups (needs --group-pairs pairs) and show a "
                              "pair at noise >= 0.3, with probability P, a sibling's noisy sample (default %(default)s)")
+    parser.add_argument("--keep-following", action="store_true",
+                        help="train only on the pairs whose teacher clip follows its instruction: the held-out "
+                             "contrast check (the instructed object moved the commanded way, 'keep still' still) on "
+                             "each pair's own training episode; scored once into PAIRS/following.json (rescored when "
+                             "the pairs grow), which also counts the teacher's right clips per skill")
     parser.add_argument("--rephrase", type=float, default=d.rephrase, metavar="P",
                         help="probability of training a pair under another training wording of its instruction, the "
                              "teacher's clip staying the target (as `train --rephrase`) (default %(default)s)")
@@ -87,12 +95,17 @@ def run(args: argparse.Namespace) -> int:
         raise UserError(f"pass --data DIR: the pairs in {args.pairs} are made from a dataset folder")
     if args.pairs_only:
         return 0
+    if args.keep_following:
+        from tesseract4d.evaluation.pair_following import score_pairs, scores_of, summary
+
+        record = scores_of(args.pairs) or score_pairs(args.pairs, args.teacher, progress=not args.no_progress)
+        print(summary(record))
     cfg = ReflowConfig(
         data=args.pairs, out=args.out, teacher=args.teacher, student_steps=args.student_steps,
         max_steps=args.max_steps, max_minutes=args.max_minutes, batch_size=args.batch_size, lr=args.lr,
         precision=args.precision, resume=args.resume, val_every=args.val_every, ckpt_every=args.ckpt_every,
         seed=args.seed, progress=not args.no_progress, group_batches=args.counterfactual_swap > 0,
-        counterfactual_swap=args.counterfactual_swap, rephrase=args.rephrase)
+        counterfactual_swap=args.counterfactual_swap, rephrase=args.rephrase, keep_following=args.keep_following)
     from datagen.paraphrases import train_paraphrases
 
     final = ReflowTrainer(cfg, train_paraphrases).train()

@@ -85,17 +85,19 @@ class ClipDataset:
         pairs = [self.clip(i, s) for i, s in zip(indices, starts)]
         return torch.stack([c for c, _ in pairs]), [t for _, t in pairs], leaders
 
-    def sample_batch(self, batch_size: int, generator: torch.Generator) -> tuple[torch.Tensor, list[str]]:
-        """(b, T, 7, H, W) float32 clips at random episodes and starts, plus their instructions."""
+    def batch_plan(self, batch_size: int, generator: torch.Generator) -> tuple[list[int], list[int]]:
+        """The episode indices and clip starts of :meth:`sample_batch` (the same draws from ``generator``)."""
         idx = torch.randint(len(self.sources), (batch_size,), generator=generator).tolist()
-        clips, texts = [], []
+        starts = []
         for i in idx:
             n = self.sources[i].frames.shape[0] - self.num_frames + 1
-            start = int(torch.randint(n, (1,), generator=generator))
-            clip, text = self.clip(i, start)
-            clips.append(clip)
-            texts.append(text)
-        return torch.stack(clips), texts
+            starts.append(int(torch.randint(n, (1,), generator=generator)))
+        return idx, starts
+
+    def sample_batch(self, batch_size: int, generator: torch.Generator) -> tuple[torch.Tensor, list[str]]:
+        """(b, T, 7, H, W) float32 clips at random episodes and starts, plus their instructions."""
+        pairs = [self.clip(i, s) for i, s in zip(*self.batch_plan(batch_size, generator))]
+        return torch.stack([c for c, _ in pairs]), [t for _, t in pairs]
 
     def validation_indices(self, count: int) -> list[int]:
         """Up to ``count`` fixed episodes for validation videos, spread over the tasks."""

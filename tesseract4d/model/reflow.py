@@ -21,7 +21,10 @@ A pairs folder holds ``pairs-XXXXX.safetensors`` shards (``first`` (n, 7, H, W) 
 ``noise`` and ``x0`` (n, t', c, h, w) network space; with groups also ``leader`` (n,): the shard
 position of each pair's group's first pair), a JSON sidecar per shard with its instructions, and
 ``reflow_pairs.json`` (the teacher, its sampler settings and the data). Shards are written whole
-(temporary file, then rename), so an interrupted run resumes at the next shard.
+(temporary file, then rename), so an interrupted run resumes at the next shard. The sidecars also name
+each pair's episode and clip start (:func:`pair_sources`), so that ``distill --keep-following`` can judge
+each teacher clip against its episode (``evaluation/pair_following.py``, scores in ``following.json``) and
+the student trains only on the pairs kept.
 """
 
 from __future__ import annotations
@@ -41,6 +44,7 @@ from tesseract4d.model.trainer import TrainConfig, Trainer
 
 MANIFEST = "reflow_pairs.json"
 SHARD_PREFIX = "pairs-"
+FOLLOWING = "following.json"  # which pairs' teacher clips follow their instruction (distill --keep-following)
 
 
 @dataclass
@@ -139,13 +143,11 @@ def generate_pairs(cfg: PairsConfig, progress: bool = True) -> Path:
             bar.update(n)
             continue
         # Every shard's batch and noise depend only on (seed, shard): a resumed run makes the same pairs.
-        g = torch.Generator().manual_seed(cfg.seed * 1_000_003 + s)
-        leaders = None
-        if cfg.groups:
-            clips, texts, leaders = data.sample_group_batch(n, g)  # (n, T, 7, H, W), whole groups
-        else:
-            clips, texts = data.sample_batch(n, g)  # (n, T, 7, H, W)
-        first = clips[:, 0]
+        g = _shard_generator(cfg.seed, s)
+        indices, starts, leaders = _shard_plan(data, n, g, cfg.groups)
+        drawn = [data.clip(i, st) for i, st in zip(indices, starts)]
+        first = torch.stack([c[0] for c, _ in drawn])  # (n, 7, H, W)
+        texts = [t for _, t in drawn]
         noise = share_within_groups(torch.randn(pipe.latent_shape(n), generator=g), leaders)
         x0 = []
         for i in range(0, n, cfg.batch_size):
@@ -160,11 +162,94 @@ def generate_pairs(cfg: PairsConfig, progress: bool = True) -> Path:
         tmp_st = path.with_name(f".{path.name}.tmp")
         save_file(tensors, str(tmp_st))
         tmp_js = path.with_name(f".{path.stem}.json.tmp")
-        tmp_js.write_text(json.dumps({"instructions": texts}))
+        tmp_js.write_text(json.dumps({"instructions": texts, "episodes": [data.sources[i].episode_id for i in indices],
+                                      "starts": starts}))
         os.replace(tmp_st, path)
         os.replace(tmp_js, path.with_suffix(".json"))
     bar.close()
     return out
+
+
+def _shard_generator(seed: int, shard: int) -> torch.Generator:
+    return torch.Generator().manual_seed(seed * 1_000_003 + shard)
+
+
+def _shard_plan(data, n: int, generator: torch.Generator, groups: bool) -> tuple[list[int], list[int], list[int] | None]:
+    """A shard's episode indices, clip starts and (grouped) group leaders: the shard's first draws."""
+    if groups:
+        from tesseract4d.model.clips import grouped_batch_plan
+
+        return grouped_batch_plan(data, n, generator)  # whole groups
+    return (*data.batch_plan(n, generator), None)
+
+
+def pair_sources(pairs: "ReflowPairs", data) -> list[tuple[str, int]]:
+    """Each pair's (episode id, clip start) in ``data`` (the clip dataset of the manifest's data folders).
+
+    Shards record them; for shards written before they did, the shard's draws are made again from
+    its seed (they come first from its generator) and checked against its instructions and first
+    frames. A UserError when ``data`` is not the data the pairs were made from."""
+    if pairs.kept is not None:
+        raise ValueError("pair_sources needs every pair of the folder (ReflowPairs without keep_following)")
+    shards = _complete_shards(pairs.folder)
+    by_id = {src.episode_id: k for k, src in enumerate(data.sources)}
+    out: list[tuple[str, int]] = []
+    for shard in shards:
+        sidecar = json.loads(shard.with_suffix(".json").read_text())
+        n = len(sidecar["instructions"])
+        if "episodes" in sidecar:
+            rows = list(zip(sidecar["episodes"], sidecar["starts"]))
+        else:
+            index = int(shard.stem[len(SHARD_PREFIX):])
+            indices, starts, _ = _shard_plan(data, n, _shard_generator(pairs.manifest["seed"], index),
+                                             bool(pairs.manifest.get("groups")))
+            rows = [(data.sources[i].episode_id, st) for i, st in zip(indices, starts)]
+        for k, (episode_id, start) in enumerate(rows):
+            pos = len(out) + k
+            i = by_id.get(episode_id)
+            clip, text = data.clip(i, start) if i is not None else (None, None)
+            if clip is None or text != pairs.instructions[pos] or not torch.equal(clip[0].half(), pairs.first[pos]):
+                raise UserError(f"pair {pos} of {pairs.folder} does not come from {episode_id} of the data in its "
+                                f"manifest as it is now; score pairs against the data they were made from")
+        out += rows
+    return out
+
+
+def _complete_shards(folder: Path) -> list[Path]:
+    shards = sorted(Path(folder).glob(f"{SHARD_PREFIX}*.safetensors"))
+    return [s for s in shards if s.with_suffix(".json").is_file()]
+
+
+def count_pairs(folder: str | os.PathLike) -> int:
+    """The pairs in the complete shards of ``folder`` (from their sidecars: no tensors read)."""
+    return sum(len(json.loads(s.with_suffix(".json").read_text())["instructions"]) for s in _complete_shards(folder))
+
+
+def write_following(folder: Path, record: dict) -> Path:
+    """Write a pairs folder's instruction-following scores (``FOLLOWING``: ``num_pairs``, ``kept`` (the
+    indices of the pairs to train on) and whatever else ``record`` holds), whole (temporary file, then rename)."""
+    path = Path(folder) / FOLLOWING
+    tmp = path.with_name(f".{path.name}.tmp")
+    tmp.write_text(json.dumps(record, indent=1))
+    os.replace(tmp, path)
+    return path
+
+
+def read_following(folder: Path, num_pairs: int | None = None) -> dict | None:
+    """The scores :func:`write_following` wrote, or None when there are none. With ``num_pairs`` (the
+    folder's pairs now), a UserError instead when there are none or they score another number of pairs
+    (the folder has grown since)."""
+    path = Path(folder) / FOLLOWING
+    if not path.is_file():
+        if num_pairs is None:
+            return None
+        raise UserError(f"{folder} holds no instruction-following scores ({FOLLOWING}); score its pairs with "
+                        f"`tesseract4d distill --keep-following --teacher CKPT --pairs {folder} --out RUN`")
+    record = json.loads(path.read_text())
+    if num_pairs is not None and record.get("num_pairs") != num_pairs:
+        raise UserError(f"{path} scores {record.get('num_pairs')} pairs and {folder} holds {num_pairs}; score them "
+                        f"again with `tesseract4d distill --keep-following`")
+    return record
 
 
 class ReflowPairs:
@@ -174,7 +259,7 @@ class ReflowPairs:
     on grouped pairs ``sample_group_batch`` also each pair's group leader (its batch position).
     """
 
-    def __init__(self, folder: str | os.PathLike):
+    def __init__(self, folder: str | os.PathLike, keep_following: bool = False):
         from safetensors.torch import load_file
 
         self.folder = Path(folder)
@@ -183,8 +268,7 @@ class ReflowPairs:
             raise UserError(f"{self.folder} is not a reflow pairs folder (no {MANIFEST}); make one with "
                             f"`tesseract4d distill --pairs-only --teacher CKPT --data DIR --pairs {self.folder}`")
         self.manifest = json.loads(path.read_text())
-        shards = sorted(self.folder.glob(f"{SHARD_PREFIX}*.safetensors"))
-        shards = [s for s in shards if s.with_suffix(".json").is_file()]
+        shards = _complete_shards(self.folder)
         if not shards:
             raise UserError(f"{self.folder} holds no complete pair shard yet; run the pair generation first")
         parts, self.instructions = [], []
@@ -205,10 +289,23 @@ class ReflowPairs:
             leader = p["leader"].tolist() if "leader" in p else list(range(n))
             self.group_of += [offset + k for k in leader]
             offset += n
+        self.kept: list[int] | None = None  # with keep_following: the folder's pairs kept, in order
+        if keep_following:
+            self._keep(read_following(self.folder, len(self.instructions))["kept"])
         units: dict[int, list[int]] = {}
         for i, leader in enumerate(self.group_of):
             units.setdefault(leader, []).append(i)
         self._units = list(units.values())
+
+    def _keep(self, kept: list[int]) -> None:
+        if not kept:
+            raise UserError(f"no pair of {self.folder} follows its instruction ({FOLLOWING}); make more pairs or "
+                            f"train without --keep-following")
+        index = torch.tensor(kept)
+        self.first, self.noise, self.x0 = self.first[index], self.noise[index], self.x0[index]
+        self.instructions = [self.instructions[i] for i in kept]
+        self.group_of = [self.group_of[i] for i in kept]  # a group's key stays its first pair's index
+        self.kept = list(kept)
 
     def __len__(self) -> int:
         return len(self.instructions)
@@ -248,6 +345,7 @@ class ReflowConfig(TrainConfig):
     max_steps: int = 1000
     val_every: int = 100
     val_clips: int = 4
+    keep_following: bool = False  # train only on the pairs FOLLOWING keeps (scored by `distill --keep-following`)
 
 
 def student_preset(teacher_preset, student_steps: int):
@@ -301,7 +399,7 @@ class ReflowTrainer(Trainer):
         return student_preset(teacher, config.student_steps)
 
     def _build_data(self, cfg: TrainConfig) -> ReflowPairs:
-        pairs = ReflowPairs(cfg.data)
+        pairs = ReflowPairs(cfg.data, keep_following=cfg.keep_following)
         made_by = pairs.manifest.get("teacher_digest")
         if made_by != self.teacher_digest:
             raise UserError(f"{cfg.data} holds pairs of another teacher (weights {made_by}, --teacher has "
@@ -339,7 +437,9 @@ class ReflowTrainer(Trainer):
             "method": "rectified-flow reflow", "teacher": str(self.cfg.teacher), "teacher_digest": self.teacher_digest,
             "teacher_steps": m.get("teacher_steps"), "text_guidance": m.get("text_guidance"),
             "image_guidance": m.get("image_guidance"), "pairs": str(self.cfg.data), "num_pairs": len(self.data),
-            "pair_groups": bool(m.get("groups")), "student_steps": self.preset.num_steps}
+            "pair_groups": bool(m.get("groups")), "student_steps": self.preset.num_steps,
+            # with --keep-following: the pairs of the folder before the teacher's wrong ones were left out
+            "pairs_scored": None if self.data.kept is None else read_following(self.cfg.data)["num_pairs"]}
         return cfg
 
     def validation_indices(self) -> list[int]:
