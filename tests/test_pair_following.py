@@ -149,3 +149,17 @@ def test_distill_keep_following_scores_once_and_trains_on_the_kept(grouped_pairs
         ReflowPairs(pairs_dir, keep_following=True)
     assert main(argv + ["--out", str(tmp_path / "run3")]) == 0
     assert scores_of(pairs_dir)["num_pairs"] == 9
+
+
+def test_scores_are_written_only_into_a_pairs_folder(grouped_pairs, tmp_path):
+    """The scores go to PAIRS/following.json alone; a folder that is not a pairs folder (a dataset, its
+    parent) is refused before anything is written."""
+    ckpt, data, pairs_dir = grouped_pairs
+    for folder in (data, tmp_path):
+        before = sorted(p for p in folder.rglob("*"))
+        with pytest.raises(UserError, match="not a reflow pairs folder"):
+            score_pairs(folder, ckpt, progress=False)
+        assert sorted(p for p in folder.rglob("*")) == before
+    before = {p.name for p in pairs_dir.iterdir()}
+    score_pairs(pairs_dir, ckpt, progress=False)
+    assert {p.name for p in pairs_dir.iterdir()} == before | {FOLLOWING}

@@ -228,10 +228,10 @@ def count_pairs(folder: str | os.PathLike) -> int:
 def write_following(folder: Path, record: dict) -> Path:
     """Write a pairs folder's instruction-following scores (``FOLLOWING``: ``num_pairs``, ``kept`` (the
     indices of the pairs to train on) and whatever else ``record`` holds), whole (temporary file, then rename)."""
+    from tesseract4d import dataset_format as df
+
     path = Path(folder) / FOLLOWING
-    tmp = path.with_name(f".{path.name}.tmp")
-    tmp.write_text(json.dumps(record, indent=1))
-    os.replace(tmp, path)
+    df.atomic_write_text(path, json.dumps(record, indent=1))
     return path
 
 
@@ -290,6 +290,7 @@ class ReflowPairs:
             self.group_of += [offset + k for k in leader]
             offset += n
         self.kept: list[int] | None = None  # with keep_following: the folder's pairs kept, in order
+        self.num_in_folder = len(self.instructions)  # before any were left out
         if keep_following:
             self._keep(read_following(self.folder, len(self.instructions))["kept"])
         units: dict[int, list[int]] = {}
@@ -439,7 +440,7 @@ class ReflowTrainer(Trainer):
             "image_guidance": m.get("image_guidance"), "pairs": str(self.cfg.data), "num_pairs": len(self.data),
             "pair_groups": bool(m.get("groups")), "student_steps": self.preset.num_steps,
             # with --keep-following: the pairs of the folder before the teacher's wrong ones were left out
-            "pairs_scored": None if self.data.kept is None else read_following(self.cfg.data)["num_pairs"]}
+            "pairs_scored": None if self.data.kept is None else self.data.num_in_folder}
         return cfg
 
     def validation_indices(self) -> list[int]:
