@@ -6,7 +6,9 @@
   flickers (the stress input of the reconstruction tests and benchmark);
 * :func:`look_at_pose`: a camera pose looking at a point;
 * :func:`synthetic_episode` / :func:`write_synthetic_dataset`: a square sliding left or right in
-  front of a tilted plane, with the instruction that says which way: the model tests' training data.
+  front of a tilted plane, with the instruction that says which way: the model tests' training data;
+* :func:`group_episode`: episode k of a synthetic counterfactual group (two squares, one instruction each and
+  "keep still") with known motion: the held-out believability tests' scene.
 
 Benchmarks import it the way they import ``model_fixtures`` (``tests/`` on ``sys.path``).
 """
@@ -181,3 +183,50 @@ def write_grouped_dataset(root: Path, scenes: int = 2, frames: int = 8, size: in
     for seed in range(scenes, scenes + singles):
         df.write_episode(root, _segment(synthetic_episode(seed, frames, size)))
     return root
+
+
+# A counterfactual group: one scene, three instructions, known motion (held-out believability and the
+# distillation's pair scoring).
+GROUP_SIZE, GROUP_FRAMES, GROUP_F_PX = 32, 8, 32.0  # image size, frames, focal length (pixels); the scene lies at 1 m
+GROUP_SEG = {0: "background", 3: "panda_hand", 5: "table-workspace", 6: "goal_region", 18: "red_cube", 19: "green_cube"}
+GROUP_OBJECTS = {"red_cube": (18, (220, 30, 30), (6, 10)), "green_cube": (19, (30, 200, 30), (20, 22))}  # id, colour, (u0, v0)
+# (instruction, skill, target, commanded displacement in world metres = camera metres here)
+GROUP = (
+    ("push the red cube to the right", "push", "red_cube", (0.5, 0.0, 0.0)),
+    ("push the green cube up", "push", "green_cube", (0.0, -0.5, 0.0)),
+    ("keep still", "keep_still", None, (0.0, 0.0, 0.0)),
+)
+
+
+def group_episode(k: int, seed: int = 100000, scale: int = 1) -> df.Episode:
+    """Episode k of a synthetic group: two 8-px squares on a grey plane 1 m in front of the camera
+    (T_world_cam = identity, so world metres map to f pixels); the instructed one moves
+    ``commanded * f`` pixels over the clip, the other stays; a grey robot block stays too.
+    ``scale``: the same scene seen by a camera of ``scale`` times the resolution (and focal length)."""
+    instruction, skill, target, cmd = GROUP[k]
+    K = np.array([[GROUP_F_PX, 0, GROUP_SIZE / 2], [0, GROUP_F_PX, GROUP_SIZE / 2], [0, 0, 1]])
+    v, u = np.mgrid[0:GROUP_SIZE, 0:GROUP_SIZE]
+    rgb = np.zeros((GROUP_FRAMES, GROUP_SIZE, GROUP_SIZE, 3), np.uint8)
+    seg = np.zeros((GROUP_FRAMES, GROUP_SIZE, GROUP_SIZE), np.int32)
+    poses = {name: np.zeros((GROUP_FRAMES, 7), np.float32) for name in GROUP_OBJECTS}
+    for t in range(GROUP_FRAMES):
+        rgb[t] = (60 + 60 * v[..., None] / GROUP_SIZE).astype(np.uint8)
+        seg[t] = 5
+        rgb[t, 26:, :6], seg[t, 26:, :6] = 90, 3  # a robot link: not a scene object
+        for name, (oid, colour, (u0, v0)) in GROUP_OBJECTS.items():
+            shift = np.asarray(cmd[:2]) * GROUP_F_PX * t / (GROUP_FRAMES - 1) if name == target else np.zeros(2)
+            uu, vv = int(round(u0 + shift[0])), int(round(v0 + shift[1]))
+            rgb[t, vv:vv + 8, uu:uu + 8], seg[t, vv:vv + 8, uu:uu + 8] = colour, oid
+            poses[name][t] = [(uu + 3.5 - GROUP_SIZE / 2) / GROUP_F_PX, (vv + 3.5 - GROUP_SIZE / 2) / GROUP_F_PX, 1.0, 1, 0, 0, 0]
+    up = lambda a: np.repeat(np.repeat(a, scale, axis=1), scale, axis=2)  # noqa: E731  (T, H, W, ...) -> (T, sH, sW, ...)
+    K[:2] *= scale  # pixel centres at half-integers: no offset
+    n = GROUP_SIZE * scale
+    cam = df.CameraFrames(rgb=up(rgb), depth_m=np.ones((GROUP_FRAMES, n, n), np.float32),
+                          normal_cam=np.broadcast_to(np.float32([0, 0, -1]), (GROUP_FRAMES, n, n, 3)).copy(),
+                          K=np.repeat(K[None], GROUP_FRAMES, 0), T_world_cam=np.repeat(np.eye(4)[None], GROUP_FRAMES, 0),
+                          segmentation=up(seg), seg_id_to_name=dict(GROUP_SEG))
+    intent = {"skill": skill, "variant": skill if skill == "keep_still" else f"{skill}_{k}", "target": target,
+              "other": None, "commanded_displacement_world_m": list(cmd), "gripper_goal_world_m": None}
+    return df.Episode(env_id="Synthetic-v0", seed=seed, instruction=instruction, cameras={"close": cam},
+                      frame_steps=np.arange(GROUP_FRAMES, dtype=np.int32), object_poses=poses, success=True,
+                      variant=k, intent=intent)

@@ -11,54 +11,14 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from synthetic_scene import GROUP, group_episode
+from synthetic_scene import GROUP_F_PX as F_PX
+from synthetic_scene import GROUP_FRAMES as FRAMES
+from synthetic_scene import GROUP_SIZE as SIZE
 
 from tesseract4d import dataset_format as df
 from tesseract4d.evaluation.heldout_believability import (breakdown, clip_motion, commanded_px, contrast_by_group,
                                                           contrast_entry, episode_believability)
-
-SIZE, FRAMES, F_PX = 32, 8, 32.0  # image size, frames, focal length (pixels); the scene lies at 1 m
-SEG = {0: "background", 3: "panda_hand", 5: "table-workspace", 6: "goal_region", 18: "red_cube", 19: "green_cube"}
-OBJECTS = {"red_cube": (18, (220, 30, 30), (6, 10)), "green_cube": (19, (30, 200, 30), (20, 22))}  # id, colour, (u0, v0)
-# (instruction, skill, target, commanded displacement in world metres = camera metres here)
-GROUP = (
-    ("push the red cube to the right", "push", "red_cube", (0.5, 0.0, 0.0)),
-    ("push the green cube up", "push", "green_cube", (0.0, -0.5, 0.0)),
-    ("keep still", "keep_still", None, (0.0, 0.0, 0.0)),
-)
-
-
-def group_episode(k: int, seed: int = 100000, scale: int = 1) -> df.Episode:
-    """Episode k of a synthetic group: two 8-px squares on a grey plane 1 m in front of the camera
-    (T_world_cam = identity, so world metres map to f pixels); the instructed one moves
-    ``commanded * f`` pixels over the clip, the other stays; a grey robot block stays too.
-    ``scale``: the same scene seen by a camera of ``scale`` times the resolution (and focal length)."""
-    instruction, skill, target, cmd = GROUP[k]
-    K = np.array([[F_PX, 0, SIZE / 2], [0, F_PX, SIZE / 2], [0, 0, 1]])
-    v, u = np.mgrid[0:SIZE, 0:SIZE]
-    rgb = np.zeros((FRAMES, SIZE, SIZE, 3), np.uint8)
-    seg = np.zeros((FRAMES, SIZE, SIZE), np.int32)
-    poses = {name: np.zeros((FRAMES, 7), np.float32) for name in OBJECTS}
-    for t in range(FRAMES):
-        rgb[t] = (60 + 60 * v[..., None] / SIZE).astype(np.uint8)
-        seg[t] = 5
-        rgb[t, 26:, :6], seg[t, 26:, :6] = 90, 3  # a robot link: not a scene object
-        for name, (oid, colour, (u0, v0)) in OBJECTS.items():
-            shift = np.asarray(cmd[:2]) * F_PX * t / (FRAMES - 1) if name == target else np.zeros(2)
-            uu, vv = int(round(u0 + shift[0])), int(round(v0 + shift[1]))
-            rgb[t, vv:vv + 8, uu:uu + 8], seg[t, vv:vv + 8, uu:uu + 8] = colour, oid
-            poses[name][t] = [(uu + 3.5 - SIZE / 2) / F_PX, (vv + 3.5 - SIZE / 2) / F_PX, 1.0, 1, 0, 0, 0]
-    up = lambda a: np.repeat(np.repeat(a, scale, axis=1), scale, axis=2)  # noqa: E731  (T, H, W, ...) -> (T, sH, sW, ...)
-    K[:2] *= scale  # pixel centres at half-integers: no offset
-    n = SIZE * scale
-    cam = df.CameraFrames(rgb=up(rgb), depth_m=np.ones((FRAMES, n, n), np.float32),
-                          normal_cam=np.broadcast_to(np.float32([0, 0, -1]), (FRAMES, n, n, 3)).copy(),
-                          K=np.repeat(K[None], FRAMES, 0), T_world_cam=np.repeat(np.eye(4)[None], FRAMES, 0),
-                          segmentation=up(seg), seg_id_to_name=dict(SEG))
-    intent = {"skill": skill, "variant": skill if skill == "keep_still" else f"{skill}_{k}", "target": target,
-              "other": None, "commanded_displacement_world_m": list(cmd), "gripper_goal_world_m": None}
-    return df.Episode(env_id="Synthetic-v0", seed=seed, instruction=instruction, cameras={"close": cam},
-                      frame_steps=np.arange(FRAMES, dtype=np.int32), object_poses=poses, success=True,
-                      variant=k, intent=intent)
 
 
 def static(rgb: np.ndarray) -> np.ndarray:

@@ -10,8 +10,7 @@ from pathlib import Path
 import pytest
 import torch
 from safetensors.torch import load_file, save_file
-from synthetic_scene import write_grouped_dataset
-from test_heldout_believability import GROUP, group_episode
+from synthetic_scene import GROUP, group_episode, write_grouped_dataset
 
 from tesseract4d import dataset_format as df
 from tesseract4d.cli import main
