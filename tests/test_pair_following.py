@@ -16,7 +16,8 @@ from tesseract4d import dataset_format as df
 from tesseract4d.cli import main
 from tesseract4d.errors import UserError
 from tesseract4d.evaluation.pair_following import score_pairs, scores_of
-from tesseract4d.model.reflow import FOLLOWING, PairsConfig, ReflowPairs, generate_pairs, pair_sources
+from tesseract4d.model.reflow import (FOLLOWING, PairsConfig, ReflowPairs, generate_pairs, pair_sources, task_balance,
+                                      write_following)
 
 pytestmark = pytest.mark.usefixtures("micro_preset")
 
@@ -132,11 +133,13 @@ def test_distill_keep_following_scores_once_and_trains_on_the_kept(grouped_pairs
     out = capsys.readouterr().out
     record = scores_of(pairs_dir)
     assert record is not None and (record["num_pairs"], record["judged"], record["right"]) == (6, 6, 4)
-    assert "training on 4 of 6" in out
+    assert "training on 4 of 6" in out and "each task keeps its share" in out
+    assert json.loads((tmp_path / "run" / "train_config.json").read_text())["balance_tasks"] is True  # the default
     assert ReflowPairs(pairs_dir, keep_following=True).instructions.count(GROUP[1][0]) == 0
     student = load_pipeline(tmp_path / "run" / "final")
     assert student.config["distilled_from"]["num_pairs"] == len(record["kept"])
     assert student.config["distilled_from"]["pairs_scored"] == 6
+    assert student.config["distilled_from"]["pairs_balanced_by_task"] is True
     # A second run reads the scores rather than scoring again; grown pairs are scored again.
     stamp = (pairs_dir / FOLLOWING).stat().st_mtime_ns
     assert main(argv + ["--out", str(tmp_path / "run2")]) == 0
@@ -162,3 +165,45 @@ def test_scores_are_written_only_into_a_pairs_folder(grouped_pairs, tmp_path):
     before = {p.name for p in pairs_dir.iterdir()}
     score_pairs(pairs_dir, ckpt, progress=False)
     assert {p.name for p in pairs_dir.iterdir()} == before | {FOLLOWING}
+
+
+def test_task_balance_gives_every_task_its_share_of_the_folder():
+    """Weighted by task_balance, each task's kept pairs weigh what all its pairs are of the folder, however
+    unevenly the check kept them."""
+    g = torch.Generator().manual_seed(0)
+    for _ in range(50):
+        n = int(torch.randint(2, 40, (1,), generator=g))
+        tasks = [f"Task{int(t)}-v1" for t in torch.randint(3, (n,), generator=g)]
+        kept = [i for i in range(n) if torch.rand(1, generator=g) < 0.6] or [0]
+        w = task_balance(tasks, kept)
+        assert len(w) == len(kept) and min(w) >= 1.0
+        kept_tasks = {tasks[i] for i in kept}
+        folder = sum(tasks.count(t) for t in kept_tasks)  # the folder's pairs of the tasks still kept
+        for task in kept_tasks:
+            weighed = sum(wi for wi, i in zip(w, kept) if tasks[i] == task)
+            assert weighed / sum(w) == pytest.approx(tasks.count(task) / folder)
+    assert task_balance(["A", "A", "B", "B"], [0, 1, 2, 3]) == [1.0] * 4  # nothing left out: uniform
+
+
+def test_kept_groups_are_drawn_so_each_task_keeps_its_share(grouped_pairs):
+    """Two groups of three pairs, one task each: every pair of the first kept, one of the second. Drawn
+    uniformly by group, the first task's pairs are 3/4 of a batch; balanced, half of it, as in the folder."""
+    _, _, pairs_dir = grouped_pairs
+    group_of = ReflowPairs(pairs_dir).group_of
+    leaders = sorted(set(group_of))
+    assert len(leaders) == 2 and group_of.count(leaders[0]) == group_of.count(leaders[1]) == 3
+    tasks = ["TaskA-v1" if leader == leaders[0] else "TaskB-v1" for leader in group_of]
+    kept = [i for i, t in enumerate(tasks) if t == "TaskA-v1"] + [tasks.index("TaskB-v1")]
+    write_following(pairs_dir, {"num_pairs": 6, "kept": kept,
+                                "per_pair": [{"episode": f"{t}/seed_000000_k0"} for t in tasks]})
+    for balance, share in ((False, 0.75), (True, 0.5)):
+        pairs = ReflowPairs(pairs_dir, keep_following=True, balance_tasks=balance)
+        g = torch.Generator().manual_seed(0)
+        first_task = {tuple(pairs.noise[k].flatten()[:8].tolist()) for k in range(3)}  # kept pairs 0-2: TaskA's
+        for sample in (pairs.sample_group_batch, pairs.sample_batch):
+            noise = sample(4000, g)[1]
+            drawn = [tuple(n.flatten()[:8].tolist()) in first_task for n in noise]
+            assert sum(drawn) / len(drawn) == pytest.approx(share, abs=0.03), (sample.__name__, balance)
+    write_following(pairs_dir, {"num_pairs": 6, "kept": kept})  # scores without the pairs' episodes
+    with pytest.raises(UserError, match="names no episode"):
+        ReflowPairs(pairs_dir, keep_following=True, balance_tasks=True)

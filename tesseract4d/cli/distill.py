@@ -20,7 +20,8 @@ Two stages, each resumable:
    sample while its target stays its own teacher clip, as `train --counterfactual-swap`). RUN/final
    is an inference checkpoint whose preset samples in --student-steps steps without guidance, and
    which records the teacher it was distilled from. With --keep-following it trains only on the pairs whose
-   teacher clip passes the held-out contrast check on the pair's own episode (evaluation/pair_following.py).
+   teacher clip passes the held-out contrast check on the pair's own episode (evaluation/pair_following.py),
+   drawn so that each task keeps its share of the pairs (--following-balance).
 """
 
 from __future__ import annotations
@@ -61,6 +62,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "contrast check (the instructed object moved the commanded way, 'keep still' still) on "
                              "each pair's own training episode; scored once into PAIRS/following.json (rescored when "
                              "the pairs grow), which also counts the teacher's right clips per skill")
+    parser.add_argument("--following-balance", choices=("task", "none"), default="task",
+                        help="with --keep-following: 'task' draws the kept pairs so that each task keeps its share of "
+                             "the folder's pairs (a task whose teacher clips fail more often would otherwise lose "
+                             "part of the student's training to the others); 'none' draws the kept pairs uniformly "
+                             "(default %(default)s)")
     parser.add_argument("--rephrase", type=float, default=d.rephrase, metavar="P",
                         help="probability of training a pair under another training wording of its instruction, the "
                              "teacher's clip staying the target (as `train --rephrase`) (default %(default)s)")
@@ -99,13 +105,15 @@ def run(args: argparse.Namespace) -> int:
         from tesseract4d.evaluation.pair_following import score_pairs, scores_of, summary
 
         record = scores_of(args.pairs) or score_pairs(args.pairs, args.teacher, progress=not args.no_progress)
-        print(summary(record))
+        print(summary(record) + ("; drawn so each task keeps its share of the pairs"
+                                 if args.following_balance == "task" else ""))
     cfg = ReflowConfig(
         data=args.pairs, out=args.out, teacher=args.teacher, student_steps=args.student_steps,
         max_steps=args.max_steps, max_minutes=args.max_minutes, batch_size=args.batch_size, lr=args.lr,
         precision=args.precision, resume=args.resume, val_every=args.val_every, ckpt_every=args.ckpt_every,
         seed=args.seed, progress=not args.no_progress, group_batches=args.counterfactual_swap > 0,
-        counterfactual_swap=args.counterfactual_swap, rephrase=args.rephrase, keep_following=args.keep_following)
+        counterfactual_swap=args.counterfactual_swap, rephrase=args.rephrase, keep_following=args.keep_following,
+        balance_tasks=args.keep_following and args.following_balance == "task")
     from datagen.paraphrases import train_paraphrases
 
     final = ReflowTrainer(cfg, train_paraphrases).train()

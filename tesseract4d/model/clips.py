@@ -114,18 +114,22 @@ def group_units(episode_ids: list[str]) -> list[list[int]]:
 
 
 def draw_group_batch(units: list[list[int]], lengths: list[int], num_frames: int, batch_size: int,
-                     generator: torch.Generator) -> tuple[list[int], list[int], list[int]]:
+                     generator: torch.Generator, unit_weights: torch.Tensor | None = None
+                     ) -> tuple[list[int], list[int], list[int]]:
     """A batch of whole counterfactual groups: a group is drawn uniformly (so each episode, one clip
-    per draw of its group, is as likely as any other, in a group or alone, as in an ungrouped batch)
-    and joins whole, its episodes in random order with one clip start for all of them, until
-    ``batch_size`` clips (the last group is cut to fit). Returns the episode indices, the clip starts
-    and, for each clip, the batch position of its group's first clip (the index to share noise and
-    diffusion time by)."""
+    per draw of its group, is as likely as any other, in a group or alone, as in an ungrouped batch),
+    or in proportion to ``unit_weights`` (one per unit) where given, and joins whole, its episodes in
+    random order with one clip start for all of them, until ``batch_size`` clips (the last group is
+    cut to fit). Returns the episode indices, the clip starts and, for each clip, the batch position of
+    its group's first clip (the index to share noise and diffusion time by)."""
     indices: list[int] = []
     starts: list[int] = []
     leaders: list[int] = []
     while len(indices) < batch_size:
-        unit = units[int(torch.randint(len(units), (1,), generator=generator))]
+        if unit_weights is None:
+            unit = units[int(torch.randint(len(units), (1,), generator=generator))]
+        else:
+            unit = units[int(torch.multinomial(unit_weights, 1, generator=generator))]
         order = torch.randperm(len(unit), generator=generator).tolist()
         members = [unit[k] for k in order][:batch_size - len(indices)]
         n = min(lengths[i] for i in members) - num_frames + 1

@@ -235,6 +235,20 @@ def write_following(folder: Path, record: dict) -> Path:
     return path
 
 
+def task_balance(tasks: list[str], kept: list[int]) -> list[float]:
+    """Per kept pair, the draw weight that gives each task (``tasks[i]``: pair i's, for every pair of the
+    folder) its share of all the folder's pairs among the kept ones: (its task's pairs) / (its task's
+    kept pairs). Without it, a task whose teacher clips fail the check more often loses part of its
+    share of the student's training to the others."""
+    total: dict[str, int] = {}
+    for task in tasks:
+        total[task] = total.get(task, 0) + 1
+    kept_of: dict[str, int] = {}
+    for i in kept:
+        kept_of[tasks[i]] = kept_of.get(tasks[i], 0) + 1
+    return [total[tasks[i]] / kept_of[tasks[i]] for i in kept]
+
+
 def read_following(folder: Path, num_pairs: int | None = None) -> dict | None:
     """The scores :func:`write_following` wrote, or None when there are none. With ``num_pairs`` (the
     folder's pairs now), a UserError instead when there are none or they score another number of pairs
@@ -257,9 +271,11 @@ class ReflowPairs:
 
     ``sample_batch(b, generator)`` returns (first (b, 7, H, W), noise, x0 (b, t', c, h, w), texts);
     on grouped pairs ``sample_group_batch`` also each pair's group leader (its batch position).
+    ``keep_following``: only the pairs ``FOLLOWING`` keeps; with ``balance_tasks`` drawn so that each
+    task keeps its share of the folder's pairs (:func:`task_balance`).
     """
 
-    def __init__(self, folder: str | os.PathLike, keep_following: bool = False):
+    def __init__(self, folder: str | os.PathLike, keep_following: bool = False, balance_tasks: bool = False):
         from safetensors.torch import load_file
 
         self.folder = Path(folder)
@@ -291,12 +307,23 @@ class ReflowPairs:
             offset += n
         self.kept: list[int] | None = None  # with keep_following: the folder's pairs kept, in order
         self.num_in_folder = len(self.instructions)  # before any were left out
+        self.weights: torch.Tensor | None = None  # with balance_tasks: each kept pair's draw weight
         if keep_following:
-            self._keep(read_following(self.folder, len(self.instructions))["kept"])
+            record = read_following(self.folder, len(self.instructions))
+            self._keep(record["kept"])
+            if balance_tasks:
+                tasks = [p["episode"].split("/")[0] for p in record.get("per_pair", [])]
+                if len(tasks) != self.num_in_folder:
+                    raise UserError(f"{self.folder / FOLLOWING} names no episode for each pair; score the pairs "
+                                    f"again (delete that file, then `tesseract4d distill --keep-following`)")
+                self.weights = torch.tensor(task_balance(tasks, self.kept), dtype=torch.float64)
         units: dict[int, list[int]] = {}
         for i, leader in enumerate(self.group_of):
             units.setdefault(leader, []).append(i)
         self._units = list(units.values())
+        # a group's weight is its pairs' mean (a group's pairs are of one scene, so of one task)
+        self._unit_weights = None if self.weights is None else \
+            torch.stack([self.weights[u].mean() for u in self._units])
 
     def _keep(self, kept: list[int]) -> None:
         if not kept:
@@ -312,7 +339,10 @@ class ReflowPairs:
         return len(self.instructions)
 
     def sample_batch(self, batch_size: int, generator: torch.Generator):
-        idx = torch.randint(len(self), (batch_size,), generator=generator)
+        if self.weights is None:
+            idx = torch.randint(len(self), (batch_size,), generator=generator)
+        else:
+            idx = torch.multinomial(self.weights, batch_size, replacement=True, generator=generator)
         texts = [self.instructions[i] for i in idx.tolist()]
         return self.first[idx].float(), self.noise[idx], self.x0[idx], texts
 
@@ -329,7 +359,7 @@ class ReflowPairs:
         from tesseract4d.model.clips import draw_group_batch
 
         units = self.group_units()
-        idx, _, leaders = draw_group_batch(units, [1] * len(self), 1, batch_size, generator)
+        idx, _, leaders = draw_group_batch(units, [1] * len(self), 1, batch_size, generator, self._unit_weights)
         texts = [self.instructions[i] for i in idx]
         return self.first[idx].float(), self.noise[idx], self.x0[idx], texts, leaders
 
@@ -347,6 +377,7 @@ class ReflowConfig(TrainConfig):
     val_every: int = 100
     val_clips: int = 4
     keep_following: bool = False  # train only on the pairs FOLLOWING keeps (scored by `distill --keep-following`)
+    balance_tasks: bool = False  # with keep_following: draw the kept pairs so each task keeps its share of the pairs
 
 
 def student_preset(teacher_preset, student_steps: int):
@@ -400,7 +431,7 @@ class ReflowTrainer(Trainer):
         return student_preset(teacher, config.student_steps)
 
     def _build_data(self, cfg: TrainConfig) -> ReflowPairs:
-        pairs = ReflowPairs(cfg.data, keep_following=cfg.keep_following)
+        pairs = ReflowPairs(cfg.data, keep_following=cfg.keep_following, balance_tasks=cfg.balance_tasks)
         made_by = pairs.manifest.get("teacher_digest")
         if made_by != self.teacher_digest:
             raise UserError(f"{cfg.data} holds pairs of another teacher (weights {made_by}, --teacher has "
@@ -440,7 +471,8 @@ class ReflowTrainer(Trainer):
             "image_guidance": m.get("image_guidance"), "pairs": str(self.cfg.data), "num_pairs": len(self.data),
             "pair_groups": bool(m.get("groups")), "student_steps": self.preset.num_steps,
             # with --keep-following: the pairs of the folder before the teacher's wrong ones were left out
-            "pairs_scored": None if self.data.kept is None else self.data.num_in_folder}
+            "pairs_scored": None if self.data.kept is None else self.data.num_in_folder,
+            "pairs_balanced_by_task": self.data.weights is not None}
         return cfg
 
     def validation_indices(self) -> list[int]:
