@@ -314,8 +314,9 @@ class ReflowPairs:
             if balance_tasks:
                 tasks = [p["episode"].split("/")[0] for p in record.get("per_pair", [])]
                 if len(tasks) != self.num_in_folder:
-                    raise UserError(f"{self.folder / FOLLOWING} names no episode for each pair; score the pairs "
-                                    f"again (delete that file, then `tesseract4d distill --keep-following`)")
+                    raise UserError(f"{self.folder / FOLLOWING} names no episode for each pair, so its tasks are "
+                                    f"unknown: pass --following-balance none, or move that file aside and score the "
+                                    f"pairs again with `tesseract4d distill --keep-following`")
                 self.weights = torch.tensor(task_balance(tasks, self.kept), dtype=torch.float64)
         units: dict[int, list[int]] = {}
         for i, leader in enumerate(self.group_of):
