@@ -240,12 +240,9 @@ def task_balance(tasks: list[str], kept: list[int]) -> list[float]:
     folder) its share of all the folder's pairs among the kept ones: (its task's pairs) / (its task's
     kept pairs). Without it, a task whose teacher clips fail the check more often loses part of its
     share of the student's training to the others."""
-    total: dict[str, int] = {}
-    for task in tasks:
-        total[task] = total.get(task, 0) + 1
-    kept_of: dict[str, int] = {}
-    for i in kept:
-        kept_of[tasks[i]] = kept_of.get(tasks[i], 0) + 1
+    from collections import Counter
+
+    total, kept_of = Counter(tasks), Counter(tasks[i] for i in kept)
     return [total[tasks[i]] / kept_of[tasks[i]] for i in kept]
 
 
