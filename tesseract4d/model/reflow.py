@@ -32,6 +32,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import os
+from collections import Counter
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
@@ -240,8 +241,6 @@ def task_balance(tasks: list[str], kept: list[int]) -> list[float]:
     folder) its share of all the folder's pairs among the kept ones: (its task's pairs) / (its task's
     kept pairs). Without it, a task whose teacher clips fail the check more often loses part of its
     share of the student's training to the others."""
-    from collections import Counter
-
     total, kept_of = Counter(tasks), Counter(tasks[i] for i in kept)
     return [total[tasks[i]] / kept_of[tasks[i]] for i in kept]
 
