@@ -118,6 +118,25 @@ def test_a_right_teacher_keeps_every_pair_and_a_still_one_only_keep_still(groupe
     assert sorted(len(u) for u in kept.group_units()) == [1, 1]
 
 
+def test_a_pair_cut_later_in_its_episode_is_kept_unjudged_with_its_skill(grouped_pairs, monkeypatch):
+    """The check reads an episode from frame 0: a pair whose clip starts later is not judged, kept, and still
+    counted under its skill (read from the file's attributes)."""
+    import tesseract4d.model.reflow as reflow
+    from tesseract4d.model.predict import load_pipeline
+
+    ckpt, data, pairs_dir = grouped_pairs
+    truth = {s.episode_id: s.frames.float() for s in _clip_data(load_pipeline(ckpt), data).sources}
+    _set_teacher_clips(pairs_dir, lambda e: truth[e][:1].expand_as(truth[e]))  # never moves: pushes wrong
+    sources = reflow.pair_sources(ReflowPairs(pairs_dir), _clip_data(load_pipeline(ckpt), data))
+    later = next(i for i, (e, _) in enumerate(sources) if not e.endswith("_k2"))  # a push (k2: keep still)
+    shifted = [(e, 3 if i == later else s) for i, (e, s) in enumerate(sources)]
+    monkeypatch.setattr(reflow, "pair_sources", lambda pairs, data: shifted)
+    record = score_pairs(pairs_dir, ckpt, progress=False)
+    assert (record["num_pairs"], record["judged"]) == (6, 5)
+    assert record["per_pair"][later] == {"episode": sources[later][0], "skill": "push", "judged": False, "right": None}
+    assert later in record["kept"] and record["right"] == 2
+
+
 def test_distill_keep_following_scores_once_and_trains_on_the_kept(grouped_pairs, tmp_path, capsys):
     from tesseract4d.model.predict import load_pipeline
 

@@ -73,11 +73,18 @@ def score_pairs(folder: str | Path, teacher: str | Path, *, batch_size: int = 8,
             clips = composite_static(clips, first, p.static_tolerance)
         for k, clip in enumerate(clips):
             episode_id, start = sources[i + k]
-            gt = df.read_episode(_episode_file(roots, episode_id), cameras=[camera])
-            skills.append((gt.intent or {}).get("skill"))
-            rgb, _, _ = pipe.model_space.decode(clip)
-            # The check reads the episode from its frame 0: a clip cut later is not judged.
-            entry = contrast_entry(gt, camera, rgb) if start == 0 else None
+            path = _episode_file(roots, episode_id)
+            # The check reads the episode from its frame 0: a clip cut later is not judged, and only its skill
+            # is read (the file's attributes, not its frames).
+            if start == 0:
+                gt = df.read_episode(path, cameras=[camera])
+                intent = gt.intent
+                rgb, _, _ = pipe.model_space.decode(clip)
+                entry = contrast_entry(gt, camera, rgb)
+            else:
+                intent = df.read_episode_attrs(path)["intent"]
+                entry = None
+            skills.append((intent or {}).get("skill"))
             group = df.group_of_episode_id(episode_id)
             entries.append(None if entry is None else (f"{group or episode_id}#{pairs.group_of[i + k]}", entry))
             bar.update(1)
