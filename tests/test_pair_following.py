@@ -125,9 +125,10 @@ def test_a_pair_cut_later_in_its_episode_is_kept_unjudged_with_its_skill(grouped
     from tesseract4d.model.predict import load_pipeline
 
     ckpt, data, pairs_dir = grouped_pairs
-    truth = {s.episode_id: s.frames.float() for s in _clip_data(load_pipeline(ckpt), data).sources}
+    clips = _clip_data(load_pipeline(ckpt), data)
+    truth = {s.episode_id: s.frames.float() for s in clips.sources}
     _set_teacher_clips(pairs_dir, lambda e: truth[e][:1].expand_as(truth[e]))  # never moves: pushes wrong
-    sources = reflow.pair_sources(ReflowPairs(pairs_dir), _clip_data(load_pipeline(ckpt), data))
+    sources = reflow.pair_sources(ReflowPairs(pairs_dir), clips)
     later = next(i for i, (e, _) in enumerate(sources) if not e.endswith("_k2"))  # a push (k2: keep still)
     shifted = [(e, 3 if i == later else s) for i, (e, s) in enumerate(sources)]
     monkeypatch.setattr(reflow, "pair_sources", lambda pairs, data: shifted)
