@@ -191,7 +191,7 @@ def test_evaluate_scores_several_checkpoints_side_by_side(two_checkpoints, tmp_p
     # The static world follows only "keep still"; the ground truth follows all.
     assert report["summary"]["static"]["contrast"] == pytest.approx(1 / 3)
     assert report["contrast"]["ground_truth"]["share"] == report["contrast"]["ground_truth"]["share_whole"] == 1.0
-    assert report["format_version"] == 9
+    assert report["format_version"] == 10 and "arm_judged" in report["contrast"]["ground_truth"]
     # One network per checkpoint, one judgment per episode of the group (three distinct instructions).
     disc = report["discrimination"][names[0]]
     assert disc == report["discrimination"][names[0] + "_raw"] and disc["episodes"] == 3
@@ -558,8 +558,9 @@ def test_ground_truth_of_a_simulated_group_is_believed(tmp_path):
     for path in df.list_episode_files(out):
         ep = df.read_episode(path)
         rgb = ep.cameras["close"].rgb
-        truth = episode_believability(ep, "close", rgb, patch_px=4)
-        still = episode_believability(ep, "close", static(rgb), patch_px=4)
+        depth = ep.cameras["close"].depth_m
+        truth = episode_believability(ep, "close", rgb, patch_px=4, pred_depth_m=depth)
+        still = episode_believability(ep, "close", static(rgb), patch_px=4, pred_depth_m=static(depth))
         assert truth["metrics"]["objects_present"] == 1.0 and len(truth["per_object"]) >= 2
         assert 0.8 < truth["metrics"]["token_grid_ratio"] < 1.25
         if ep.intent["skill"] == "keep_still":
@@ -568,6 +569,10 @@ def test_ground_truth_of_a_simulated_group_is_believed(tmp_path):
         static_entries.append((ep.group_id, still["contrast_entry"]))
     assert contrast_by_group(gt_entries)["share"] == contrast_by_group(gt_entries)["share_whole"] == 1.0
     assert contrast_by_group(static_entries)["per_skill"] == {"keep_still": 1.0, "push": 0.0}
+    # The truth's arm goes to the pushed object; the static world's goes nowhere.
+    truth_arm, still_arm = contrast_by_group(gt_entries), contrast_by_group(static_entries)
+    assert truth_arm["arm_judged"] == truth_arm["arm_instructed"] == truth_arm["arm_measured"] == 1
+    assert (still_arm["arm_judged"], still_arm["arm_instructed"]) == (1, 0)
 
 
 def test_checkpoint_option_defaults_to_the_shipped_model_and_repeats():

@@ -139,6 +139,7 @@ MEASURES = (
     Measure("contrast, the moved object found whole", _count("right_whole", "instructions")),
     Measure("\"keep still\" right", _count("still_right", "still_instructions")),
     Measure("active instructions right", _count("active_right", "active_instructions")),
+    Measure("the arm goes to the instructed object", _count("arm_instructed", "arm_judged")),
     Measure(f"token grid ratio ({TOKEN_GRID_GOAL[0]:g}–{TOKEN_GRID_GOAL[1]:g})",
             _summary("token_grid_ratio", lambda v: f"{v:.3f}"), lambda v: TOKEN_GRID_GOAL[0] <= v <= TOKEN_GRID_GOAL[1]),
     Measure(f"edge sharpness (≥ {EDGE_SHARPNESS_GOAL:g})", _summary("edge_sharpness", lambda v: f"{v:.3f}"),
@@ -165,11 +166,15 @@ def goals_table(reports: list[tuple[str, dict]], references: bool = False) -> st
         samplers = "; ".join(f"{Path(path).name} {describe_sampler(sampler[m])}"
                              for m, path in report["checkpoints"].items() if sampler.get(m))
         tracked = max((f.get("episodes", 0) for f in (report.get("instruction_following") or {}).values()), default=0)
+        truth = (report.get("contrast") or {}).get("ground_truth") or {}
+        arm = (f"; where the arm goes judged on the {truth['arm_judged']} of {truth['arm_measured']} active "
+               f"instructions where the ground truth's own arm is found at the instructed object"
+               if truth.get("arm_measured") else "")
         lines.append(f"- {label}: {report['episodes']} held-out episodes of {report.get('config', {}).get('data', '?')} "
                      f"({', '.join(report.get('tasks', []))}), noise seeds {', '.join(map(str, seeds))}"
                      + (f"; samplers: {samplers}" if samplers else "")
                      + f"; moved the right way over the {tracked} predictions whose instructed object the colour "
-                       f"tracker follows.")
+                       f"tracker follows{arm}.")
     return "\n".join(lines)
 
 

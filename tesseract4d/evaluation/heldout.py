@@ -52,7 +52,8 @@ episode at once. Until format 7, several checkpoints in one run all sampled with
 number of steps: a 10-step model listed after a 2-step student was scored at 2 steps. Each now
 samples with its own preset's steps and guidance, recorded under "sampler". Format 8 added each
 network's instruction discrimination, :func:`instruction_discrimination`; format 9 its words over
-another future's noisy sample.) Scenes are predicted
+another future's noisy sample; format 10 where each clip's arm goes, :mod:`tesseract4d.evaluation.arm_target`.)
+Scenes are predicted
 several per network call (:func:`tesseract4d.model.predict.predict_scenes`, ``batch_size``), each
 from the noise that predicting it alone with its noise seed draws, so the numbers do not depend
 on the batch size (up to the rounding of batched maths).
@@ -493,9 +494,11 @@ def evaluate_heldout(cfg: HeldoutConfig, progress: bool = True) -> dict:
 
             def score(method, output, token_rgb=None):
                 """(metrics, per-object presence, contrast entry, direction score or None) of one output."""
-                rgb = output.cameras[camera].rgb if isinstance(output, df.Episode) else output.rgb  # episode or Recon4D
+                frames = output.cameras[camera] if isinstance(output, df.Episode) else output  # episode or Recon4D
+                rgb = frames.rgb
                 metrics = evaluate_episode(output, gt, camera=camera, moving_mask=moving, max_depth_m=max_depth_m)["mean"]
-                believe = episode_believability(gt, camera, rgb, method_patch[method], token_rgb=token_rgb)
+                believe = episode_believability(gt, camera, rgb, method_patch[method], token_rgb=token_rgb,
+                                                pred_depth_m=frames.depth_m)
                 metrics.update(believe["metrics"])
                 sc = None
                 if gt.env_id in TARGET_OBJECT and gt_cam.segmentation is not None:
@@ -508,7 +511,7 @@ def evaluate_heldout(cfg: HeldoutConfig, progress: bool = True) -> dict:
             shared = {key: autoencoder_round_trip(pipelines[i], gt, camera) for key, i in ceilings.items()}
             shared["static"] = static_world(first, camera, num_frames[j])
             shared_scores = {method: score(method, output) for method, output in shared.items()}
-            gt_believe = episode_believability(gt, camera, gt_cam.rgb, static_patch_px)
+            gt_believe = episode_believability(gt, camera, gt_cam.rgb, static_patch_px, pred_depth_m=gt_cam.depth_m)
             skill = (gt.intent or {}).get("skill") or "task"
             for k, seed in enumerate(seeds):
                 scored = {}
@@ -574,7 +577,7 @@ def build_report(cfg, rows: list[dict], methods: list[str], labels: dict, scores
     config = {k: (str(v) if isinstance(v, Path) else [str(x) for x in v] if isinstance(v, (list, tuple)) else v)
               for k, v in dataclasses.asdict(cfg).items()}
     return {
-        "format": "tesseract4d-heldout-eval", "format_version": 9,
+        "format": "tesseract4d-heldout-eval", "format_version": 10,
         "config": config, "checkpoints": checkpoints, "sampler": sampler or {}, "token_patch_px": patch_px,
         "resolutions": resolutions or {},
         "episodes": len({r["episode"] for r in rows}), "sample_seeds": sorted({r.get("sample_seed", 0) for r in rows}),
@@ -634,6 +637,16 @@ def _right_of(contrast: dict | None, kind: str) -> str:
     """"right / judged" of the "keep still" (``kind`` "still") or the active instructions."""
     c = contrast or {}
     return f"{c[kind + '_right']} / {c[kind + '_instructions']}" if kind + "_instructions" in c else "–"
+
+
+def _arm_of(contrast: dict | None) -> str:
+    """"at the instructed object / judged" of where the arm goes, "–" where nothing was judged."""
+    c = contrast or {}
+    if not c.get("arm_judged"):
+        return "–"
+    wrong = (f" (judged wrong: {c['arm_instructed_wrong']} / {c['arm_judged_wrong']})"
+             if c.get("arm_judged_wrong") else "")
+    return f"{c['arm_instructed']} / {c['arm_judged']}{wrong}"
 
 
 def _discriminated(entry: dict | None) -> str:
@@ -705,6 +718,9 @@ def format_markdown(report: dict) -> str:
                          + " | ".join(_right_of(contrast.get(m), "still") for m in methods) + " |")
             lines.append("| instruction contrast: active instructions right | held-out groups | "
                          + " | ".join(_right_of(contrast.get(m), "active") for m in methods) + " |")
+            if any(contrast.get(m, {}).get("arm_judged") for m in methods):
+                lines.append("| where the arm goes: the instructed object | active instructions | "
+                             + " | ".join(_arm_of(contrast.get(m)) for m in methods) + " |")
     discrimination = report.get("discrimination") or {}
     if any(discrimination.get(m, {}).get("episodes") for m in methods):
         lines.append("| instruction discrimination: the network's one-step prediction from its own instruction "
@@ -752,6 +768,12 @@ def format_markdown(report: dict) -> str:
                      f"instruction counts only if the tracker finds the object in the last frame as one object of "
                      f"about its size (not a smear, fragments or a copy of its colour; the ground truth scores "
                      f"{_fmt(gt.get('share_whole'), '')}).")
+        if gt.get("arm_measured"):
+            lines.append(f"Where the arm goes (tesseract4d/evaluation/arm_target.py): the scene object with the most "
+                         f"changed points just above the table near it, judged on the {gt['arm_judged']} of "
+                         f"{gt['arm_measured']} active instructions where it finds the ground truth's own arm at the "
+                         f"instructed object; a prediction's arm elsewhere is a wrong choice of object, its arm at "
+                         f"the object with the instruction judged wrong a lost contact.")
     for by in ("per_skill", "per_task"):
         table, n_eps = report.get(by), report.get("episodes_" + by, {})
         if not table:

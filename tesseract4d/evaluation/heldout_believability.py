@@ -14,7 +14,9 @@ Per episode and per method (a predicted clip against the episode's ground truth)
 - a contrast entry (:func:`contrast_entry`) when the episode has a structured intent: the
   commanded world displacement of the instructed object projected into the image with K and
   T_world_cam, the displacement :func:`find_object` finds in the prediction's last frame, and
-  whether it found the object there whole (not a smear, fragments or a copy of its colour).
+  whether it found the object there whole (not a smear, fragments or a copy of its colour); given
+  the clip's depth, also which object its arm goes to, and the ground truth's
+  (:mod:`tesseract4d.evaluation.arm_target`).
 
 :func:`contrast_by_group` scores each counterfactual group (episodes sharing ``group_id``) with
 :func:`believability.instruction_contrast`; :func:`breakdown` averages any per-episode metric per
@@ -30,6 +32,7 @@ import numpy as np
 from tesseract4d.evaluation.believability import (MIN_OBJECT_PIXELS, OBJECT_COLOUR_TOL, PRESENCE_SLACK_PX,
                                                   RIGHT_WAY_COSINE, STILL_SHARE, _dilate, _min_colour_distance,
                                                   edge_sharpness, instruction_contrast, objects_present, token_grid_ratio)
+from tesseract4d.evaluation.arm_target import arm_visit
 from tesseract4d.evaluation.instruction_following import object_pixel_track
 from tesseract4d.intervals import wilson_interval
 from tesseract4d.segments import scene_object_ids
@@ -161,10 +164,12 @@ def track_object(first_rgb: np.ndarray, object_mask: np.ndarray, target_rgb: np.
     return None if found is None else (found.du, found.dv)
 
 
-def contrast_entry(gt, camera: str, pred_rgb: np.ndarray) -> dict | None:
+def contrast_entry(gt, camera: str, pred_rgb: np.ndarray, pred_depth_m: np.ndarray | None = None) -> dict | None:
     """The :func:`believability.instruction_contrast` entry of one predicted clip, or None when the
     episode has no intent (version-1 data), its skill moves no object (hover/reach), or its target
-    is not recorded. gt: the ground-truth Episode; pred_rgb: (T, H, W, 3) uint8."""
+    is not recorded. gt: the ground-truth Episode; pred_rgb: (T, H, W, 3) uint8. With ``pred_depth_m``
+    (T, H, W) an active entry also says which object the arm goes to, in the prediction and in the
+    ground truth (:mod:`tesseract4d.evaluation.arm_target`; ``arm_object``, ``arm_object_truth``)."""
     intent = gt.intent
     if not intent or intent.get("skill") in GRIPPER_ONLY_SKILLS:
         return None
@@ -187,15 +192,21 @@ def contrast_entry(gt, camera: str, pred_rgb: np.ndarray) -> dict | None:
             entry["whole"] = found.whole
             if float(np.hypot(found.du, found.dv)) >= MIN_PREDICTED_PX:
                 entry["predicted_px"] = (found.du, found.dv)
+    if pred_depth_m is not None:
+        truth = arm_visit(gt, camera, cam.rgb, cam.depth_m)
+        if truth.judged:
+            entry.update(target=target, arm_object=arm_visit(gt, camera, pred_rgb, pred_depth_m).object,
+                         arm_object_truth=truth.object)
     return entry
 
 
 def episode_believability(gt, camera: str, pred_rgb: np.ndarray, patch_px: int | None,
-                          token_rgb: np.ndarray | None = None) -> dict:
+                          token_rgb: np.ndarray | None = None, pred_depth_m: np.ndarray | None = None) -> dict:
     """Every believability measure of one predicted clip (see the module docstring). ``patch_px``:
     the model's token size in pixels of ``token_rgb`` (default ``pred_rgb``), the clip whose token
     grid is measured (a prediction resized to the data's resolution is measured as the model made
-    it); None = no token grid to measure (NaN).
+    it); None = no token grid to measure (NaN). ``pred_depth_m``: the clip's depth, for where its arm goes
+    (:func:`contrast_entry`).
 
     Returns ``{"metrics": {objects_present, token_grid_ratio, edge_sharpness, motion},
     "per_object": {name: share}, "contrast_entry": dict | None}``. Frames are matched by index.
@@ -215,19 +226,25 @@ def episode_believability(gt, camera: str, pred_rgb: np.ndarray, patch_px: int |
         presence = objects_present(gt_rgb, np.asarray(cam.segmentation)[:n], ids, pred_rgb)
         metrics["objects_present"] = presence.frames_all_present
         per_object = {cam.seg_id_to_name[i]: v for i, v in presence.per_object.items()}
-    return {"metrics": metrics, "per_object": per_object, "contrast_entry": contrast_entry(gt, camera, pred_rgb)}
+    return {"metrics": metrics, "per_object": per_object,
+            "contrast_entry": contrast_entry(gt, camera, pred_rgb, None if pred_depth_m is None else np.asarray(pred_depth_m)[:n])}
 
 
 def contrast_by_group(entries: list[tuple[str, dict]]) -> dict:
     """Score counterfactual groups. entries: (group_id, contrast entry) pairs of one method.
 
     Returns ``{"instructions", "right", "share", "wilson95": [low, high], "groups",
-    "still_instructions", "still_right", "active_instructions", "active_right", "right_whole",
-    "share_whole", "wilson95_whole", "per_skill": {skill: share}, "per_task": {env_id: share},
+    "still_instructions", "still_right", "active_instructions", "active_right", "arm_measured", "arm_judged",
+    "arm_instructed", "arm_judged_wrong", "arm_instructed_wrong", "right_whole", "share_whole", "wilson95_whole", "per_skill": {skill: share}, "per_task": {env_id: share},
     "per_group": {group_id: [rows]}}``; "keep still" is only judged in a group with an active
     instruction (its right/wrong is relative to them). ``active_right`` counts the active
     instructions right: a model that never moves gets every "keep still" right and scores the
-    share of "keep still" instructions, so the two parts are reported apart as well. ``wilson95``
+    share of "keep still" instructions, so the two parts are reported apart as well. ``arm_instructed``
+    of ``arm_judged``: active instructions whose arm goes to the instructed object
+    (:mod:`~tesseract4d.evaluation.arm_target`), judged where the entry has it (``arm_measured``) and the
+    ground truth's own arm is found at the instructed object; ``arm_instructed_wrong`` of
+    ``arm_judged_wrong``: the same over those whose contrast is wrong (the arm at the object, the contact
+    lost). ``wilson95``
     is the share's 95 % Wilson interval: with a few dozen instructions a model's share is known to
     about ±0.15. ``right_whole``: the right ones whose instructed object was also found whole
     (:func:`find_object`; "keep still" as judged), so a smear of the object's colour that moves the
@@ -244,6 +261,8 @@ def contrast_by_group(entries: list[tuple[str, dict]]) -> dict:
             if not e["still"]:
                 row.update(commanded_px=list(e["commanded_px"]), predicted_px=list(e["predicted_px"]),
                            whole=bool(e.get("whole", False)))
+                if "arm_object_truth" in e:
+                    row.update(target=e["target"], arm_object=e["arm_object"], arm_object_truth=e["arm_object_truth"])
             row["right_whole"] = bool(row["right"]) and (bool(e["still"]) or row["whole"])
         per_group[gid] = result.per_instruction
         rows += result.per_instruction
@@ -257,12 +276,19 @@ def contrast_by_group(entries: list[tuple[str, dict]]) -> dict:
     right_whole = sum(r["right_whole"] for r in rows)
     still = [bool(r["right"]) for r in rows if r.get("still")]
     active = [bool(r["right"]) for r in rows if not r.get("still")]
+    # Where the arm goes, judged where the measure finds the ground truth's own arm at the instructed object.
+    measured = [r for r in rows if "arm_object_truth" in r]
+    judged = [r for r in measured if r["arm_object_truth"] == r["target"]]
+    wrong = [r for r in judged if not r["right"]]
     return {"instructions": len(rows), "right": right, "share": right / len(rows) if rows else float("nan"),
             "wilson95": list(wilson_interval(right, len(rows))), "groups": len(groups),
             "right_whole": right_whole, "share_whole": right_whole / len(rows) if rows else float("nan"),
             "wilson95_whole": list(wilson_interval(right_whole, len(rows))),
             "still_instructions": len(still), "still_right": sum(still),
             "active_instructions": len(active), "active_right": sum(active),
+            "arm_measured": len(measured), "arm_judged": len(judged),
+            "arm_instructed": sum(r["arm_object"] == r["target"] for r in judged),
+            "arm_judged_wrong": len(wrong), "arm_instructed_wrong": sum(r["arm_object"] == r["target"] for r in wrong),
             "per_skill": {s: float(np.mean(v)) for s, v in sorted(per_skill.items())},
             "per_task": {t: float(np.mean(v)) for t, v in sorted(per_task.items())},
             "per_group": per_group, "right_way_cosine": RIGHT_WAY_COSINE, "still_share": STILL_SHARE}
