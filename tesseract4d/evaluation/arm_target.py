@@ -59,7 +59,7 @@ def table_height_m(depth_m: np.ndarray, segmentation: np.ndarray, seg_id_to_name
     mask = np.isin(segmentation, ids) & (np.asarray(depth_m) > 0)
     if not mask.any():
         return None
-    points, valid = depth_to_world_points(np.where(mask, depth_m, 0.0), K, T_world_cam)
+    points, _ = depth_to_world_points(np.where(mask, depth_m, 0.0), K, T_world_cam)
     return float(np.median(points[:, 2]))
 
 

@@ -227,15 +227,17 @@ def episode_believability(gt, camera: str, pred_rgb: np.ndarray, patch_px: int |
         metrics["objects_present"] = presence.frames_all_present
         per_object = {cam.seg_id_to_name[i]: v for i, v in presence.per_object.items()}
     return {"metrics": metrics, "per_object": per_object,
-            "contrast_entry": contrast_entry(gt, camera, pred_rgb, None if pred_depth_m is None else np.asarray(pred_depth_m)[:n])}
+            "contrast_entry": contrast_entry(gt, camera, pred_rgb,
+                                             None if pred_depth_m is None else np.asarray(pred_depth_m)[:n])}
 
 
 def contrast_by_group(entries: list[tuple[str, dict]]) -> dict:
     """Score counterfactual groups. entries: (group_id, contrast entry) pairs of one method.
 
     Returns ``{"instructions", "right", "share", "wilson95": [low, high], "groups",
-    "still_instructions", "still_right", "active_instructions", "active_right", "arm_measured", "arm_judged",
-    "arm_instructed", "arm_judged_wrong", "arm_instructed_wrong", "right_whole", "share_whole", "wilson95_whole", "per_skill": {skill: share}, "per_task": {env_id: share},
+    "still_instructions", "still_right", "active_instructions", "active_right", "arm_measured",
+    "arm_judged", "arm_instructed", "arm_judged_wrong", "arm_instructed_wrong", "right_whole",
+    "share_whole", "wilson95_whole", "per_skill": {skill: share}, "per_task": {env_id: share},
     "per_group": {group_id: [rows]}}``; "keep still" is only judged in a group with an active
     instruction (its right/wrong is relative to them). ``active_right`` counts the active
     instructions right: a model that never moves gets every "keep still" right and scores the
