@@ -528,6 +528,15 @@ def test_viewer_survives_malformed_requests_and_stops_cleanly(sandbox, stop):
     assert "Traceback" not in err and "interrupted" in err
 
 
+def test_a_viewer_stopped_as_soon_as_it_prints_its_url_stops_cleanly(sandbox):
+    """A supervisor may stop the viewer the moment it reports its URL: SIGTERM then is the same clean stop."""
+    proc, _, _ = _start_viewer(sandbox)
+    proc.send_signal(signal.SIGTERM)
+    rc = proc.wait(timeout=60)
+    err = proc.stderr.read()
+    assert rc == 130 and "Traceback" not in err and "interrupted" in err, (rc, err)
+
+
 def test_viewer_on_all_interfaces_warns(sandbox):
     proc, _, _ = _start_viewer(sandbox, "--host", "0.0.0.0")
     try:

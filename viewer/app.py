@@ -504,14 +504,15 @@ def serve_forever(app: ViewerApp) -> None:
 
     if note := network_warning(app.host):
         print(note, file=sys.stderr, flush=True)
-    url = app.start()
-    print(f"viewer: {url}  (Ctrl-C to stop)", flush=True)
 
     def _terminate(signum, frame):
         raise KeyboardInterrupt  # the same clean stop as Ctrl-C
 
+    # Installed before the URL is printed: whoever reads the URL may stop the viewer at once.
     previous = signal.signal(signal.SIGTERM, _terminate) if threading.current_thread() is threading.main_thread() else None
     try:
+        url = app.start()
+        print(f"viewer: {url}  (Ctrl-C to stop)", flush=True)
         while True:
             threading.Event().wait(3600)
     finally:
