@@ -135,12 +135,16 @@ def test_generate_panel_shows_the_result_and_errors(page, app, artifacts_dir):
     assert "sampler diverged" in (app.generation_error or "")
     assert app.server is not None and app.generation_count == 0  # still serving
 
+    # One input at a time, as a person types: viser's client sends all GUI updates through one
+    # 50 ms throttle that keeps only the latest message, so two inputs changed within 50 ms of
+    # the Generate click would lose the first of them.
     text.fill("slide the box further")
     text.press("Enter")
+    wait_for(lambda: app.instruction_text.value == "slide the box further")
     seed = control(page, "Seed")
     seed.fill("4")
     seed.press("Enter")
-    wait_for(lambda: app.seed_number.value == 4 and app.instruction_text.value == "slide the box further")
+    wait_for(lambda: app.seed_number.value == 4)
     page.get_by_role("button", name="Generate").click()
     page.get_by_text("Done:").first.wait_for(timeout=30_000)
     assert app.generation_count == 1 and app.layer.recon.metadata["instruction"] == "slide the box further"
