@@ -74,10 +74,16 @@ def test_demo_predicts_a_counterfactual_pair(tmp_path):
 def test_demo_without_contrast_writes_one_future(tmp_path):
     out = tmp_path / "demo"
     proc = cli("demo", "--headless", "--task", "PushCube-v1", "--seed", HELDOUT_SEED_START + 1, "--no-contrast",
-               "--steps", 2, "--out", out)
+               "--steps", 2, "--draws", 2, "--out", out)
     assert "instruction:" in proc.stdout and "contrast:" not in proc.stdout
     config = json.loads((out / "demo_config.json").read_text())
     assert config["contrast"] is False and config["contrast_instruction"] is None and config["instruction"]
+    # Two noise draws, the kept one chosen by the rendered first frame's objects (its segmentation).
+    from tesseract4d import dataset_format as df
+
+    chosen = df.read_episode(df.resolve_episode(out / "prediction")).metadata["prediction"]["draws"]
+    assert config["draws"] == 2 and chosen["count"] == 2 and chosen["kept"] in (0, 1)
+    assert all(0.0 <= s <= 1.0 for s in chosen["objects_kept"])
     assert (out / "scene.html").is_file() and len(list((out / "reconstruction" / "frames").glob("*.ply"))) == 16
     assert list((out / "prediction").rglob("*.mp4")) and list((out / "first_frame").rglob("*.h5"))
     assert not (out / "contrast").exists() and not (out / "side_by_side.mp4").exists()

@@ -297,6 +297,8 @@ def test_a_guidance_interval_is_sampled_and_reported(two_checkpoints, tmp_path):
                                                                  "autoguidance 1 at noise ≥ 0.5")
     assert describe_sampler({"num_steps": 2, "text_guidance": 1.0, "static_tolerance": 0.2}) == (
         "2 steps, text guidance 1, first frame kept where still (tolerance 0.2)")
+    assert describe_sampler({"num_steps": 2, "text_guidance": 1.0, "draws": 4}) == (
+        "2 steps, text guidance 1, the best of 4 noise draws")
 
 
 def test_a_sampler_started_from_a_clip_begins_at_its_noise_level_and_runs_only_the_steps_from_there(two_checkpoints):

@@ -259,11 +259,12 @@ def test_set_sampler_refuses_bad_settings(checkpoint, tmp_path, capsys):
             (["--to", str(tmp_path / "c"), "--text-guidance", "0"], "--text-guidance must be"),
             (["--to", str(tmp_path / "d"), "--steps", "0"], "--steps must be"),
             (["--to", str(tmp_path / "e"), "--static-tolerance", "-0.1"], "--static-tolerance must be"),
+            (["--to", str(tmp_path / "f"), "--draws", "0"], "--draws must be a whole number of noise draws"),
             (["--to", str(checkpoint), "--steps", "3"], "--to")]
     for extra, message in runs:
         assert cli.main(["set-sampler", "--checkpoint", str(checkpoint), *extra]) != 0
         assert message in capsys.readouterr().err
-    assert not any((tmp_path / name).exists() for name in "abcde")
+    assert not any((tmp_path / name).exists() for name in "abcdef")
 
 
 def test_set_sampler_static_tolerance_keeps_the_first_frame_where_the_clip_is_still(checkpoint, tmp_path):

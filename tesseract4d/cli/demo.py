@@ -51,6 +51,7 @@ class DemoConfig:
     out: Path = Path("demo_out")
     num_frames: int | None = None  # None: one clip of the checkpoint's preset
     steps: int | None = None  # None: the checkpoint preset's
+    draws: int | None = None  # noise draws per future, the best kept; None: the checkpoint preset's
     sample_seed: int = 0
     camera: str | None = None  # None: the checkpoint's camera preset
     host: str = "127.0.0.1"
@@ -86,6 +87,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", type=Path, default=d.out, help="output folder (default %(default)s)")
     parser.add_argument("--num-frames", type=int, help="frames to predict (default: one clip, the checkpoint preset's length)")
     parser.add_argument("--steps", type=int, help="sampler steps (default: the checkpoint preset's)")
+    parser.add_argument("--draws", type=int, metavar="N",
+                        help="noise draws per future; each keeps the one whose objects keep their colours best "
+                             "(default: the checkpoint preset's; 1 = a single draw)")
     parser.add_argument("--sample-seed", type=int, default=d.sample_seed,
                         help="diffusion noise seed, shared by both futures (default %(default)s)")
     parser.add_argument("--camera", help="camera preset to render the first frame from (default: the checkpoint's)")
@@ -102,7 +106,7 @@ def run(args: argparse.Namespace) -> int:
         task=args.task, seed=args.seed, instruction=args.instruction, skill=args.skill,
         contrast_instruction=args.contrast_instruction, contrast_skill=args.contrast_skill, contrast=not args.no_contrast,
         checkpoint=args.checkpoint, out=args.out, num_frames=args.num_frames, steps=args.steps,
-        sample_seed=args.sample_seed, camera=args.camera, host=args.host, port=args.port, headless=args.headless,
+        draws=args.draws, sample_seed=args.sample_seed, camera=args.camera, host=args.host, port=args.port, headless=args.headless,
         precision=args.precision, overwrite=args.overwrite,
     )
     outputs = run_demo(cfg)
@@ -211,7 +215,8 @@ def _run_demo_stages(cfg: DemoConfig, out: Path) -> dict[str, Path]:
     # The resolved config: instructions, camera, frames and steps as used.
     cfg = dataclasses.replace(cfg, instruction=main, contrast_instruction=contrast, contrast=contrast is not None,
                               camera=camera, num_frames=cfg.num_frames or pipeline.num_frames,
-                              steps=cfg.steps or pipeline.preset.num_steps, **skills)
+                              steps=cfg.steps or pipeline.preset.num_steps,
+                              draws=pipeline.preset.draws if cfg.draws is None else cfg.draws, **skills)
     (out / "demo_config.json").write_text(json.dumps(dataclasses.asdict(cfg), indent=2, default=str))
     for text in instructions:
         if note := instruction_budget_note(pipeline, text):
@@ -221,7 +226,7 @@ def _run_demo_stages(cfg: DemoConfig, out: Path) -> dict[str, Path]:
 
     stages.set_postfix_str("predict: " + " | ".join(repr(t) for t in instructions))
     preds = predict_counterfactuals(pipeline, first, instructions, num_frames=cfg.num_frames, seed=cfg.sample_seed,
-                                    num_steps=cfg.steps)
+                                    num_steps=cfg.steps, draws=cfg.draws)
     # (folder, predicted episode, instruction, output-name prefix) per future
     futures = [(out, preds[0], main, "")] + ([(out / CONTRAST_DIR, preds[1], contrast, "contrast ")] if contrast is not None else [])
     written = {"first frame": first_path}

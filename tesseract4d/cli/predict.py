@@ -44,6 +44,7 @@ class PredictConfig:
     out: Path = Path("prediction")
     num_frames: int | None = None  # None: one clip of the checkpoint's preset
     steps: int | None = None  # None: the checkpoint preset's
+    draws: int | None = None  # noise draws per sample, the best kept; None: the checkpoint preset's
     sample_seed: int = 0
     num_samples: int = 1
     text_guidance: float | None = None
@@ -71,6 +72,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--num-frames", type=int, help="frames to predict; more than one clip continues autoregressively "
                         "(default: one clip, the checkpoint preset's length)")
     parser.add_argument("--steps", type=int, help="sampler steps (default: the checkpoint preset's)")
+    parser.add_argument("--draws", type=int, metavar="N",
+                        help="noise draws per sample; each keeps the one whose objects (from the first frame's "
+                             "segmentation: --task or --episode) keep their colours best; N times the sampling "
+                             "(default: the checkpoint preset's; 1 = a single draw)")
     parser.add_argument("--sample-seed", type=int, default=d.sample_seed, help="noise seed (default %(default)s)")
     parser.add_argument("--num-samples", type=int, default=d.num_samples, help="samples to draw in one batch (default %(default)s)")
     parser.add_argument("--text-guidance", type=float, help="text guidance scale (default: the checkpoint preset's)")
@@ -183,8 +188,12 @@ def run(args: argparse.Namespace) -> int:
     output = OutputDir(cfg.out, "predict", inputs=_input_paths(cfg), overwrite=args.overwrite)
     pipe = load_pipeline(cfg.checkpoint, device=cfg.device, precision=cfg.precision)
     # The resolved config: frames and steps the checkpoint's preset gives when not set.
-    cfg = dataclasses.replace(cfg, num_frames=cfg.num_frames or pipe.num_frames, steps=cfg.steps or pipe.preset.num_steps)
+    cfg = dataclasses.replace(cfg, num_frames=cfg.num_frames or pipe.num_frames, steps=cfg.steps or pipe.preset.num_steps,
+                              draws=pipe.preset.draws if cfg.draws is None else cfg.draws)
     first = load_first_frame(cfg, pipe.resolution, pipe.camera_name)
+    if cfg.draws > 1 and all(cam.segmentation is None for cam in first.cameras.values()):
+        print(f"note: {cfg.draws} noise draws need the scene's objects, and this first frame has no segmentation "
+              f"(--rgb/--depth): one draw is sampled", file=sys.stderr)
     instruction = cfg.instruction if cfg.instruction is not None else first.instruction
     if isinstance(instruction, str) and (note := instruction_budget_note(pipe, instruction.strip())):
         print(note, file=sys.stderr)
@@ -196,8 +205,13 @@ def run(args: argparse.Namespace) -> int:
 
     episodes = predict_episodes(pipe, first, instruction, num_samples=cfg.num_samples, num_frames=cfg.num_frames,
                                 seed=cfg.sample_seed, num_steps=cfg.steps, text_guidance=cfg.text_guidance,
-                                image_guidance=cfg.image_guidance, progress=progress)
+                                image_guidance=cfg.image_guidance, progress=progress, draws=cfg.draws)
     bar.close()
+    for k, ep in enumerate(episodes):
+        if chosen := ep.metadata["prediction"].get("draws"):
+            scores = ", ".join("n/a" if s != s else f"{s:.2f}" for s in chosen["objects_kept"])
+            print(f"{'' if len(episodes) == 1 else f'sample {k}: '}kept draw {chosen['kept']} of {chosen['count']} "
+                  f"(objects kept per draw: {scores})")
     out = Path(cfg.out)
     resolved = {k: (str(v) if isinstance(v, Path) else v) for k, v in dataclasses.asdict(cfg).items()}
     with output as stage:

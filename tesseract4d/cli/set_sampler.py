@@ -18,6 +18,10 @@ Static compositing (`--static-tolerance T`): where the decoded clip stays within
 given first frame's own pixels are shown instead of the decoder's redrawing of them; the parts of the
 scene the model moves are left as predicted (README "Static compositing").
 
+Several noise draws (`--draws N`): every future is predicted from N noises and the one whose objects
+keep their colours best is kept (read from the first frame and the predicted clip only; README "Best of
+several noise draws"); N times the sampling.
+
 Example (v2's 10 guided steps, guidance only at noise ≥ 0.5: 15 network passes per clip instead of 20):
   tesseract4d set-sampler --checkpoint tesseract4d/checkpoints/v2 --guidance-min-sigma 0.5 --to runs/v2_interval
   tesseract4d evaluate --heldout data/heldout_groups128 --checkpoint tesseract4d/checkpoints/v2 \\
@@ -56,6 +60,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="static compositing: where the decoded clip stays within T of its first frame "
                              "(model-space units, channels in [-1, 1]), show the given first frame's own pixels "
                              "instead of the decoder's redrawing of them (0 = off)")
+    parser.add_argument("--draws", type=int, metavar="N",
+                        help="predict every future from N noise draws and keep the one whose objects (from the "
+                             "first frame's segmentation) keep their colours best; N times the sampling (1 = a "
+                             "single draw; README \"Best of several noise draws\")")
     parser.add_argument("--guide", type=Path, metavar="CKPT",
                         help="checkpoint whose transformer becomes the copy's autoguidance network: a weaker "
                              "model of the same latent space, e.g. an early checkpoint of the same training run")
@@ -74,7 +82,8 @@ def run(args: argparse.Namespace) -> int:
                                                 ("guidance_min_sigma", args.guidance_min_sigma),
                                                 ("autoguidance", args.autoguidance),
                                                 ("autoguidance_min_sigma", args.autoguidance_min_sigma),
-                                                ("static_tolerance", args.static_tolerance))
+                                                ("static_tolerance", args.static_tolerance),
+                                                ("draws", args.draws))
                 if value is not None}
     to = write_sampler_copy(args.checkpoint, args.to, settings, overwrite=args.overwrite, guide=args.guide,
                             guide_bits=args.guide_bits)

@@ -22,9 +22,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-# Colour distance (RGB, 0-255) within which a predicted pixel counts as the object's colour; the
-# instruction-following tracker uses the same tolerance.
-OBJECT_COLOUR_TOL = 40.0
+from tesseract4d.object_colours import OBJECT_COLOUR_TOL, dilate, distinctive, min_colour_distance
+
 # A present object shows at least this share of its true pixel count in its colour near its true place.
 MIN_PRESENT_FRACTION = 0.3
 # How far (pixels) from its true silhouette a predicted object may be and still count as in place.
@@ -82,30 +81,11 @@ def edge_sharpness(pred_rgb: np.ndarray, gt_rgb: np.ndarray) -> float:
     return float(pg3[edges].mean() / max(float(gg3[edges].mean()), 1e-6))
 
 
-def _dilate(mask: np.ndarray, px: int) -> np.ndarray:
-    out = mask.copy()
-    for _ in range(px):
-        grown = out.copy()
-        grown[1:] |= out[:-1]
-        grown[:-1] |= out[1:]
-        grown[:, 1:] |= out[:, :-1]
-        grown[:, :-1] |= out[:, 1:]
-        out = grown
-    return out
-
-
 @dataclass
 class Presence:
     frames_all_present: float  # share of judged frames in which every visible object is present
     per_object: dict[int, float]  # object id -> share of its judged frames in which it is present
     judged_frames: int
-
-
-def _min_colour_distance(colours: np.ndarray, palette: np.ndarray) -> np.ndarray:
-    """For each of ``colours`` (N, 3), the distance to the nearest of ``palette`` (M, 3)."""
-    if len(palette) == 0:
-        return np.full(len(colours), np.inf, np.float32)
-    return np.linalg.norm(colours[:, None, :] - palette[None, :, :], axis=-1).min(axis=1)
 
 
 def objects_present(gt_rgb: np.ndarray, gt_segmentation: np.ndarray, object_ids: list[int],
@@ -136,13 +116,11 @@ def objects_present(gt_rgb: np.ndarray, gt_segmentation: np.ndarray, object_ids:
         masks = seg == oid  # (T, H, W)
         hits = []
         for t in np.nonzero(masks.reshape(T, -1).sum(axis=1) >= MIN_OBJECT_PIXELS)[0]:
-            near = _dilate(masks[t], PRESENCE_SLACK_PX)
-            around = gt[t][near & ~masks[t]]  # (N, 3) what the ground truth shows next to the object
-            own = gt[t][masks[t]]  # (M, 3)
-            palette = own[_min_colour_distance(own, around) > OBJECT_COLOUR_TOL]
+            near = dilate(masks[t], PRESENCE_SLACK_PX)
+            palette = gt[t][masks[t]][distinctive(gt[t], masks[t], PRESENCE_SLACK_PX)]
             if len(palette) == 0:
                 continue
-            found = _min_colour_distance(pred[t][near], palette) < OBJECT_COLOUR_TOL
+            found = min_colour_distance(pred[t][near], palette) < OBJECT_COLOUR_TOL
             ok = bool(found.sum() >= MIN_PRESENT_FRACTION * len(palette))
             hits.append(ok)
             judged[t] = True

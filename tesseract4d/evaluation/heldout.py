@@ -263,7 +263,7 @@ def token_px_in_data(patch_px: int, factor: Fraction) -> int | None:
 
 def at_resolution(episode: df.Episode, camera: str, hw: tuple[int, int]) -> df.Episode:
     """``episode`` with only ``camera``, its RGB-D-N and K resized to ``hw`` (itself when already
-    there). The resized copy carries no segmentation (prediction reads none)."""
+    there). The resized copy carries no segmentation (so such a checkpoint keeps its first noise draw)."""
     cam = episode.cameras[camera]
     if tuple(cam.rgb.shape[1:3]) == tuple(hw) and list(episode.cameras) == [camera]:
         return episode
@@ -382,6 +382,8 @@ def sampler_settings(cfg: HeldoutConfig, pipeline) -> dict:
             settings["autoguidance_min_sigma"] = float(p.autoguidance_min_sigma)
     if p.static_tolerance > 0:
         settings["static_tolerance"] = float(p.static_tolerance)
+    if p.draws > 1:  # named only where there is a choice
+        settings["draws"] = int(p.draws)
     if cfg.start_from_truth is not None:  # the diagnostic (named only where it ran)
         settings["start_from_truth"] = float(cfg.start_from_truth)
     return settings
@@ -395,6 +397,7 @@ def describe_sampler(settings: dict) -> str:
     text += f" at noise ≥ {settings['autoguidance_min_sigma']:g}" if settings.get("autoguidance_min_sigma") else ""
     text += f", first frame kept where still (tolerance {settings['static_tolerance']:g})" if settings.get(
         "static_tolerance") else ""
+    text += f", the best of {settings['draws']} noise draws" if settings.get("draws") else ""
     if settings.get("start_from_truth") is not None:
         text += f", started from the true future at noise ≤ {settings['start_from_truth']:g}"
     return text

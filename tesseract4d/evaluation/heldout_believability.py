@@ -29,12 +29,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from tesseract4d.evaluation.believability import (MIN_OBJECT_PIXELS, OBJECT_COLOUR_TOL, PRESENCE_SLACK_PX,
-                                                  RIGHT_WAY_COSINE, STILL_SHARE, _dilate, _min_colour_distance,
+from tesseract4d.evaluation.believability import (MIN_OBJECT_PIXELS, PRESENCE_SLACK_PX, RIGHT_WAY_COSINE, STILL_SHARE,
                                                   edge_sharpness, instruction_contrast, objects_present, token_grid_ratio)
 from tesseract4d.evaluation.arm_target import arm_visit
 from tesseract4d.evaluation.instruction_following import object_pixel_track
 from tesseract4d.intervals import wilson_interval
+from tesseract4d.object_colours import dilate, distinctive, matches
 from tesseract4d.segments import scene_object_ids
 
 PRESENCE_GOAL = 0.95  # goal: every visible object present in at least 95 % of frames
@@ -124,21 +124,18 @@ def find_object(first_rgb: np.ndarray, object_mask: np.ndarray, target_rgb: np.n
     if mask.sum() < MIN_OBJECT_PIXELS:
         return None
     rgb0 = np.asarray(first_rgb, np.float32)
-    H, W = mask.shape
+    W = mask.shape[1]
     if search_px is None:
         search_px = max(24, round(SEARCH_FRACTION * W))
-    own = rgb0[mask]
-    keep = _min_colour_distance(own, rgb0[_dilate(mask, PRESENCE_SLACK_PX) & ~mask]) > OBJECT_COLOUR_TOL
-    palette = own[keep]
+    keep = distinctive(rgb0, mask, PRESENCE_SLACK_PX)
+    palette = rgb0[mask][keep]
     if not len(palette):
         return None
     vs, us = np.nonzero(mask)
     start = np.array([us[keep].mean(), vs[keep].mean()])
     spread0 = _rms_radius(us[keep], vs[keep])
-    matches = lambda rgb: (_min_colour_distance(np.asarray(rgb, np.float32).reshape(-1, 3), palette)  # noqa: E731
-                           .reshape(H, W) < OBJECT_COLOUR_TOL)
-    distractors = matches(rgb0) & ~_dilate(mask, 1)
-    v, u = np.nonzero(matches(target_rgb) & ~distractors)
+    distractors = matches(rgb0, palette) & ~dilate(mask, 1)
+    v, u = np.nonzero(matches(target_rgb, palette) & ~distractors)
     near = (np.abs(u - start[0]) < search_px) & (np.abs(v - start[1]) < search_px)
     if not near.any():
         return None

@@ -223,7 +223,7 @@ GUIDE_MUST_MATCH = ("patch_size", "patch_size_t", "text_embed_dim", "max_text_se
                     "sample_height", "sample_frames")
 # The preset fields that only say how a checkpoint samples (the weights do not depend on them).
 SAMPLER_FIELDS = ("num_steps", "text_guidance", "image_guidance", "guidance_min_sigma", "autoguidance",
-                  "autoguidance_min_sigma", "static_tolerance")
+                  "autoguidance_min_sigma", "static_tolerance", "draws")
 # The preset fields of a noise-level interval (0: every step).
 _INTERVAL_FIELDS = ("guidance_min_sigma", "autoguidance_min_sigma")
 
@@ -234,13 +234,15 @@ def check_sampler_settings(settings: dict) -> None:
 
     flags = {"num_steps": "--steps", "text_guidance": "--text-guidance", "image_guidance": "--image-guidance",
              "guidance_min_sigma": "--guidance-min-sigma", "autoguidance": "--autoguidance",
-             "autoguidance_min_sigma": "--autoguidance-min-sigma", "static_tolerance": "--static-tolerance"}
+             "autoguidance_min_sigma": "--autoguidance-min-sigma", "static_tolerance": "--static-tolerance",
+             "draws": "--draws"}
     for name, value in settings.items():
         if name not in SAMPLER_FIELDS:
             raise UserError(f"{name!r} is not a sampler setting (one of {', '.join(SAMPLER_FIELDS)})")
-        if name == "num_steps":
+        if name in ("num_steps", "draws"):
             if int(value) != value or value < 1:
-                raise UserError(f"{flags[name]} must be a whole number of steps ≥ 1, got {value}")
+                what = "steps" if name == "num_steps" else "noise draws (1: a single draw)"
+                raise UserError(f"{flags[name]} must be a whole number of {what} ≥ 1, got {value}")
         elif name in ("autoguidance", "static_tolerance"):
             if not math.isfinite(value) or value < 0:
                 raise UserError(f"{flags[name]} must be a finite number ≥ 0 (0: off), got {value}")
@@ -295,7 +297,7 @@ def write_sampler_copy(checkpoint: str | os.PathLike, to: str | os.PathLike, set
                        guide_bits: int = 16) -> Path:
     """Write a copy of ``checkpoint`` into ``to`` (a new folder; the checkpoint is never changed) whose
     preset samples with ``settings`` (SAMPLER_FIELDS: steps, guidance scales, guidance interval,
-    autoguidance), the weights byte for byte the same. ``guide``: a checkpoint whose transformer the
+    autoguidance, static compositing, noise draws), the weights byte for byte the same. ``guide``: a checkpoint whose transformer the
     copy carries as its autoguidance network (GUIDE_DIR), byte for byte, or with ``guide_bits`` 8 its
     matrices rounded to 8 bits per output row (half the bytes; a guide is a weaker network, and such a
     guide samples nearly as its float16 original on the held-out screen, README "Autoguidance"). The
@@ -309,7 +311,7 @@ def write_sampler_copy(checkpoint: str | os.PathLike, to: str | os.PathLike, set
 
     if not settings and guide is None:
         raise UserError("nothing to change: give --steps, --text-guidance, --image-guidance, --guidance-min-sigma, "
-                        "--autoguidance or --guide")
+                        "--autoguidance, --static-tolerance, --draws or --guide")
     check_sampler_settings(settings)
     if guide_bits not in (8, 16):
         raise UserError(f"--guide-bits must be 16 (the guide's weights as they are) or 8, got {guide_bits}")

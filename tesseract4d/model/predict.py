@@ -8,6 +8,10 @@
 The predicted episode keeps the first frame's env id, seed, intrinsics and (static) camera pose;
 its frame 0 is the given first frame, depth is metric (0 = beyond the model's depth range),
 normals are unit vectors in the OpenCV camera frame.
+
+A checkpoint whose preset has ``draws`` N > 1 predicts every future from N noise draws and keeps the
+one whose objects keep their colours best (draw_choice.py; ``draws=`` overrides the preset); the
+kept draw and every draw's score are in the episode's ``metadata["prediction"]["draws"]``.
 """
 
 from __future__ import annotations
@@ -23,6 +27,7 @@ from tesseract4d import dataset_format as df
 from tesseract4d.errors import UserError
 from tesseract4d.precision import announce, resolve_precision
 from tesseract4d.model.model_space import ModelSpace
+from tesseract4d.model.draw_choice import choose, draw_noise_seed, object_windows
 from tesseract4d.model.checkpoint import (GUIDE_DIR, INFERENCE_CONFIG_FILE, load_scheduler, load_transformer,
                                           read_inference_config)
 from tesseract4d.model.pipeline import RGBDNPipeline
@@ -98,6 +103,7 @@ def predict_episode(
     image_guidance: float | None = None,
     camera: str | None = None,
     progress: Callable[[int, int], None] | None = None,
+    draws: int | None = None,
 ) -> df.Episode:
     """Predict ``num_frames`` RGB-D-N frames from frame 0 of ``first_frame`` (its first camera, or
     ``camera``) and ``instruction``. Frames (one clip), sampler steps and guidance scales default to
@@ -107,7 +113,7 @@ def predict_episode(
     """
     episodes = predict_episodes(pipeline, first_frame, instruction, num_samples=1, num_frames=num_frames, seed=seed,
                                 num_steps=num_steps, text_guidance=text_guidance, image_guidance=image_guidance,
-                                camera=camera, progress=progress)
+                                camera=camera, progress=progress, draws=draws)
     return episodes[0]
 
 
@@ -133,14 +139,20 @@ def predict_episodes(
     image_guidance: float | None = None,
     camera: str | None = None,
     progress: Callable[[int, int], None] | None = None,
+    draws: int | None = None,
 ) -> list[df.Episode]:
     """``num_samples`` different predictions of the same first frame, sampled as one batch from the
-    generator seeded with ``seed`` (same arguments, same episodes)."""
+    generator seeded with ``seed`` (same arguments, same episodes); each the best of ``draws``."""
     num_frames, num_steps = _check_sampling(pipeline, num_frames, num_steps, num_samples)
-    scene = _scene(pipeline, first_frame, instruction, camera)
-    return _predict_batch(pipeline, [scene] * num_samples, list(range(num_samples)), num_frames=num_frames,
-                          num_steps=num_steps, text_guidance=text_guidance, image_guidance=image_guidance,
-                          seed=seed, generator=torch.Generator().manual_seed(int(seed)), progress=progress)
+    scenes = [_scene(pipeline, first_frame, instruction, camera)] * num_samples
+
+    def draw(k: int, step_progress) -> list[df.Episode]:
+        return _predict_batch(pipeline, scenes, list(range(num_samples)), num_frames=num_frames,
+                              num_steps=num_steps, text_guidance=text_guidance, image_guidance=image_guidance,
+                              seed=seed, generator=torch.Generator().manual_seed(draw_noise_seed(seed, k)),
+                              progress=step_progress)
+
+    return _best_of_draws(pipeline, scenes, draw, draws, progress)
 
 
 def predict_counterfactuals(
@@ -155,6 +167,7 @@ def predict_counterfactuals(
     image_guidance: float | None = None,
     camera: str | None = None,
     progress: Callable[[int, int], None] | None = None,
+    draws: int | None = None,
 ) -> list[df.Episode]:
     """One future of the same first frame per instruction, sampled as one batch from the same
     initial noise, so the futures differ only by their words (a counterfactual group).
@@ -162,17 +175,23 @@ def predict_counterfactuals(
     The shared noise is what :func:`predict_episode` draws for ``seed`` with the pixel and latent
     presets, so there future i is the prediction of ``instructions[i]`` alone with that seed (up
     to floating-point rounding of batched maths). Frames beyond one clip continue with noise
-    drawn per future.
+    drawn per future. With ``draws`` N > 1 every draw's noise is shared by the group, and each
+    instruction keeps its own best of the N.
     """
     if not instructions:
         raise UserError("no instructions to predict; give at least one")
     num_frames, num_steps = _check_sampling(pipeline, num_frames, num_steps, 1)
     scenes = [_scene(pipeline, first_frame, text, camera) for text in instructions]
-    noise = torch.randn(pipeline.latent_shape(1), generator=torch.Generator().manual_seed(int(seed)))  # (1, t', c, h, w)
-    return _predict_batch(pipeline, scenes, [0] * len(scenes), num_frames=num_frames, num_steps=num_steps,
-                          text_guidance=text_guidance, image_guidance=image_guidance, seed=seed,
-                          generator=torch.Generator().manual_seed(int(seed)),
-                          latents=noise.expand(len(scenes), *noise.shape[1:]), progress=progress)
+
+    def draw(k: int, step_progress) -> list[df.Episode]:
+        s = draw_noise_seed(seed, k)
+        noise = torch.randn(pipeline.latent_shape(1), generator=torch.Generator().manual_seed(s))  # (1, t', c, h, w)
+        return _predict_batch(pipeline, scenes, [0] * len(scenes), num_frames=num_frames, num_steps=num_steps,
+                              text_guidance=text_guidance, image_guidance=image_guidance, seed=seed,
+                              generator=torch.Generator().manual_seed(s),
+                              latents=noise.expand(len(scenes), *noise.shape[1:]), progress=step_progress)
+
+    return _best_of_draws(pipeline, scenes, draw, draws, progress)
 
 
 # Scenes per pipeline call of predict_scenes when not given. Measured with
@@ -199,6 +218,7 @@ def predict_scenes(
     progress: Callable[[int, int], None] | None = None,
     start_clips: list[torch.Tensor] | None = None,
     start_sigma: float | None = None,
+    draws: int | None = None,
 ) -> list[df.Episode]:
     """One prediction per scene (``first_frames[i]`` with ``instructions[i]``), ``batch_size`` scenes
     per network call (default :data:`DEFAULT_SCENE_BATCH`): the throughput path for evaluations.
@@ -209,7 +229,9 @@ def predict_scenes(
     ``noise_seeds[i]`` when given, so its first clip does not depend on ``batch_size`` or on the
     other scenes (up to floating-point rounding of batched maths). A noise seed s draws the noise
     that :func:`predict_episode` with ``seed=s`` draws, for codecs whose encoding draws none (pixel
-    and autoencoder presets). ``progress(step, total)`` counts denoising steps over all batches.
+    and autoencoder presets). ``progress(step, total)`` counts denoising steps over all batches (and
+    draws). Each scene keeps the best of ``draws``; draw k of scene i starts from
+    ``draw_noise_seed(its noise seed, k)``.
     """
     if len(first_frames) != len(instructions):
         raise UserError(f"{len(first_frames)} first frames for {len(instructions)} instructions; give one of each per scene")
@@ -224,19 +246,53 @@ def predict_scenes(
     scenes = [_scene(pipeline, f, i, camera) for f, i in zip(first_frames, instructions)]
     num_batches = -(-len(scenes) // batch_size)
     noise_shape = pipeline.latent_shape(1)  # (1, t', c, h, w); asks the codec once, not per scene
-    out: list[df.Episode] = []
-    for b in range(num_batches):
-        chunk = range(b * batch_size, min(len(scenes), (b + 1) * batch_size))
-        latents = torch.cat([torch.randn(noise_shape, generator=torch.Generator().manual_seed(
-            int(seed) * 1_000_003 + i if noise_seeds is None else int(noise_seeds[i]))) for i in chunk])
-        step_progress = None
+    scene_seeds = [int(seed) * 1_000_003 + i if noise_seeds is None else int(noise_seeds[i]) for i in range(len(scenes))]
+
+    def draw(k: int, draw_progress) -> list[df.Episode]:
+        out: list[df.Episode] = []
+        for b in range(num_batches):
+            chunk = range(b * batch_size, min(len(scenes), (b + 1) * batch_size))
+            latents = torch.cat([torch.randn(noise_shape, generator=torch.Generator().manual_seed(
+                draw_noise_seed(scene_seeds[i], k))) for i in chunk])
+            step_progress = None
+            if draw_progress is not None:
+                step_progress = (lambda s, t, b=b: draw_progress(b * t + s, num_batches * t))
+            start = None if start_clips is None else (torch.cat([start_clips[i] for i in chunk]), float(start_sigma))
+            out += _predict_batch(pipeline, [scenes[i] for i in chunk], [0] * len(chunk), num_frames=num_frames,
+                                  num_steps=num_steps, text_guidance=text_guidance, image_guidance=image_guidance,
+                                  seed=seed, generator=torch.Generator().manual_seed(draw_noise_seed(int(seed) + b, k)),
+                                  latents=latents, progress=step_progress, start=start)
+        return out
+
+    return _best_of_draws(pipeline, scenes, draw, draws, progress)
+
+
+def _best_of_draws(pipeline: RGBDNPipeline, scenes: list, draw: Callable, draws: int | None,
+                   progress: Callable[[int, int], None] | None) -> list[df.Episode]:
+    """Every scene's kept future of ``draws`` (default: the preset's) noise draws (draw_choice.py).
+    ``draw(k, progress)`` predicts all ``scenes`` from draw k's noise; a scene whose first frame has
+    no segmentation keeps draw 0, and when no scene has one only draw 0 is sampled."""
+    draws = int(pipeline.preset.draws) if draws is None else int(draws)
+    if draws < 1:
+        raise UserError(f"--draws must be at least 1 (1 = a single noise draw), got {draws}")
+    windows = [[] if cam.segmentation is None else object_windows(cam.rgb[0], cam.segmentation[0], cam.seg_id_to_name)
+               for _, _, _, cam, _ in scenes] if draws > 1 else []
+    if not any(windows):
+        draws = 1
+    candidates = []
+    for k in range(draws):
+        draw_progress = None
         if progress is not None:
-            step_progress = (lambda s, t, b=b: progress(b * t + s, num_batches * t))
-        start = None if start_clips is None else (torch.cat([start_clips[i] for i in chunk]), float(start_sigma))
-        out += _predict_batch(pipeline, [scenes[i] for i in chunk], [0] * len(chunk), num_frames=num_frames,
-                              num_steps=num_steps, text_guidance=text_guidance, image_guidance=image_guidance,
-                              seed=seed, generator=torch.Generator().manual_seed(int(seed) + b), latents=latents,
-                              progress=step_progress, start=start)
+            draw_progress = (lambda s, t, k=k: progress(k * t + s, draws * t))
+        candidates.append(draw(k, draw_progress))
+    if draws == 1:
+        return candidates[0]
+    out = []
+    for i, (_, _, cam_name, _, _) in enumerate(scenes):
+        kept, scores = choose(windows[i], [c[i].cameras[cam_name].rgb for c in candidates])
+        episode = candidates[kept][i]
+        episode.metadata["prediction"]["draws"] = {"count": draws, "kept": kept, "objects_kept": scores}
+        out.append(episode)
     return out
 
 

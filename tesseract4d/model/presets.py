@@ -75,6 +75,9 @@ class ModelPreset:
     # Static compositing (static_composite.py): where the decoded clip stays within this of its frame 0
     # (model-space units, channels in [-1, 1]), the given first frame's pixels are put back. 0 = off.
     static_tolerance: float = 0.0
+    # Noise draws per future (draw_choice.py): the kept one is the draw whose objects keep their
+    # colours best. 1 = a single draw.
+    draws: int = 1
 
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)
