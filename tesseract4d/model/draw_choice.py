@@ -54,7 +54,8 @@ def object_windows(first_rgb: np.ndarray, segmentation: np.ndarray, seg_id_to_na
         palette = rgb[mask][distinctive(rgb, mask, AROUND_PX)]
         if len(palette) < MIN_OBJECT_PIXELS:
             continue
-        palette = palette[:: -(-len(palette) // MAX_PALETTE)]
+        # Evenly spaced, then each colour once: a flat-shaded face repeats one colour many times.
+        palette = np.unique(palette[:: -(-len(palette) // MAX_PALETTE)], axis=0)
         ys, xs = np.nonzero(mask)
         y0, y1 = max(0, ys.min() - WINDOW_PX), min(H, ys.max() + WINDOW_PX + 1)
         x0, x1 = max(0, xs.min() - WINDOW_PX), min(W, xs.max() + WINDOW_PX + 1)
