@@ -57,7 +57,9 @@ def main(argv: list[str] | None = None) -> int:
 
     def run(pipe, steps):
         t0 = time.perf_counter()
-        eps = predict_scenes(pipe, firsts, texts, batch_size=len(firsts), seed=args.seed, num_steps=steps, num_frames=T)
+        # One noise draw each: the student's clip against the teacher's from the same noise.
+        eps = predict_scenes(pipe, firsts, texts, batch_size=len(firsts), seed=args.seed, num_steps=steps, num_frames=T,
+                             draws=1)
         return [e.cameras[camera] for e in eps], (time.perf_counter() - t0) / len(firsts)
 
     def scores(pred, refs):
@@ -73,7 +75,7 @@ def main(argv: list[str] | None = None) -> int:
         gt_cams.append(df.CameraFrames(rgb=c.rgb[:T], depth_m=c.depth_m[:T], normal_cam=c.normal_cam[:T],
                                        K=c.K[:T], T_world_cam=c.T_world_cam[:T]))
     for pipe in (teacher, student):  # warm-up (allocations, text encoding)
-        predict_scenes(pipe, firsts[:1], texts[:1], num_steps=1)
+        predict_scenes(pipe, firsts[:1], texts[:1], num_steps=1, draws=1)
     ref, ref_s = run(teacher, teacher.preset.num_steps)
     p = teacher.preset
     rows = [(f"teacher {p.num_steps} steps, guidance {p.text_guidance}/{p.image_guidance}", "-", "-",

@@ -7,7 +7,13 @@ instruction) in one call of the pipeline; this measures clips/s and seconds per 
 checkpoint's resolution: speed does not depend on the content. The first line names the CPU model
 and ISA and the precision used.
 
+One noise draw per clip (the network's cost) unless --draws N: then each scene's first frame has a
+segmentation (its square is a scene object) and every future is the best of N draws
+(draw_choice.py), N times the sampling plus the choice, as `predict` and `demo` sample a
+checkpoint whose preset has N draws.
+
   .venv/bin/python benchmarks/bench_throughput.py [--checkpoint tesseract4d/checkpoints/v2] [--batches 1,2,4,8] [--cap-isa avx2]
+  .venv/bin/python benchmarks/bench_throughput.py --batches 1 --draws 2
 """
 
 from __future__ import annotations
@@ -31,6 +37,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--batches", default="1,2,4,8", help="scenes per pipeline call (default %(default)s)")
     parser.add_argument("--repeats", type=int, default=2, help="timed calls per batch size (median)")
     parser.add_argument("--steps", type=int, help="sampler steps (default: the checkpoint preset's)")
+    parser.add_argument("--draws", type=int, default=1, help="noise draws per future, the best kept (default %(default)s)")
     parser.add_argument("--precision", default="auto", choices=("auto", "fp32", "bf16"))
     add_isa_cap_argument(parser)
     args = parser.parse_args(argv)
@@ -42,7 +49,7 @@ def main(argv: list[str] | None = None) -> int:
     import torch
 
     sys.path.insert(0, str(ROOT / "tests"))
-    from synthetic_scene import synthetic_episode
+    from synthetic_scene import _segment, synthetic_episode
 
     from tesseract4d.model.pipeline import guidance_passes
     from tesseract4d.model.predict import load_pipeline, predict_scenes
@@ -56,22 +63,24 @@ def main(argv: list[str] | None = None) -> int:
     print(f"CPU: {describe_cpu()}; precision {chosen.name}; torch {torch.__version__}, {torch.get_num_threads()} threads, "
           f"OMP_WAIT_POLICY={os.environ.get('OMP_WAIT_POLICY')}, load average {os.getloadavg()[0]:.1f}")
     print(f"checkpoint {args.checkpoint}: {p.name} {p.height}x{p.width}, {p.num_frames} frames, {steps} steps x "
-          f"{passes} network pass(es)")
+          f"{passes} network pass(es), {args.draws} noise draw(s) per future")
     batches = [int(b) for b in args.batches.split(",")]
     scenes = [synthetic_episode(i, frames=1, size=p.height) for i in range(max(batches))]
+    if args.draws > 1:  # a segmentation, so that the draws are scored and one kept
+        scenes = [_segment(s) for s in scenes]
     texts = [s.instruction for s in scenes]
-    predict_scenes(pipe, scenes[:1], texts[:1], num_steps=1)  # warm-up
+    predict_scenes(pipe, scenes[:1], texts[:1], num_steps=1, draws=1)  # warm-up
     rows = []
     for n in batches:
         times = []
         for r in range(args.repeats):
             t0 = time.perf_counter()
-            predict_scenes(pipe, scenes[:n], texts[:n], batch_size=n, num_steps=steps, seed=r)
+            predict_scenes(pipe, scenes[:n], texts[:n], batch_size=n, num_steps=steps, seed=r, draws=args.draws)
             times.append(time.perf_counter() - t0)
         s = statistics.median(times)
         rows.append((str(n), f"{s:.2f}", f"{s / n:.2f}", f"{n / s:.3f}"))
         print(*rows[-1], sep=" | ", flush=True)
-    header = ("scenes per call", "s per call", "s per clip", "clips/s")
+    header = ("scenes per call", "s per call", "s per clip", "clips/s")  # a clip: one predicted future
     print()
     print(f"CPU: {describe_cpu()}")
     print_table(header, rows)

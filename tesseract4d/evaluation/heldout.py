@@ -294,7 +294,7 @@ def predict_at_data_resolution(pipeline, firsts: list[df.Episode], instructions:
     (default: ``seed`` for every scene). A first frame of another resolution than the model's is
     resized to it, and the prediction back (:func:`at_resolution`); frame 0 is then the given first
     frame again. ``start_clips`` (per scene, :func:`truth_clip`) and ``start_sigma``: the pipeline's
-    ``start`` diagnostic (the data's resolution must be the model's).
+    ``start`` diagnostic (the data's resolution must be the model's; one noise draw, whatever the preset's).
     """
     from tesseract4d.model.predict import predict_scenes
 
@@ -310,7 +310,7 @@ def predict_at_data_resolution(pipeline, firsts: list[df.Episode], instructions:
                                batch_size=batch_size, num_frames=n, seed=seed, num_steps=num_steps,
                                text_guidance=text_guidance, noise_seeds=[noise_seeds[i] for i in idx],
                                start_clips=None if start_clips is None else [start_clips[i] for i in idx],
-                               start_sigma=start_sigma)
+                               start_sigma=start_sigma, draws=None if start_sigma is None else 1)
         for i, pred in zip(idx, preds):
             model_rgb = pred.cameras[cameras[i]].rgb
             first = firsts[i].cameras[cameras[i]]
@@ -382,7 +382,7 @@ def sampler_settings(cfg: HeldoutConfig, pipeline) -> dict:
             settings["autoguidance_min_sigma"] = float(p.autoguidance_min_sigma)
     if p.static_tolerance > 0:
         settings["static_tolerance"] = float(p.static_tolerance)
-    if p.draws > 1:  # named only where there is a choice
+    if p.draws > 1 and cfg.start_from_truth is None:  # named only where there is a choice (the diagnostic has none)
         settings["draws"] = int(p.draws)
     if cfg.start_from_truth is not None:  # the diagnostic (named only where it ran)
         settings["start_from_truth"] = float(cfg.start_from_truth)
