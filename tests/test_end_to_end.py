@@ -98,9 +98,13 @@ def test_predict_from_a_rendered_maniskill_scene(tmp_path):
     from tesseract4d import dataset_format as df
 
     out = tmp_path / "pred"
-    cli("predict", "--checkpoint", SHIPPED_CHECKPOINT, "--task", "PullCube-v1", "--seed", HELDOUT_SEED_START + 2,
-        "--instruction", "pull the cube back onto the target", "--steps", 2, "--out", out)
+    proc = cli("predict", "--checkpoint", SHIPPED_CHECKPOINT, "--task", "PullCube-v1", "--seed", HELDOUT_SEED_START + 2,
+               "--instruction", "pull the cube back onto the target", "--steps", 2, "--out", out)
     episode = df.read_episode(df.resolve_episode(out))
+    draws = read_inference_config(SHIPPED_CHECKPOINT)["preset"].get("draws", 1)
+    if draws > 1:  # the rendered scene has a segmentation: the draws are scored and one is kept, and it says which
+        chosen = episode.metadata["prediction"]["draws"]
+        assert chosen["count"] == draws and f"kept draw {chosen['kept']} of {draws}" in proc.stdout
     assert episode.env_id == "PullCube-v1" and episode.seed == HELDOUT_SEED_START + 2
     cam = next(iter(episode.cameras.values()))
     size = read_inference_config(SHIPPED_CHECKPOINT)["preset"]["height"]

@@ -145,6 +145,13 @@ def test_predict_cli_episode_and_files(checkpoint, tmp_path, capsys):
                      str(tmp_path / "depth.npy"), "--K", str(tmp_path / "K.txt"), "--instruction", "push left",
                      "--out", str(out2), "--steps", "1", "--num-samples", "2"]) == 0
     assert len(df.list_episode_files(out2 / "sample_00")) == 1 and len(df.list_episode_files(out2 / "sample_01")) == 1
+    # Image files carry no segmentation: several draws would have no objects to follow, so one is sampled, and it says so.
+    capsys.readouterr()
+    assert cli.main(["predict", "--checkpoint", str(checkpoint), "--rgb", str(tmp_path / "rgb.png"), "--depth",
+                     str(tmp_path / "depth.npy"), "--K", str(tmp_path / "K.txt"), "--instruction", "push left",
+                     "--out", str(tmp_path / "out3"), "--steps", "1", "--draws", "3"]) == 0
+    assert "3 noise draws need the scene's objects" in capsys.readouterr().err
+    assert "draws" not in df.read_episode(df.resolve_episode(tmp_path / "out3")).metadata["prediction"]
 
     assert cli.main(["predict", "--checkpoint", str(tmp_path / "missing"), "--episode", str(data),
                      "--out", str(tmp_path / "o3")]) == 2
