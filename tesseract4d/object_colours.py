@@ -17,6 +17,8 @@ import numpy as np
 
 # Colour distance (RGB, 0-255) within which a pixel counts as one of an object's colours.
 OBJECT_COLOUR_TOL = 40.0
+# An object with fewer pixels than this in a frame is too small to read its colours there.
+MIN_OBJECT_PIXELS = 4
 
 
 def dilate(mask: np.ndarray, px: int) -> np.ndarray:

@@ -22,14 +22,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from tesseract4d.object_colours import OBJECT_COLOUR_TOL, dilate, distinctive, min_colour_distance
+from tesseract4d.object_colours import MIN_OBJECT_PIXELS, OBJECT_COLOUR_TOL, dilate, distinctive, min_colour_distance
 
 # A present object shows at least this share of its true pixel count in its colour near its true place.
 MIN_PRESENT_FRACTION = 0.3
 # How far (pixels) from its true silhouette a predicted object may be and still count as in place.
 PRESENCE_SLACK_PX = 2
-# Objects smaller than this in a ground-truth frame are not judged in that frame (too few pixels).
-MIN_OBJECT_PIXELS = 4
+# Objects smaller than MIN_OBJECT_PIXELS (object_colours.py) in a ground-truth frame are not judged there.
 # A prediction moves the instructed object the instructed way when cos(predicted, commanded) > this.
 RIGHT_WAY_COSINE = 0.5
 # "Keep still" is right when its predicted motion is at most this share of the group's active motions.

@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from tesseract4d.object_colours import distinctive, matches
+from tesseract4d.object_colours import MIN_OBJECT_PIXELS, distinctive, matches
 from tesseract4d.segments import scene_object_ids
 
 # How far (pixels) around an object's frame-0 box its colours are counted in later frames: about the
@@ -29,8 +29,6 @@ from tesseract4d.segments import scene_object_ids
 WINDOW_PX = 24
 # The pixels next to an object (outside it) whose colours make its own colours not distinctive.
 AROUND_PX = 2
-# Objects with fewer distinctive pixels than this in frame 0 are not followed.
-MIN_OBJECT_PIXELS = 4
 # At most this many of an object's distinctive colours are compared (evenly spaced), to bound the cost.
 MAX_PALETTE = 64
 
@@ -42,7 +40,8 @@ def draw_noise_seed(seed: int, draw: int) -> int:
 
 def object_windows(first_rgb: np.ndarray, segmentation: np.ndarray, seg_id_to_name: dict) -> list[tuple]:
     """The objects :func:`objects_kept` follows: (palette (N, 3), window (y0, y1, x0, x1), frame-0
-    count) for each scene object with at least ``MIN_OBJECT_PIXELS`` distinctive pixels in frame 0."""
+    count) for each scene object with at least ``MIN_OBJECT_PIXELS`` (object_colours.py) distinctive pixels in
+    frame 0."""
     rgb = np.asarray(first_rgb, np.float32)
     seg = np.asarray(segmentation)
     H, W = seg.shape
@@ -85,4 +84,3 @@ def choose(windows: list[tuple], candidates: list[np.ndarray]) -> tuple[int, lis
     finite = [s if np.isfinite(s) else -np.inf for s in scores]
     best = int(np.argmax(finite)) if np.isfinite(max(finite)) else 0
     return best, scores
-
