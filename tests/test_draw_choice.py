@@ -112,14 +112,29 @@ def test_the_kept_future_is_the_single_draw_of_its_noise_with_every_draw_scored(
                                                                      seed=2, num_steps=2).cameras["close"].rgb)
 
 
-def test_a_first_frame_without_segmentation_samples_one_draw(draws_checkpoint):
+def test_a_first_frame_without_segmentation_is_scored_by_the_objects_its_colours_show(draws_checkpoint):
+    """Image files, the closed loop's observations and reconstructions carry no segmentation: their
+    objects are found by colour (object_finder.py). A red cube on the grey plane is followed, as the
+    segmentation would name it; a frame in which nothing stands out samples one draw."""
     from tesseract4d.errors import UserError
     from tesseract4d.model.predict import load_pipeline, predict_episode
 
     pipe = load_pipeline(draws_checkpoint, precision="fp32")
+    ep = synthetic_episode(5, frames=1, size=32)
+    cam = ep.cameras["close"]
+    cam.rgb[0] = np.broadcast_to(cam.rgb[0][:, :1], cam.rgb[0].shape)  # the plane alone (its grey of each row)
+    cam.rgb[0, 12:17, 20:25] = (210, 40, 40)
+    assert cam.segmentation is None
+    found = object_windows(cam.rgb[0])
+    named = np.zeros((32, 32), np.int32)
+    named[12:17, 20:25] = 18
+    assert len(found) == 1 and found[0][1:] == object_windows(cam.rgb[0], named, {18: "cube"})[0][1:]
+    kept = predict_episode(pipe, ep, "push", seed=2, num_steps=2)
+    assert kept.metadata["prediction"]["draws"]["count"] == 3
+    cam.rgb[0, 12:17, 20:25] = cam.rgb[0, 12:17, :5]
+    assert object_windows(cam.rgb[0]) == []
     steps = []
-    ep = predict_episode(pipe, synthetic_episode(5, frames=1, size=32), "push", seed=2, num_steps=2,
-                         progress=lambda s, t: steps.append((s, t)))
-    assert "draws" not in ep.metadata["prediction"] and steps[-1] == (2, 2)
+    one = predict_episode(pipe, ep, "push", seed=2, num_steps=2, progress=lambda s, t: steps.append((s, t)))
+    assert "draws" not in one.metadata["prediction"] and steps[-1] == (2, 2)
     with pytest.raises(UserError, match="--draws must be at least 1"):
-        predict_episode(pipe, synthetic_episode(5, frames=1, size=32), "push", num_steps=2, draws=0)
+        predict_episode(pipe, ep, "push", num_steps=2, draws=0)

@@ -145,13 +145,22 @@ def test_predict_cli_episode_and_files(checkpoint, tmp_path, capsys):
                      str(tmp_path / "depth.npy"), "--K", str(tmp_path / "K.txt"), "--instruction", "push left",
                      "--out", str(out2), "--steps", "1", "--num-samples", "2"]) == 0
     assert len(df.list_episode_files(out2 / "sample_00")) == 1 and len(df.list_episode_files(out2 / "sample_01")) == 1
-    # Image files carry no segmentation: several draws would have no objects to follow, so one is sampled, and it says so.
-    capsys.readouterr()
-    assert cli.main(["predict", "--checkpoint", str(checkpoint), "--rgb", str(tmp_path / "rgb.png"), "--depth",
-                     str(tmp_path / "depth.npy"), "--K", str(tmp_path / "K.txt"), "--instruction", "push left",
-                     "--out", str(tmp_path / "out3"), "--steps", "1", "--draws", "3"]) == 0
-    assert "3 noise draws need the scene's objects" in capsys.readouterr().err
-    assert "draws" not in df.read_episode(df.resolve_episode(tmp_path / "out3")).metadata["prediction"]
+    # Image files carry no segmentation: several draws follow the objects found by their colour (a red 5-px cube
+    # on the plane), and a frame in which none stands out (the plane alone) samples one draw and says why.
+    plane = np.broadcast_to(cam.rgb[0][:, :1], cam.rgb[0].shape).copy()
+    cube = plane.copy()
+    cube[12:17, 20:25] = (210, 40, 40)
+    for name, rgb, out3 in (("cube", cube, tmp_path / "out3"), ("plane", plane, tmp_path / "out4")):
+        imageio.imwrite(tmp_path / f"{name}.png", rgb)
+        capsys.readouterr()
+        assert cli.main(["predict", "--checkpoint", str(checkpoint), "--rgb", str(tmp_path / f"{name}.png"), "--depth",
+                         str(tmp_path / "depth.npy"), "--K", str(tmp_path / "K.txt"), "--instruction", "push left",
+                         "--out", str(out3), "--steps", "1", "--draws", "3"]) == 0
+        said, draws = capsys.readouterr(), df.read_episode(df.resolve_episode(out3)).metadata["prediction"].get("draws")
+        if name == "cube":
+            assert draws["count"] == 3 and f"kept draw {draws['kept']} of 3" in said.out
+        else:
+            assert draws is None and "none was found in this first frame" in said.err
 
     assert cli.main(["predict", "--checkpoint", str(tmp_path / "missing"), "--episode", str(data),
                      "--out", str(tmp_path / "o3")]) == 2

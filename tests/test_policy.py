@@ -94,6 +94,27 @@ def test_a_world_model_predicts_for_renders_of_twice_its_resolution():
     np.testing.assert_array_equal(pts, frame_points(rgb64, depth64, K64, frame.T_world_cam, 64, np.random.default_rng(0)))
 
 
+def test_the_loop_keeps_the_best_of_its_noise_draws_by_the_objects_its_observation_shows():
+    """An observation carries no segmentation (a robot's camera gives none): the world model follows
+    the objects found by their colour, so the preset's draws (or --draws) are scored and one kept."""
+    from datagen.capture import Frame
+    from tesseract4d.model.predict import load_pipeline
+    from tesseract4d.policy.loop import LoopConfig, WorldModelFuture
+
+    K = np.array([[110.0, 0, 64], [0, 110.0, 64], [0, 0, 1]])
+    rgb = np.full((128, 128, 3), (150, 80, 45), np.uint8)  # a wooden table
+    rgb[70:78, 60:68] = (40, 60, 200)  # a blue cube on it
+    frame = Frame(rgb=rgb, depth_m=np.full((128, 128), 0.6, np.float32),
+                  normal_cam=np.broadcast_to(np.float32([0, 0, -1]), (128, 128, 3)).copy(),
+                  segmentation=np.zeros((128, 128), np.int32), K=K, T_world_cam=np.eye(4))
+    pipe = load_pipeline(SHIPPED_CHECKPOINT)
+    for draws in (2, 1):
+        clip = WorldModelFuture(pipe, LoopConfig(resolution=(128, 128), sample_steps=1, draws=draws)).clip(
+            frame, "PushCube-v1", 0, "push the cube", 0)
+        chosen = clip.episode.metadata["prediction"].get("draws")
+        assert (chosen["count"], len(chosen["objects_kept"])) == (2, 2) if draws == 2 else chosen is None
+
+
 # --------------------------------------------------------------------------- with the simulator
 
 SEEDS = 2
@@ -230,6 +251,9 @@ def test_rollout_bad_inputs(overfit, tmp_path, capsys):
     # the static world is an IDM arm: it needs --idm
     assert main(["rollout", "--arms", "static_world", "--tasks", "PushCube-v1", "--out", str(tmp_path / "r7")]) == 2
     assert "need --idm" in capsys.readouterr().err
+    assert main(["rollout", "--idm", idm, "--arms", "world_model", "--tasks", "PushCube-v1", "--draws", "0",
+                 "--out", str(tmp_path / "r8")]) == 2
+    assert "--draws must be at least 1" in capsys.readouterr().err
 
 
 @pytest.mark.sim

@@ -73,9 +73,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         "(default: one clip, the checkpoint preset's length)")
     parser.add_argument("--steps", type=int, help="sampler steps (default: the checkpoint preset's)")
     parser.add_argument("--draws", type=int, metavar="N",
-                        help="noise draws per sample; each keeps the one whose objects (from the first frame's "
-                             "segmentation: --task or --episode) keep their colours best; N times the sampling "
-                             "(default: the checkpoint preset's; 1 = a single draw)")
+                        help="noise draws per sample; each keeps the one whose objects (named by the first frame's "
+                             "segmentation with --task or --episode, found by their colour in --rgb) keep their "
+                             "colours best; N times the sampling (default: the checkpoint preset's; 1 = a single draw)")
     parser.add_argument("--sample-seed", type=int, default=d.sample_seed, help="noise seed (default %(default)s)")
     parser.add_argument("--num-samples", type=int, default=d.num_samples, help="samples to draw in one batch (default %(default)s)")
     parser.add_argument("--text-guidance", type=float, help="text guidance scale (default: the checkpoint preset's)")
@@ -191,9 +191,6 @@ def run(args: argparse.Namespace) -> int:
     cfg = dataclasses.replace(cfg, num_frames=cfg.num_frames or pipe.num_frames, steps=cfg.steps or pipe.preset.num_steps,
                               draws=pipe.preset.draws if cfg.draws is None else cfg.draws)
     first = load_first_frame(cfg, pipe.resolution, pipe.camera_name)
-    if cfg.draws > 1 and all(cam.segmentation is None for cam in first.cameras.values()):
-        print(f"note: {cfg.draws} noise draws need the scene's objects, and this first frame has no segmentation "
-              f"(--rgb/--depth): one draw is sampled", file=sys.stderr)
     instruction = cfg.instruction if cfg.instruction is not None else first.instruction
     if isinstance(instruction, str) and (note := instruction_budget_note(pipe, instruction.strip())):
         print(note, file=sys.stderr)
@@ -207,6 +204,10 @@ def run(args: argparse.Namespace) -> int:
                                 seed=cfg.sample_seed, num_steps=cfg.steps, text_guidance=cfg.text_guidance,
                                 image_guidance=cfg.image_guidance, progress=progress, draws=cfg.draws)
     bar.close()
+    if cfg.draws > 1 and not any(ep.metadata["prediction"].get("draws") for ep in episodes):
+        print(f"note: {cfg.draws} noise draws are chosen among by the scene's objects, and none was found in this "
+              f"first frame (no segmentation names one, and none stands out by its colour): one draw was sampled",
+              file=sys.stderr)
     for k, ep in enumerate(episodes):
         if chosen := ep.metadata["prediction"].get("draws"):
             scores = ", ".join("n/a" if s != s else f"{s:.2f}" for s in chosen["objects_kept"])

@@ -46,6 +46,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--max-steps", type=int, default=lc.max_steps, help="env steps per episode (default %(default)s)")
     parser.add_argument("--sample-steps", type=int,
                         help="diffusion steps per prediction (default: the checkpoint's, 2 for v2-2step, 10 for v2)")
+    parser.add_argument("--draws", type=int, metavar="N",
+                        help="noise draws per prediction; each keeps the one whose objects (found by colour in the "
+                             "observation) keep their colours best, at N times the prediction's cost (default: the "
+                             "checkpoint's, 2 for the shipped models; 1 = a single draw)")
     parser.add_argument("--camera", default=lc.camera, help="camera preset (default %(default)s)")
     parser.add_argument("--resolution", type=int,
                         help="rendered square image size (default: the world model's with the world_model arm, else "
@@ -65,7 +69,8 @@ def run(args: argparse.Namespace) -> int:
     from tesseract4d.policy.rollout_eval import RolloutConfig, run_rollouts
 
     loop = LoopConfig(replan_every=args.replan_every, max_steps=args.max_steps, sample_steps=args.sample_steps,
-                      camera=args.camera, resolution=None if args.resolution is None else (args.resolution, args.resolution),
+                      draws=args.draws, camera=args.camera,
+                      resolution=None if args.resolution is None else (args.resolution, args.resolution),
                       instruction_split=args.instruction_split)
     cfg = RolloutConfig(tasks=[t.strip() for t in args.tasks.split(",") if t.strip()], seed_start=args.seed_start,
                         episodes=args.episodes, arms=[a.strip() for a in args.arms.split(",") if a.strip()],

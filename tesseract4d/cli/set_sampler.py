@@ -19,8 +19,9 @@ given first frame's own pixels are shown instead of the decoder's redrawing of t
 scene the model moves are left as predicted (README "Static compositing").
 
 Several noise draws (`--draws N`): every future is predicted from N noises and the one whose objects
-keep their colours best is kept (read from the first frame and the predicted clip only; README "Best of
-several noise draws"); N times the sampling.
+keep their colours best is kept (read from the first frame and the predicted clip only: its objects
+named by its segmentation, or found by their colour without one; README "The best of two noise
+draws"); N times the sampling.
 
 Example (v2's 10 guided steps, guidance only at noise ≥ 0.5: 15 network passes per clip instead of 20):
   tesseract4d set-sampler --checkpoint tesseract4d/checkpoints/v2 --guidance-min-sigma 0.5 --to runs/v2_interval
@@ -61,9 +62,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "(model-space units, channels in [-1, 1]), show the given first frame's own pixels "
                              "instead of the decoder's redrawing of them (0 = off)")
     parser.add_argument("--draws", type=int, metavar="N",
-                        help="predict every future from N noise draws and keep the one whose objects (from the "
-                             "first frame's segmentation) keep their colours best; N times the sampling (1 = a "
-                             "single draw; README \"Best of several noise draws\")")
+                        help="predict every future from N noise draws and keep the one whose objects (named by the "
+                             "first frame's segmentation, or found by their colour) keep their colours best; N times "
+                             "the sampling (1 = a single draw; README \"The best of two noise draws\")")
     parser.add_argument("--guide", type=Path, metavar="CKPT",
                         help="checkpoint whose transformer becomes the copy's autoguidance network: a weaker "
                              "model of the same latent space, e.g. an early checkpoint of the same training run")

@@ -263,7 +263,8 @@ def token_px_in_data(patch_px: int, factor: Fraction) -> int | None:
 
 def at_resolution(episode: df.Episode, camera: str, hw: tuple[int, int]) -> df.Episode:
     """``episode`` with only ``camera``, its RGB-D-N and K resized to ``hw`` (itself when already
-    there). The resized copy carries no segmentation (so such a checkpoint keeps its first noise draw)."""
+    there). The resized copy carries no segmentation (so such a checkpoint's noise draws, if it has
+    several, are chosen by the objects found by their colour: draw_choice.py)."""
     cam = episode.cameras[camera]
     if tuple(cam.rgb.shape[1:3]) == tuple(hw) and list(episode.cameras) == [camera]:
         return episode

@@ -4,9 +4,11 @@ One noise draw decides much of a future (README "One noise draw decides much of 
 outcome"): in some draws a cube the arm reaches stays a cube, in others it turns into a blob of the
 other objects' colours or fades. With ``draws`` N > 1 the sampler predicts each scene from N noises
 and keeps the future that :func:`objects_kept` scores highest. The score reads only the given first
-frame (its RGB and segmentation) and the predicted clip, never anything of the true future:
+frame (its RGB, and its segmentation where it has one) and the predicted clip, never anything of the
+true future:
 
-    for each scene object visible in frame 0, its distinctive colours there (object_colours.py); in
+    for each scene object visible in frame 0 (named by the segmentation, or found by its colour in a
+    frame without one: object_finder.py), its distinctive colours there (object_colours.py); in
     every later frame, the predicted pixels of those colours within ``WINDOW_PX`` of the object's
     frame-0 box, as a share of frame 0's, capped at 1; the mean over frames, then over objects.
 
@@ -14,7 +16,7 @@ An object that moves whole keeps its score, one hidden by the arm loses it in ev
 that fades or changes colour loses it in the draws where it does. Draw 0 is the noise a single draw
 uses, so ``draws`` 1 is the sampler without a choice. N draws cost N times the sampling.
 
-A first frame without a segmentation has no objects to follow: such a scene keeps draw 0.
+A first frame in which no object is found has nothing to follow: such a scene keeps draw 0.
 """
 
 from __future__ import annotations
@@ -22,6 +24,7 @@ from __future__ import annotations
 import numpy as np
 
 from tesseract4d.object_colours import MIN_OBJECT_PIXELS, distinctive, matches
+from tesseract4d.object_finder import find_objects
 from tesseract4d.segments import scene_object_ids
 
 # How far (pixels) around an object's frame-0 box its colours are counted in later frames: about the
@@ -38,16 +41,21 @@ def draw_noise_seed(seed: int, draw: int) -> int:
     return int(seed) if draw == 0 else (int(seed) * 7_919 + 104_729 * int(draw)) % (1 << 62)
 
 
-def object_windows(first_rgb: np.ndarray, segmentation: np.ndarray, seg_id_to_name: dict) -> list[tuple]:
+def object_windows(first_rgb: np.ndarray, segmentation: np.ndarray | None = None,
+                   seg_id_to_name: dict | None = None) -> list[tuple]:
     """The objects :func:`objects_kept` follows: (palette (N, 3), window (y0, y1, x0, x1), frame-0
     count) for each scene object with at least ``MIN_OBJECT_PIXELS`` (object_colours.py) distinctive pixels in
-    frame 0."""
+    frame 0. The objects are the segmentation's (with its ``seg_id_to_name``) or, without one, those
+    :func:`~tesseract4d.object_finder.find_objects` finds in ``first_rgb``."""
+    if segmentation is None:
+        masks = find_objects(first_rgb)
+    else:
+        seg = np.asarray(segmentation)
+        masks = [seg == oid for oid in scene_object_ids(seg_id_to_name or {})]
     rgb = np.asarray(first_rgb, np.float32)
-    seg = np.asarray(segmentation)
-    H, W = seg.shape
+    H, W = rgb.shape[:2]
     out = []
-    for oid in scene_object_ids(seg_id_to_name):
-        mask = seg == oid
+    for mask in masks:
         if mask.sum() < MIN_OBJECT_PIXELS:
             continue
         palette = rgb[mask][distinctive(rgb, mask, AROUND_PX)]

@@ -270,12 +270,13 @@ def predict_scenes(
 def _best_of_draws(pipeline: RGBDNPipeline, scenes: list, draw: Callable, draws: int | None,
                    progress: Callable[[int, int], None] | None) -> list[df.Episode]:
     """Every scene's kept future of ``draws`` (default: the preset's) noise draws (draw_choice.py).
-    ``draw(k, progress)`` predicts all ``scenes`` from draw k's noise; a scene whose first frame has
-    no segmentation keeps draw 0, and when no scene has one only draw 0 is sampled."""
+    ``draw(k, progress)`` predicts all ``scenes`` from draw k's noise. A first frame's objects are its
+    segmentation's, or found by colour without one; a scene with none keeps draw 0, and when no scene
+    has any only draw 0 is sampled."""
     draws = int(pipeline.preset.draws) if draws is None else int(draws)
     if draws < 1:
         raise UserError(f"--draws must be at least 1 (1 = a single noise draw), got {draws}")
-    windows = [[] if cam.segmentation is None else object_windows(cam.rgb[0], cam.segmentation[0], cam.seg_id_to_name)
+    windows = [object_windows(cam.rgb[0], None if cam.segmentation is None else cam.segmentation[0], cam.seg_id_to_name)
                for _, _, _, cam, _ in scenes] if draws > 1 else []
     if not any(windows):
         draws = 1

@@ -47,6 +47,7 @@ class LoopConfig:
     max_chunk_steps: int = 30  # upper bound on the steps one IDM chunk may span
     num_frames: int = 16  # frames per predicted clip
     sample_steps: int | None = None  # diffusion steps per prediction; None = the checkpoint preset's
+    draws: int | None = None  # noise draws per prediction, the best kept (draw_choice.py); None = the checkpoint preset's
     sample_seed: int = 0
     camera: str = "close"
     resolution: tuple[int, int] = (64, 64)  # the rendered observation (height, width)
@@ -142,7 +143,7 @@ class WorldModelFuture:
         cam = first.cameras[c.camera]
         cam.rgb, cam.depth_m, cam.normal_cam, cam.K = at_hw(cam.rgb, cam.depth_m, cam.normal_cam, cam.K, self.model_hw)
         pred = predict_episode(self.pipeline, first, instruction, num_frames=c.num_frames, num_steps=c.sample_steps,
-                               seed=c.sample_seed + step)
+                               seed=c.sample_seed + step, draws=c.draws)
         cam = pred.cameras[c.camera]
         # back at the rendered resolution; frame 0 is the observation itself
         cam.rgb, cam.depth_m, cam.normal_cam, cam.K = at_hw(cam.rgb, cam.depth_m, cam.normal_cam, cam.K,

@@ -82,7 +82,10 @@ def format_markdown(summary: dict, arms: list[str], tasks: list[str], timing: di
     lines = ["# Rollout evaluation", "",
              f"Held-out seeds {config['seed_start']}..{config['seed_start'] + config['episodes'] - 1} per task; "
              f"replan every {config['loop']['replan_every']} predicted frames; success = the env's own success signal "
-             f"at any step within {config['loop']['max_steps']} steps. Cells: success rate (successes/trials; 95 % Wilson interval).", "",
+             f"at any step within {config['loop']['max_steps']} steps."
+             + (f" The world model keeps the best of {config['loop']['draws']} noise draws per prediction."
+                if (config['loop'].get('draws') or 1) > 1 and "world_model" in arms else "")
+             + " Cells: success rate (successes/trials; 95 % Wilson interval).", "",
              "| task | " + " | ".join(arms) + " |", "|---" * (len(arms) + 1) + "|"]
     for t in tasks:
         lines.append(f"| {t} | " + " | ".join(cell(summary["per_task"][t][a]) for a in arms) + " |")
@@ -216,6 +219,10 @@ def run_rollouts(cfg: RolloutConfig, progress: bool = True) -> dict:
         from tesseract4d.model.predict import load_pipeline
 
         pipeline = load_pipeline(cfg.checkpoint, precision=cfg.precision)
+        if lc.draws is not None and lc.draws < 1:
+            raise UserError(f"--draws must be at least 1 (1 = a single noise draw), got {lc.draws}")
+        lc = dataclasses.replace(lc, draws=pipeline.preset.draws if lc.draws is None else lc.draws)
+        cfg = dataclasses.replace(cfg, loop=lc)
     if lc.resolution is None:  # render at the world model's resolution, else at the IDM's
         policy = idm or bc
         source = (pipeline.resolution if pipeline is not None else policy.config.resolution if policy is not None
