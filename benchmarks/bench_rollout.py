@@ -7,7 +7,7 @@ of the predicted clip (normal integration + temporal consistency + TSDF), which 
 use (see the table), and rendering one observation.
 
   PYTHONPATH=. OMP_WAIT_POLICY=PASSIVE python benchmarks/bench_rollout.py --idm runs/idm/final \
-      [--checkpoint tesseract4d/checkpoints/v2] --repeats 5
+      [--checkpoint tesseract4d/checkpoints/v2] [--draws 1] --repeats 5
 
 Target: a cycle <= 2 s on the 2-core CPU.
 """
@@ -30,6 +30,8 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=100000)
     ap.add_argument("--replan-every", type=int, default=4)
     ap.add_argument("--sample-steps", type=int, help="diffusion steps per prediction (default: the checkpoint's)")
+    ap.add_argument("--draws", type=int, help="noise draws per prediction, the best kept (default: the checkpoint's, "
+                                             "2 for the shipped models; each draw costs one prediction)")
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--precision", choices=("auto", "fp32", "bf16"), default="auto",
                     help="world-model precision (default %(default)s: bf16 only where the CPU has it)")
@@ -52,7 +54,7 @@ def main() -> None:
 
     idm = load_idm(args.idm)
     pipe = load_pipeline(args.checkpoint, precision=args.precision)
-    cfg = LoopConfig(replan_every=args.replan_every, sample_steps=args.sample_steps,
+    cfg = LoopConfig(replan_every=args.replan_every, sample_steps=args.sample_steps, draws=args.draws,
                      resolution=tuple(pipe.resolution), camera=pipe.camera_name or "close")
     wm = WorldModelFuture(pipe, cfg)
     sim = EpisodeSimulator(args.task, SimConfig(height=cfg.resolution[0], width=cfg.resolution[1], cameras=[cfg.camera]))
@@ -95,7 +97,9 @@ def main() -> None:
     from tesseract4d.precision import describe_cpu
 
     print(f"CPU: {describe_cpu()}; torch capability {torch.backends.cpu.get_cpu_capability()}; {torch.get_num_threads()} threads")
+    draws = (clip.episode.metadata["prediction"].get("draws") or {}).get("count", 1)
     print(f"task {args.task}, k = {cfg.replan_every} clip frames per cycle, {args.sample_steps or pipe.preset.num_steps} diffusion steps, "
+          f"{'the best of ' + str(draws) + ' noise draws' if draws > 1 else 'one noise draw'} per prediction, "
           f"{idm.config.num_points} points per cloud, world model {pipe.resolution[0]}x{pipe.resolution[1]}, "
           f"{'bf16' if pipe.bf16 else 'fp32'}, {args.repeats} repeats")
     print(f"{'stage':<26}{'median s':>10}{'min s':>10}")
