@@ -8,6 +8,7 @@ import json
 import shutil
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 from model_fixtures import MICRO
@@ -255,3 +256,60 @@ def test_pairs_of_an_autoguided_teacher_are_its_own(teacher, tmp_path):
     from tesseract4d.model.reflow import student_preset
 
     assert student_preset(load_pipeline(guided).preset, STUDENT_STEPS).autoguidance == 0.0
+
+
+def test_teacher_draws_keep_the_clips_that_keep_their_objects(teacher):
+    """--teacher-draws N: each pair keeps the teacher draw whose clip keeps the first frame's objects
+    (found by their colour) best, a counterfactual group the draw best for its pairs together, so that
+    they still share one noise; the kept noise is the one its clip was sampled from."""
+    from tesseract4d.model.predict import load_pipeline
+    from tesseract4d.model.reflow import _best_draws
+
+    ckpt, _ = teacher
+    pipe = load_pipeline(ckpt, precision="fp32")
+    ms, T = pipe.model_space, MICRO.num_frames
+    plane = np.broadcast_to(np.linspace(60, 120, 32, dtype=np.uint8)[:, None, None], (32, 32, 3)).copy()
+    cube = plane.copy()
+    cube[12:17, 20:25] = (210, 40, 40)
+    depth, normal = np.ones((32, 32), np.float32), np.broadcast_to(np.float32([0, 0, -1]), (32, 32, 3)).copy()
+
+    def clip(kept: bool):  # (T, 7, H, W): the cube in every frame, or gone after frame 0
+        frames = np.stack([cube] + [cube if kept else plane] * (T - 1))
+        return ms.encode(frames, np.stack([depth] * T), np.stack([normal] * T))
+
+    first = torch.stack([ms.encode(cube[None], depth[None], normal[None])[0]] * 3)  # pairs 0 and 1 a group, 2 alone
+    leaders = [0, 0, 2]
+    noise0 = torch.randn(3, T, 7, 32, 32)
+    x0_draw0 = torch.stack([clip(False), clip(True), clip(True)])  # the group's mean 0.5, pair 2 keeps it
+    x0_draw1 = torch.stack([clip(True), clip(True), clip(False)])  # the group's mean 1
+    sampled = []
+
+    def sample(noise, generator):
+        sampled.append(noise)
+        return x0_draw1
+
+    noise, x0, chosen = _best_draws(pipe, first, noise0, x0_draw0, leaders, 2, 7, sample)
+    assert chosen["count"] == 2 and chosen["kept"] == [1, 1, 0]
+    assert chosen["objects_kept"][0] == [0.0, 1.0, 1.0] and chosen["objects_kept"][1] == [1.0, 1.0, 0.0]
+    draw1_noise = sampled[0]
+    assert torch.equal(draw1_noise[0], draw1_noise[1]) and not torch.equal(draw1_noise[0], noise0[0])
+    assert torch.equal(noise[0], draw1_noise[0]) and torch.equal(noise[1], draw1_noise[1]) and torch.equal(noise[2], noise0[2])
+    assert torch.equal(x0[0], x0_draw1[0]) and torch.equal(x0[2], x0_draw0[2])
+
+
+def test_teacher_draws_without_objects_are_the_single_draw_pairs(teacher, tmp_path):
+    """First frames in which nothing stands out by its colour (the synthetic square fills too much of
+    the 32² image to be taken for an object) keep draw 0: the pairs of a single draw, recorded as such;
+    a folder of single-draw pairs is not resumed with more draws."""
+    ckpt, data = teacher
+    one = ReflowPairs(generate_pairs(_pairs_cfg(ckpt, data, tmp_path / "one", 2), progress=False))
+    two = ReflowPairs(generate_pairs(dataclasses.replace(_pairs_cfg(ckpt, data, tmp_path / "two", 2), teacher_draws=2),
+                                     progress=False))
+    assert torch.equal(one.noise, two.noise) and torch.equal(one.x0, two.x0)
+    assert two.manifest["teacher_draws"] == 2
+    record = json.loads(next((tmp_path / "two").glob("pairs-*.json")).read_text())
+    assert record["draws"]["count"] == 2 and record["draws"]["kept"] == [0, 0]
+    with pytest.raises(UserError, match="teacher_draws"):
+        generate_pairs(dataclasses.replace(_pairs_cfg(ckpt, data, tmp_path / "one", 4), teacher_draws=2), progress=False)
+    with pytest.raises(UserError, match="--teacher-draws must be at least 1"):
+        generate_pairs(dataclasses.replace(_pairs_cfg(ckpt, data, tmp_path / "three", 2), teacher_draws=0), progress=False)

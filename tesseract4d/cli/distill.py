@@ -50,6 +50,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--group-pairs", action="store_true",
                         help="draw the pairs as whole counterfactual groups of --data (one scene under several "
                              "instructions, `datagen --instructions-per-scene`), a group's pairs sharing one noise")
+    parser.add_argument("--teacher-draws", type=int, default=p.teacher_draws, metavar="N",
+                        help="sample every pair from N teacher noises and keep the clip whose first-frame objects "
+                             "(found by their colour) keep their colours best, a group keeping the draw best for all "
+                             "its pairs; N times the pairs' sampling (default %(default)s: the teacher's single draw)")
     parser.add_argument("--pair-batch-size", type=int, default=p.batch_size,
                         help="teacher clips per sampler call (default %(default)s)")
     parser.add_argument("--student-steps", type=int, default=d.student_steps,
@@ -95,7 +99,8 @@ def run(args: argparse.Namespace) -> int:
             teacher=args.teacher, data=args.data[0] if len(args.data) == 1 else args.data, out=args.pairs, num_pairs=args.num_pairs,
             batch_size=args.pair_batch_size, teacher_steps=args.teacher_steps,
             text_guidance=args.teacher_guidance, seed=args.seed, camera=args.camera,
-            precision=args.precision, groups=args.group_pairs), progress=not args.no_progress)
+            precision=args.precision, groups=args.group_pairs, teacher_draws=args.teacher_draws),
+            progress=not args.no_progress)
         print(f"pairs: {args.pairs}")
     elif args.pairs_only or not (args.pairs / MANIFEST).is_file():
         raise UserError(f"pass --data DIR: the pairs in {args.pairs} are made from a dataset folder")

@@ -37,6 +37,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
+import numpy as np
 import torch
 
 from tesseract4d.errors import UserError
@@ -63,6 +64,9 @@ class PairsConfig:
     camera: str | None = None
     precision: str = "auto"
     groups: bool = False  # whole counterfactual groups per draw, one noise per group
+    # Noises the teacher samples each pair from; the pair keeps the one whose clip keeps the first frame's
+    # objects best (draw_choice.py; a group keeps the draw best for its pairs together, so they share it).
+    teacher_draws: int = 1
 
     def to_dict(self) -> dict:
         from tesseract4d.configs import config_dict
@@ -77,7 +81,7 @@ def _shard_path(out: Path, index: int) -> Path:
 # What a manifest written before a key existed meant by it: pairs before guidance intervals were
 # guided at every step, pairs before autoguidance had none.
 _MANIFEST_DEFAULTS = {"guidance_min_sigma": 0.0, "autoguidance": 0.0, "autoguidance_min_sigma": 0.0,
-                      "guide_digest": None}
+                      "guide_digest": None, "teacher_draws": 1}
 
 
 def _check_manifest(out: Path, manifest: dict) -> None:
@@ -88,7 +92,7 @@ def _check_manifest(out: Path, manifest: dict) -> None:
         return
     saved = json.loads(path.read_text())
     keys = ("teacher_digest", "teacher_steps", "text_guidance", "image_guidance", "guidance_min_sigma", "autoguidance",
-            "autoguidance_min_sigma", "guide_digest", "data", "seed", "shard_size", "groups")
+            "autoguidance_min_sigma", "guide_digest", "data", "seed", "shard_size", "groups", "teacher_draws")
     differ = [k for k in keys if saved.get(k, _MANIFEST_DEFAULTS.get(k)) != manifest.get(k)]
     if differ:
         raise UserError(f"{out} holds pairs made with other settings ({', '.join(differ)} differ); "
@@ -105,8 +109,8 @@ def generate_pairs(cfg: PairsConfig, progress: bool = True) -> Path:
     from tesseract4d.model.predict import load_pipeline
     from tesseract4d.model.recipe import share_within_groups
 
-    if cfg.num_pairs < 1 or cfg.shard_size < 1 or cfg.batch_size < 1:
-        raise UserError("--num-pairs, --shard-size and --batch-size must be at least 1")
+    if cfg.num_pairs < 1 or cfg.shard_size < 1 or cfg.batch_size < 1 or cfg.teacher_draws < 1:
+        raise UserError("--num-pairs, --shard-size, --batch-size and --teacher-draws must be at least 1")
     # On a GPU machine the teacher samples there, as the trainers train there (CUDA_VISIBLE_DEVICES= keeps it on the CPU).
     pipe = load_pipeline(cfg.teacher, device="cuda" if torch.cuda.is_available() else "cpu", precision=cfg.precision)
     p = pipe.preset
@@ -127,7 +131,7 @@ def generate_pairs(cfg: PairsConfig, progress: bool = True) -> Path:
                 "autoguidance": p.autoguidance, "autoguidance_min_sigma": p.autoguidance_min_sigma,
                 # and the guide it samples with, by its weights' digest
                 "guide_digest": weights_digest(cfg.teacher, subfolder=GUIDE_DIR) if p.autoguidance else None,
-                "data": plain(cfg.data),
+                "teacher_draws": cfg.teacher_draws, "data": plain(cfg.data),
                 "camera": data.camera, "seed": cfg.seed, "shard_size": cfg.shard_size, "groups": bool(cfg.groups), "config": cfg.to_dict()}
     _check_manifest(out, manifest)
     out.mkdir(parents=True, exist_ok=True)
@@ -136,12 +140,12 @@ def generate_pairs(cfg: PairsConfig, progress: bool = True) -> Path:
     os.replace(tmp, out / MANIFEST)
 
     num_shards = -(-cfg.num_pairs // cfg.shard_size)
-    bar = tqdm(total=cfg.num_pairs, desc="reflow pairs", unit="clip", disable=not progress)
+    bar = tqdm(total=cfg.num_pairs * cfg.teacher_draws, desc="reflow pairs", unit="clip", disable=not progress)
     for s in range(num_shards):
         n = min(cfg.shard_size, cfg.num_pairs - s * cfg.shard_size)
         path = _shard_path(out, s)
         if path.is_file() and path.with_suffix(".json").is_file():
-            bar.update(n)
+            bar.update(n * cfg.teacher_draws)
             continue
         # Every shard's batch and noise depend only on (seed, shard): a resumed run makes the same pairs.
         g = _shard_generator(cfg.seed, s)
@@ -150,29 +154,79 @@ def generate_pairs(cfg: PairsConfig, progress: bool = True) -> Path:
         first = torch.stack([c[0] for c, _ in drawn])  # (n, 7, H, W)
         texts = [t for _, t in drawn]
         noise = share_within_groups(torch.randn(pipe.latent_shape(n), generator=g), leaders)
-        x0 = []
-        for i in range(0, n, cfg.batch_size):
-            sl = slice(i, i + cfg.batch_size)
-            x0.append(pipe(first[sl], texts[sl], num_inference_steps=steps, text_guidance=text_g,
-                           image_guidance=image_g, latents=noise[sl], output_type="latent", generator=g))
-            bar.update(len(texts[sl]))
-        tensors = {"first": first.half().contiguous(), "noise": noise.contiguous(),
-                   "x0": torch.cat(x0).float().cpu().contiguous()}
+
+        def sample(noise: torch.Tensor, generator: torch.Generator) -> torch.Tensor:
+            x0 = []
+            for i in range(0, n, cfg.batch_size):
+                sl = slice(i, i + cfg.batch_size)
+                x0.append(pipe(first[sl], texts[sl], num_inference_steps=steps, text_guidance=text_g,
+                               image_guidance=image_g, latents=noise[sl], output_type="latent", generator=generator))
+                bar.update(len(texts[sl]))
+            return torch.cat(x0).float().cpu()
+
+        x0 = sample(noise, g)  # draw 0: the pairs of a single draw
+        chosen = None
+        if cfg.teacher_draws > 1:
+            noise, x0, chosen = _best_draws(pipe, first, noise, x0, leaders, cfg.teacher_draws,
+                                            _shard_seed(cfg.seed, s), sample)
+        tensors = {"first": first.half().contiguous(), "noise": noise.contiguous(), "x0": x0.contiguous()}
         if leaders is not None:
             tensors["leader"] = torch.tensor(leaders, dtype=torch.int64)
         tmp_st = path.with_name(f".{path.name}.tmp")
         save_file(tensors, str(tmp_st))
         tmp_js = path.with_name(f".{path.stem}.json.tmp")
-        tmp_js.write_text(json.dumps({"instructions": texts, "episodes": [data.sources[i].episode_id for i in indices],
-                                      "starts": starts}))
+        record = {"instructions": texts, "episodes": [data.sources[i].episode_id for i in indices], "starts": starts}
+        if chosen is not None:
+            record["draws"] = chosen
+        tmp_js.write_text(json.dumps(record))
         os.replace(tmp_st, path)
         os.replace(tmp_js, path.with_suffix(".json"))
     bar.close()
     return out
 
 
+def _shard_seed(seed: int, shard: int) -> int:
+    return seed * 1_000_003 + shard
+
+
 def _shard_generator(seed: int, shard: int) -> torch.Generator:
-    return torch.Generator().manual_seed(seed * 1_000_003 + shard)
+    return torch.Generator().manual_seed(_shard_seed(seed, shard))
+
+
+def _best_draws(pipe, first: torch.Tensor, noise: torch.Tensor, x0: torch.Tensor, leaders: list[int] | None,
+                draws: int, shard_seed: int, sample: Callable) -> tuple[torch.Tensor, torch.Tensor, dict]:
+    """The shard's pairs from the best of ``draws`` teacher noises (draw 0: ``noise`` and its clips
+    ``x0``; draw k from ``draw_noise_seed(shard_seed, k)``, shared within groups as draw 0's). Each
+    clip is decoded and scored by how well it keeps the objects found in its first frame
+    (draw_choice.py); a pair keeps its best draw, a group the draw of the best mean over its pairs.
+    Returns (noise, x0, {"count", "kept" per pair, "objects_kept" per draw and pair})."""
+    from tesseract4d.model.draw_choice import draw_noise_seed, object_windows, objects_kept
+    from tesseract4d.model.recipe import share_within_groups
+
+    def scores(z: torch.Tensor) -> list[float]:
+        clips = torch.cat([pipe.decode(z[i:i + 4].to(pipe.device)).cpu() for i in range(0, len(z), 4)])
+        return [objects_kept(windows[i], pipe.model_space.decode(clips[i])[0]) for i in range(len(z))]
+
+    windows = [object_windows(pipe.model_space.decode(f[None])[0][0]) for f in first.float()]
+    noises, x0s, score = [noise], [x0], [scores(x0)]
+    for k in range(1, draws):
+        g = torch.Generator().manual_seed(draw_noise_seed(shard_seed, k))
+        noises.append(share_within_groups(torch.randn(noise.shape, generator=g), leaders))
+        x0s.append(sample(noises[-1], g))
+        score.append(scores(x0s[-1]))
+    table = np.nan_to_num(np.asarray(score, np.float64), nan=-1.0)  # (draws, n); no object: every draw alike
+    units = [[i] for i in range(len(first))] if leaders is None else \
+        [[i for i, lead in enumerate(leaders) if lead == leader] for leader in sorted(set(leaders))]
+    kept = [0] * len(first)
+    for unit in units:
+        best = int(np.argmax(table[:, unit].mean(axis=1)))  # the earliest on a tie
+        for i in unit:
+            kept[i] = best
+    index = torch.tensor(kept)
+    rows = torch.arange(len(first))
+    noise = torch.stack(noises)[index, rows]
+    x0 = torch.stack(x0s)[index, rows]
+    return noise, x0, {"count": draws, "kept": kept, "objects_kept": [[float(v) for v in row] for row in score]}
 
 
 def _shard_plan(data, n: int, generator: torch.Generator, groups: bool) -> tuple[list[int], list[int], list[int] | None]:
