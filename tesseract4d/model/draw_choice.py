@@ -36,6 +36,15 @@ AROUND_PX = 2
 MAX_PALETTE = 64
 
 
+def check_draws(draws: int) -> int:
+    """``draws`` as an int, refused with the fix when it is below 1."""
+    from tesseract4d.errors import UserError
+
+    if int(draws) < 1:
+        raise UserError(f"--draws must be at least 1 (1 = a single noise draw), got {draws}")
+    return int(draws)
+
+
 def draw_noise_seed(seed: int, draw: int) -> int:
     """The noise seed of draw ``draw`` of a scene whose single draw uses ``seed`` (draw 0: ``seed``)."""
     return int(seed) if draw == 0 else (int(seed) * 7_919 + 104_729 * int(draw)) % (1 << 62)

@@ -27,7 +27,7 @@ from tesseract4d import dataset_format as df
 from tesseract4d.errors import UserError
 from tesseract4d.precision import announce, resolve_precision
 from tesseract4d.model.model_space import ModelSpace
-from tesseract4d.model.draw_choice import choose, draw_noise_seed, object_windows
+from tesseract4d.model.draw_choice import check_draws, choose, draw_noise_seed, object_windows
 from tesseract4d.model.checkpoint import (GUIDE_DIR, INFERENCE_CONFIG_FILE, load_scheduler, load_transformer,
                                           read_inference_config)
 from tesseract4d.model.pipeline import RGBDNPipeline
@@ -273,9 +273,7 @@ def _best_of_draws(pipeline: RGBDNPipeline, scenes: list, draw: Callable, draws:
     ``draw(k, progress)`` predicts all ``scenes`` from draw k's noise. A first frame's objects are its
     segmentation's, or found by colour without one; a scene with none keeps draw 0, and when no scene
     has any only draw 0 is sampled."""
-    draws = int(pipeline.preset.draws) if draws is None else int(draws)
-    if draws < 1:
-        raise UserError(f"--draws must be at least 1 (1 = a single noise draw), got {draws}")
+    draws = check_draws(pipeline.preset.draws if draws is None else draws)
     windows = [object_windows(cam.rgb[0], None if cam.segmentation is None else cam.segmentation[0], cam.seg_id_to_name)
                for _, _, _, cam, _ in scenes] if draws > 1 else []
     if not any(windows):

@@ -219,9 +219,9 @@ def run_rollouts(cfg: RolloutConfig, progress: bool = True) -> dict:
         from tesseract4d.model.predict import load_pipeline
 
         pipeline = load_pipeline(cfg.checkpoint, precision=cfg.precision)
-        if lc.draws is not None and lc.draws < 1:
-            raise UserError(f"--draws must be at least 1 (1 = a single noise draw), got {lc.draws}")
-        lc = dataclasses.replace(lc, draws=pipeline.preset.draws if lc.draws is None else lc.draws)
+        from tesseract4d.model.draw_choice import check_draws
+
+        lc = dataclasses.replace(lc, draws=check_draws(pipeline.preset.draws if lc.draws is None else lc.draws))
         cfg = dataclasses.replace(cfg, loop=lc)
     if lc.resolution is None:  # render at the world model's resolution, else at the IDM's
         policy = idm or bc
