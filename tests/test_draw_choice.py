@@ -112,6 +112,22 @@ def test_the_kept_future_is_the_single_draw_of_its_noise_with_every_draw_scored(
                                                                      seed=2, num_steps=2).cameras["close"].rgb)
 
 
+def test_several_samples_of_one_first_frame_find_its_objects_once(draws_checkpoint, monkeypatch):
+    """`predict --num-samples N` with draws: every sample keeps its best draw, scored against the objects
+    of the one first frame they share, which are read from it once, not N times."""
+    from tesseract4d.model import predict
+    from tesseract4d.model.predict import load_pipeline, predict_episodes
+
+    reads = []
+    monkeypatch.setattr(predict, "object_windows", lambda *a: reads.append(a) or object_windows(*a))
+    pipe = load_pipeline(draws_checkpoint, precision="fp32")
+    first = _segment(synthetic_episode(5, frames=1, size=32))
+    samples = predict_episodes(pipe, first, "push the square to the right", num_samples=3, seed=2, num_steps=2)
+    assert len(reads) == 1 and len(samples) == 3
+    assert all(s.metadata["prediction"]["draws"]["count"] == 3 for s in samples)
+    assert len({s.cameras["close"].rgb[1:].tobytes() for s in samples}) == 3  # three different futures
+
+
 def test_a_first_frame_without_segmentation_is_scored_by_the_objects_its_colours_show(draws_checkpoint):
     """Image files, the closed loop's observations and reconstructions carry no segmentation: their
     objects are found by colour (object_finder.py). A red cube on the grey plane is followed, as the

@@ -274,8 +274,15 @@ def _best_of_draws(pipeline: RGBDNPipeline, scenes: list, draw: Callable, draws:
     segmentation's, or found by colour without one; a scene with none keeps draw 0, and when no scene
     has any only draw 0 is sampled."""
     draws = check_draws(pipeline.preset.draws if draws is None else draws)
-    windows = [object_windows(cam.rgb[0], None if cam.segmentation is None else cam.segmentation[0], cam.seg_id_to_name)
-               for _, _, _, cam, _ in scenes] if draws > 1 else []
+    found: dict[int, list] = {}  # a first frame's objects, found once however many samples share it
+
+    def windows_of(cam) -> list:
+        if id(cam) not in found:
+            found[id(cam)] = object_windows(cam.rgb[0], None if cam.segmentation is None else cam.segmentation[0],
+                                            cam.seg_id_to_name)
+        return found[id(cam)]
+
+    windows = [windows_of(cam) for _, _, _, cam, _ in scenes] if draws > 1 else []
     if not any(windows):
         draws = 1
     candidates = []
