@@ -93,6 +93,12 @@ class DatagenConfig:
             raise UserError(f"--frames must be 0 (all steps) or at least 2, got {self.sim.frames}")
         if self.sim.camera_jitter_m < 0:
             raise UserError(f"--camera-jitter must be >= 0 metres, got {self.sim.camera_jitter_m}")
+        if self.seed_start < 0 or self.seed_start + self.attempts_cap() > 2**32:
+            raise UserError(f"--seed-start must be a seed >= 0 with room for {self.attempts_cap()} attempts below 2**32, "
+                            f"got {self.seed_start}")
+        if self.instructions_per_scene < 1:
+            raise UserError(f"--instructions-per-scene must be at least 1 (1: one instruction per scene), "
+                            f"got {self.instructions_per_scene}")
         if self.attempts_cap() < self.episodes:
             raise UserError(f"--max-attempts ({self.attempts_cap()}) must be at least --episodes ({self.episodes})")
         skill_tasks = [t for t in self.tasks if self.skill_mode(t)]

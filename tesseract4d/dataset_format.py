@@ -449,9 +449,27 @@ def read_episode(
     except DatasetFormatError:
         raise
     except (OSError, KeyError, ValueError) as e:
-        raise DatasetFormatError(
-            f"{path} is corrupt or truncated ({type(e).__name__}: {e}). Delete it and re-run datagen to regenerate it."
-        ) from e
+        raise DatasetFormatError(_unreadable(path, e)) from e
+
+
+_HDF5_SIGNATURE = b"\x89HDF\r\n\x1a\n"
+
+
+def _unreadable(path: Path, e: Exception) -> str:
+    """Why an episode file could not be read: not an HDF5 file at all (a user's other file), an HDF5
+    file of something else, or one of ours that is damaged."""
+    try:
+        with open(path, "rb") as f:
+            head = f.read(len(_HDF5_SIGNATURE))
+    except OSError:
+        head = b""
+    if head != _HDF5_SIGNATURE:
+        return (f"{path} is not an episode file (not HDF5); pass an episode .h5 written by `tesseract4d datagen` "
+                f"or `predict`, or the folder holding one")
+    if isinstance(e, KeyError):
+        return f"{path} is an HDF5 file but not a tesseract4d episode ({e}); pass an episode written by datagen or predict"
+    return (f"{path} is corrupt or truncated ({type(e).__name__}: {e}); regenerate it with the command that wrote it "
+            f"(`tesseract4d dataset check` lists every such file of a dataset)")
 
 
 def _group_fields(attrs, version: int) -> dict:
@@ -488,7 +506,17 @@ def read_episode_attrs(path: str | os.PathLike) -> dict:
                 "cameras": cams,
             }
     except (OSError, KeyError, ValueError, IndexError) as e:
-        raise DatasetFormatError(f"{path} is corrupt or truncated ({type(e).__name__}: {e}). Delete it and regenerate it.") from e
+        raise DatasetFormatError(_unreadable(Path(path), e)) from e
+
+
+def samples_hint(folder: Path) -> str | None:
+    """For a folder of `predict --num-samples` (``sample_XX`` prediction folders, no episode of its
+    own): the sentence that names them; None for any other folder."""
+    samples = sorted(q for q in Path(folder).glob("sample_[0-9]*") if q.is_dir() and list_episode_files(q))
+    if not samples:
+        return None
+    return (f"{folder} holds {len(samples)} samples of `tesseract4d predict --num-samples`, one prediction folder "
+            f"each; pass one of them, e.g. {samples[0]}")
 
 
 def resolve_episode(spec: str | os.PathLike) -> Path:
@@ -502,8 +530,13 @@ def resolve_episode(spec: str | os.PathLike) -> Path:
         if len(files) == 1:
             return files[0]
         if not files:
+            if hint := samples_hint(p):
+                raise DatasetFormatError(hint)
             raise DatasetFormatError(f"{p} holds no episodes (expected {EPISODE_TEMPLATE} inside)")
-        raise DatasetFormatError(f"{p} holds {len(files)} episodes; name one as {p}/<env_id>/<seed>")
+        seed, _, variant = files[0].stem.removeprefix("seed_").partition("_k")
+        example = p / files[0].parent.name / (f"{int(seed)}_k{variant}" if variant else str(int(seed)))
+        raise DatasetFormatError(f"{p} holds {len(files)} episodes; name one as {p}/<env_id>/<seed> or, for "
+                                 f"future K of a counterfactual group, <seed>_k<K> (e.g. {example}), or pass its .h5 file")
     # DIR/ENV_ID/SEED or DIR/ENV_ID/SEED_kK (future k of a group)
     root, env_id = p.parent.parent, p.parent.name
     seed, _, variant = p.name.partition("_k")

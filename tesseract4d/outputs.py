@@ -81,6 +81,19 @@ def _write_marker(folder: Path, command: str, files: list[str]) -> None:
     os.replace(tmp, folder / MARKER)
 
 
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
+def _as_created(path: Path, mode: int) -> Path:
+    """Give a temporary file (0600) or folder (0700) the mode a plain create would (``mode`` less the
+    umask), so results are as readable as the user's other files once renamed into place."""
+    os.chmod(path, mode & ~_umask())
+    return path
+
+
 def _files_under(folder: Path) -> list[str]:
     return sorted(str(p.relative_to(folder)) for p in folder.rglob("*") if p.is_file() or p.is_symlink())
 
@@ -126,7 +139,7 @@ class OutputDir:
     def __enter__(self) -> Path:
         parent = _resolve(self.path).parent
         parent.mkdir(parents=True, exist_ok=True)
-        self.stage = Path(tempfile.mkdtemp(prefix=f".{self.path.name}.tmp-", dir=parent))
+        self.stage = _as_created(Path(tempfile.mkdtemp(prefix=f".{self.path.name}.tmp-", dir=parent)), 0o777)
         return self.stage
 
     def __exit__(self, exc_type, exc, tb) -> bool:
@@ -190,7 +203,7 @@ class OutputFile:
         self.path.parent.mkdir(parents=True, exist_ok=True)
         fd, name = tempfile.mkstemp(prefix=f".{self.path.name}.tmp-", dir=self.path.parent)
         os.close(fd)
-        self.tmp = Path(name)
+        self.tmp = _as_created(Path(name), 0o666)
         return self.tmp
 
     def __exit__(self, exc_type, exc, tb) -> bool:

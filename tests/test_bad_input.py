@@ -196,6 +196,18 @@ def test_predict_writes_a_new_folder_and_warns_about_a_long_instruction(sandbox,
     assert "tokens; the text encoder keeps the first 8" in err
     assert {p.split("/")[0] for p in changed(before, snapshot(sandbox))} == {"pred"}
     assert (sandbox / "pred" / MARKER).is_file() and (sandbox / "pred" / "predict_config.json").is_file()
+    # As readable as a plain mkdir/open would make them (staging folders start private).
+    mask = os.umask(0)
+    os.umask(mask)
+    assert (sandbox / "pred").stat().st_mode & 0o777 == 0o777 & ~mask
+
+
+def test_single_file_outputs_are_created_with_the_users_umask(sandbox, capsys):
+    rc, _, err = run_cli(capsys, "view", "data/Synthetic-v0/0", "--export", "scene.html")
+    assert rc == 0, err
+    mask = os.umask(0)
+    os.umask(mask)
+    assert (sandbox / "scene.html").stat().st_mode & 0o777 == 0o666 & ~mask
 
 
 @pytest.mark.parametrize("field,value", [("env_id", "../../../escaped"), ("env_id", "a/b"), ("env_id", ".."),
@@ -274,6 +286,8 @@ def test_view_export_does_not_replace_a_foreign_file(sandbox, capsys):
     (["--out", "run"], ["run", "already holds"]),
     (["--out", "new", "--resolution", "100000"], ["100000", "at most"]),
     (["--out", "new", "--episodes", "0"], ["--episodes"]),
+    (["--out", "new", "--seed-start", "-5"], ["--seed-start", "-5"]),
+    (["--out", "new", "--instructions-per-scene", "0"], ["--instructions-per-scene"]),
 ])
 def test_datagen_refuses_bad_outputs_and_options(sandbox, capsys, args, words):
     before = snapshot(sandbox)
@@ -485,6 +499,122 @@ def test_damaged_shard_is_named(sandbox, capsys, how, command):
         assert rc == 1 and f"BAD  data/episodes/{ENV}/{path.name}" in out and "1 bad" in out, out + err
     else:
         assert_one_line_error(rc, err, str(Path(path).name))
+    assert changed(before, snapshot(sandbox)) == set()
+
+
+# --------------------------------------------------------------------------- predict's inputs
+
+
+def _user_files(sb: Path, size: int) -> dict[str, Path]:
+    """A first frame as a user's own files: rgb.png, depth.npy (1 m), K.txt, all ``size``²."""
+    import imageio.v2 as imageio
+    import numpy as np
+
+    imageio.imwrite(sb / "rgb.png", np.full((size, size, 3), 120, np.uint8))
+    np.save(sb / "depth.npy", np.ones((size, size), np.float32))
+    np.savetxt(sb / "K.txt", [[40.0, 0, size / 2], [0, 40.0, size / 2], [0, 0, 1]])
+    return {"--rgb": sb / "rgb.png", "--depth": sb / "depth.npy", "--K": sb / "K.txt"}
+
+
+@pytest.mark.parametrize("damage,words", [
+    ("K-text", ["K.txt", "cannot read K", "3 rows of 3 numbers"]),
+    ("K-json-dict", ["K.json", "cannot read K"]),
+    ("K-zero-focal", ["K.txt", "focal lengths"]),
+    ("rgb-not-an-image", ["--rgb", "notes.txt", "is not an image file"]),
+    ("depth-negative", ["depth.npy", "depth must be finite metres >= 0"]),
+    ("depth-nan", ["depth.npy", "depth must be finite metres >= 0"]),
+    ("normal-shape", ["--normal", "normal.npy", "expected finite (H, W, 3)"]),
+])
+def test_predict_from_unreadable_user_files_says_what_each_takes(sandbox, capsys, damage, words):
+    """Each of a user's first-frame files that cannot be a first frame is refused in one line naming
+    the file and the form it takes, before the model samples anything."""
+    import numpy as np
+
+    files = _user_files(sandbox, MICRO.width)
+    extra = []
+    if damage == "K-text":
+        files["--K"].write_text("hello\n")
+    elif damage == "K-json-dict":
+        files["--K"] = sandbox / "K.json"
+        files["--K"].write_text(json.dumps({"fx": 1}))
+    elif damage == "K-zero-focal":
+        np.savetxt(files["--K"], np.diag([0.0, 40.0, 1.0]))
+    elif damage == "rgb-not-an-image":
+        files["--rgb"] = sandbox / "notes.txt"
+    elif damage == "depth-negative":
+        np.save(files["--depth"], -np.ones((MICRO.height, MICRO.width), np.float32))
+    elif damage == "depth-nan":
+        np.save(files["--depth"], np.full((MICRO.height, MICRO.width), np.nan, np.float32))
+    else:
+        np.save(sandbox / "normal.npy", np.zeros((4, 4, 3), np.float32))
+        extra = ["--normal", "normal.npy"]
+    before = snapshot(sandbox)
+    rc, _, err = run_cli(capsys, "predict", "--checkpoint", "ckpt", *[x for kv in files.items() for x in kv], *extra,
+                         "--instruction", "push", "--out", "pred", "--steps", "1")
+    assert_one_line_error(rc, err, *words)
+    assert changed(before, snapshot(sandbox)) == set()
+
+
+@pytest.mark.parametrize("argv,said", [
+    (["--steps", "0"], "argument --steps: must be a whole number >= 1, got '0'"),
+    (["--num-frames", "0"], "argument --num-frames: must be a whole number >= 1"),
+    (["--num-samples", "0"], "argument --num-samples: must be a whole number >= 1"),
+    (["--draws", "0"], "argument --draws: must be a whole number >= 1 (1: a single draw)"),
+    (["--text-guidance", "-1"], "argument --text-guidance: must be a finite number > 0 (1: no guidance)"),
+    (["--image-guidance", "0"], "argument --image-guidance: must be a finite number > 0"),
+    (["--sample-seed", "-1"], "argument --sample-seed: must be a whole number in 0..4294967295"),
+])
+def test_predict_numbers_are_refused_before_any_work(sandbox, capsys, argv, said):
+    """A number no sampler can use ends at once (argparse's exit 2), not as the preset's value in disguise
+    (``--steps 0`` once sampled the preset's steps) or a traceback after sampling."""
+    before = snapshot(sandbox)
+    with pytest.raises(SystemExit) as ended:
+        cli.main(["predict", "--checkpoint", "ckpt", "--episode", "data/Synthetic-v0/0", "--out", "pred", *argv])
+    assert ended.value.code == 2 and said in capsys.readouterr().err
+    assert changed(before, snapshot(sandbox)) == set()
+
+
+def test_predict_task_seed_outside_the_simulators_range_is_refused(sandbox, capsys):
+    with pytest.raises(SystemExit) as ended:
+        cli.main(["predict", "--task", "PushCube-v1", "--seed", "-1", "--out", "pred"])
+    assert ended.value.code == 2 and "argument --seed: must be a whole number in 0..4294967295" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        cli.main(["demo", "--headless", "--seed", "-1"])
+    assert "argument --seed: must be a whole number in 0..4294967295" in capsys.readouterr().err
+
+
+def test_what_is_not_an_episode_or_a_checkpoint_is_named_with_the_fix(sandbox, capsys):
+    """A user's text file is not called a damaged episode; a folder of several episodes names the form
+    of one (a group's future included); a file is not 'not found' as a checkpoint."""
+    rc, _, err = run_cli(capsys, "predict", "--checkpoint", "ckpt", "--episode", "notes.txt", "--out", "pred")
+    assert_one_line_error(rc, err, "notes.txt is not an episode file (not HDF5)")
+    assert "Delete" not in err
+    rc, _, err = run_cli(capsys, "predict", "--checkpoint", "ckpt", "--episode", "data", "--out", "pred")
+    assert_one_line_error(rc, err, "holds 2 episodes", "<seed>_k<K>", f"data/{ENV}/0")
+    rc, _, err = run_cli(capsys, "predict", "--checkpoint", "notes.txt", "--episode", "data/Synthetic-v0/0",
+                         "--out", "pred")
+    assert_one_line_error(rc, err, "checkpoint notes.txt is a file, not a folder")
+
+
+def test_the_samples_of_predict_are_named_to_the_commands_after_it(sandbox, capsys):
+    """`predict --num-samples 2` writes a folder per sample; reconstruct, evaluate and view on the parent
+    name the samples' folders instead of saying it holds no episodes."""
+    rc, out, err = run_cli(capsys, "predict", "--checkpoint", "ckpt", "--episode", "data/Synthetic-v0/0", "--out", "pred",
+                           "--steps", "1", "--num-samples", "2")
+    assert rc == 0, err
+    assert "pred/sample_00" in out.splitlines()[-1]
+    for argv in (["reconstruct", "pred", "--out", "recon"], ["view", "pred", "--export", "scene.html"],
+                 ["evaluate", "pred", "--gt", "data/Synthetic-v0/0"]):
+        rc, _, err = run_cli(capsys, *argv)
+        assert_one_line_error(rc, err, "holds 2 samples of `tesseract4d predict --num-samples`", "pred/sample_00")
+
+
+def test_view_export_refuses_the_options_only_the_served_viewer_uses(sandbox, capsys):
+    before = snapshot(sandbox)
+    for extra, flag in ((["--compare", "data/Synthetic-v0/1"], "--compare"), (["--metrics", "notes.txt"], "--metrics"),
+                        (["--compare", "data/Synthetic-v0/1", "--labels", "a", "b"], "--compare, --labels")):
+        rc, _, err = run_cli(capsys, "view", "data/Synthetic-v0/0", "--export", "scene.html", *extra)
+        assert_one_line_error(rc, err, "--export records PATH alone", flag)
     assert changed(before, snapshot(sandbox)) == set()
 
 

@@ -141,7 +141,7 @@ def test_cli_missing_and_malformed_paths(tmp_path):
     assert res.returncode == 2 and "corrupt" in res.stderr and "tesseract4d reconstruct" in res.stderr
     (tmp_path / "episode.h5").write_bytes(b"not hdf5")
     res = _run_cli(tmp_path / "episode.h5")
-    assert res.returncode == 2 and "corrupt or truncated" in res.stderr
+    assert res.returncode == 2 and "is not an episode file (not HDF5)" in res.stderr
     assert "Traceback" not in res.stderr
 
 

@@ -37,6 +37,10 @@ def load_source(path: str | os.PathLike, camera: str | None = None) -> Recon4D:
             "dataset episode (.h5 file, dataset folder with one episode, or DIR/ENV_ID/SEED)."
         )
     if p.is_dir() and not (p / "episodes").is_dir():
+        from tesseract4d.dataset_format import samples_hint
+
+        if hint := samples_hint(p):
+            raise UserError(hint)
         raise UserError(
             f"{p} is neither a reconstruction folder (no {MANIFEST}) nor a dataset folder (no episodes/); "
             "pass the folder written by `tesseract4d reconstruct`, `predict` or `datagen`."

@@ -21,10 +21,10 @@ from tesseract4d.dataset_format import (
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     sub = parser.add_subparsers(dest="action", required=True)
     info = sub.add_parser("info", help="summary of a dataset folder")
-    info.add_argument("dir", type=Path)
+    info.add_argument("dir", type=Path, help="dataset folder written by `tesseract4d datagen` (or predict)")
     info.add_argument("--json", action="store_true", help="print the summary as JSON")
     check = sub.add_parser("check", help="validate every episode shard")
-    check.add_argument("dir", type=Path)
+    check.add_argument("dir", type=Path, help="dataset folder whose episode files are read one by one")
 
 
 def _size_bytes(root: Path) -> int:

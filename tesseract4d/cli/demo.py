@@ -27,6 +27,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from datagen.tabletop import ENV_ID as TABLETOP_ID
+from tesseract4d.cli.argument_types import seed, whole
 from tesseract4d.dataset_format import HELDOUT_SEED_START
 from tesseract4d.errors import UserError
 from tesseract4d.model.checkpoint import SHIPPED_CHECKPOINT
@@ -67,7 +68,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     d = DemoConfig()
     parser.add_argument("--task", default=d.task,
                         help="scene: the project's tabletop or a ManiSkill task id such as PickCube-v1 (default %(default)s)")
-    parser.add_argument("--seed", type=int, default=d.seed,
+    parser.add_argument("--seed", type=seed(), default=d.seed,
                         help=f"scene seed; seeds >= {HELDOUT_SEED_START} are never used in training (default %(default)s)")
     parser.add_argument("--instruction", default=None,
                         help="the main instruction (default: the held-out paraphrase of --skill in the tabletop, "
@@ -85,16 +86,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-contrast", action="store_true", help="predict one future only (the main instruction)")
     parser.add_argument("--checkpoint", type=Path, default=d.checkpoint, help="model checkpoint folder (default: the shipped v2-2step, tesseract4d/checkpoints/v2-2step; tesseract4d/checkpoints/v2 is its 10-step teacher)")
     parser.add_argument("--out", type=Path, default=d.out, help="output folder (default %(default)s)")
-    parser.add_argument("--num-frames", type=int, help="frames to predict (default: one clip, the checkpoint preset's length)")
-    parser.add_argument("--steps", type=int, help="sampler steps (default: the checkpoint preset's)")
-    parser.add_argument("--draws", type=int, metavar="N",
+    parser.add_argument("--num-frames", type=whole(1), help="frames to predict (default: one clip, the checkpoint preset's length)")
+    parser.add_argument("--steps", type=whole(1), help="sampler steps (default: the checkpoint preset's)")
+    parser.add_argument("--draws", type=whole(1, hint=" (1: a single draw)"), metavar="N",
                         help="noise draws per future; each keeps the one whose objects keep their colours best "
                              "(default: the checkpoint preset's; 1 = a single draw)")
-    parser.add_argument("--sample-seed", type=int, default=d.sample_seed,
+    parser.add_argument("--sample-seed", type=seed(), default=d.sample_seed,
                         help="diffusion noise seed, shared by both futures (default %(default)s)")
     parser.add_argument("--camera", help="camera preset to render the first frame from (default: the checkpoint's)")
     parser.add_argument("--host", default=d.host, help="viewer host (default %(default)s)")
-    parser.add_argument("--port", type=int, default=d.port, help="viewer port (default %(default)s)")
+    parser.add_argument("--port", type=whole(0, 65535), default=d.port, help="viewer port (default %(default)s)")
     parser.add_argument("--headless", action="store_true", help="write the outputs and exit without serving the viewer")
     add_precision_argument(parser)
     parser.add_argument("--overwrite", action="store_true",

@@ -25,6 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
+from tesseract4d.cli.argument_types import number, seed, whole
 from tesseract4d.dataset_format import HELDOUT_SEED_START
 from tesseract4d.errors import UserError
 from tesseract4d.model.checkpoint import SHIPPED_CHECKPOINT
@@ -62,24 +63,24 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--instruction", help="what should happen (default: the episode's / scene's own instruction)")
     src = parser.add_argument_group("first frame (one of)")
     src.add_argument("--task", help="ManiSkill task id to render, with --seed")
-    src.add_argument("--seed", type=int, help="scene seed for --task")
+    src.add_argument("--seed", type=seed(), help="scene seed for --task")
     src.add_argument("--episode", help="dataset episode: FILE.h5, DIR/ENV_ID/SEED or a one-episode dataset folder")
     src.add_argument("--rgb", type=Path, help="RGB image file")
     src.add_argument("--depth", type=Path, help="depth: .npy in metres or 16-bit PNG in millimetres")
     src.add_argument("--K", type=Path, help="3x3 pixel intrinsics: .npy, .txt or .json")
     src.add_argument("--normal", type=Path, help="optional (H, W, 3) .npy unit normals, OpenCV camera frame")
     parser.add_argument("--out", type=Path, default=d.out, help="output folder (default %(default)s)")
-    parser.add_argument("--num-frames", type=int, help="frames to predict; more than one clip continues autoregressively "
+    parser.add_argument("--num-frames", type=whole(1), help="frames to predict; more than one clip continues autoregressively "
                         "(default: one clip, the checkpoint preset's length)")
-    parser.add_argument("--steps", type=int, help="sampler steps (default: the checkpoint preset's)")
-    parser.add_argument("--draws", type=int, metavar="N",
+    parser.add_argument("--steps", type=whole(1), help="sampler steps (default: the checkpoint preset's)")
+    parser.add_argument("--draws", type=whole(1, hint=" (1: a single draw)"), metavar="N",
                         help="noise draws per sample; each keeps the one whose objects (named by the first frame's "
                              "segmentation with --task or --episode, found by their colour in --rgb) keep their "
                              "colours best; N times the sampling (default: the checkpoint preset's; 1 = a single draw)")
-    parser.add_argument("--sample-seed", type=int, default=d.sample_seed, help="noise seed (default %(default)s)")
-    parser.add_argument("--num-samples", type=int, default=d.num_samples, help="samples to draw in one batch (default %(default)s)")
-    parser.add_argument("--text-guidance", type=float, help="text guidance scale (default: the checkpoint preset's)")
-    parser.add_argument("--image-guidance", type=float, help="first-frame guidance scale (default: the checkpoint preset's)")
+    parser.add_argument("--sample-seed", type=seed(), default=d.sample_seed, help="noise seed (default %(default)s)")
+    parser.add_argument("--num-samples", type=whole(1), default=d.num_samples, help="samples to draw in one batch (default %(default)s)")
+    parser.add_argument("--text-guidance", type=number(0, above=True, hint=" (1: no guidance)"), help="text guidance scale (default: the checkpoint preset's)")
+    parser.add_argument("--image-guidance", type=number(0, above=True, hint=" (1: no guidance)"), help="first-frame guidance scale (default: the checkpoint preset's)")
     parser.add_argument("--device", default=d.device, help="torch device (default %(default)s)")
     add_precision_argument(parser)
     parser.add_argument("--overwrite", action="store_true",
@@ -87,32 +88,70 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def _read_K(path: Path) -> np.ndarray:
-    if path.suffix == ".json":
-        K = np.asarray(json.loads(path.read_text()), np.float64)
-    elif path.suffix == ".npy":
-        K = np.load(path).astype(np.float64)
-    else:
-        K = np.loadtxt(path, dtype=np.float64)
+    fix = ("write the 3x3 pixel intrinsics [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] as 3 rows of 3 numbers (.txt), "
+           "a nested list (.json) or a (3, 3) array (.npy)")
+    try:
+        if path.suffix == ".json":
+            K = np.asarray(json.loads(path.read_text()), np.float64)
+        elif path.suffix == ".npy":
+            K = np.load(path).astype(np.float64)
+        else:
+            K = np.loadtxt(path, dtype=np.float64, ndmin=2)
+    except (ValueError, TypeError, OSError) as e:  # unparsable text, JSON or .npy; a dict or strings in the JSON
+        raise UserError(f"{path}: cannot read K ({str(e).splitlines()[0]}); {fix}") from None
     if K.shape != (3, 3):
-        raise UserError(f"{path}: K must be a 3x3 matrix, got shape {K.shape}")
+        raise UserError(f"{path}: K must be a 3x3 matrix, got shape {K.shape}; {fix}")
+    if not np.isfinite(K).all() or K[0, 0] <= 0 or K[1, 1] <= 0:
+        raise UserError(f"{path}: K needs finite numbers and focal lengths fx = K[0][0], fy = K[1][1] > 0; {fix}")
     return K
 
 
 def _read_depth(path: Path) -> np.ndarray:
     if path.suffix == ".npy":
-        return np.load(path).astype(np.float32)
+        try:
+            depth = np.load(path).astype(np.float32)
+        except (ValueError, TypeError, OSError) as e:
+            raise UserError(f"{path}: cannot read depth ({str(e).splitlines()[0]}); pass an (H, W) .npy in metres "
+                            f"or a 16-bit PNG in millimetres") from None
+    else:
+        depth = _read_image(path, "--depth", "a 16-bit PNG in millimetres, or an (H, W) .npy in metres")
+        if depth.dtype != np.uint16:
+            raise UserError(f"{path}: a depth PNG must be 16-bit millimetres (got {depth.dtype}); or pass a .npy in metres")
+        depth = depth.astype(np.float32) / 1000.0
+    if depth.ndim != 2:
+        raise UserError(f"{path}: depth must be one (H, W) image, got shape {depth.shape}")
+    if not np.isfinite(depth).all() or (depth < 0).any() or not (depth > 0).any():
+        raise UserError(f"{path}: depth must be finite metres >= 0 (0: no reading) with some pixels > 0; "
+                        f"got {np.nanmin(depth) if np.isfinite(depth).any() else 'nan'} .. "
+                        f"{np.nanmax(depth) if np.isfinite(depth).any() else 'nan'}")
+    return depth
+
+
+def _read_normals(path: Path, size: tuple[int, int]) -> np.ndarray:
+    try:
+        normal_cam = np.load(path).astype(np.float32)
+    except (ValueError, TypeError, OSError) as e:
+        raise UserError(f"--normal {path}: cannot read it ({str(e).splitlines()[0]}); pass an (H, W, 3) .npy of unit "
+                        f"normals in the OpenCV camera frame, or leave --normal out to derive them from the depth") from None
+    if normal_cam.shape != (*size, 3) or not np.isfinite(normal_cam).all():
+        raise UserError(f"--normal {path}: expected finite (H, W, 3) = {(*size, 3)} unit normals, got shape "
+                        f"{normal_cam.shape}; or leave --normal out to derive them from the depth")
+    return normal_cam
+
+
+def _read_image(path: Path, flag: str, what: str) -> np.ndarray:
+    """An image file's pixels, or a UserError saying what the flag takes."""
     import imageio.v2 as imageio
 
-    depth = imageio.imread(path)
-    if depth.dtype != np.uint16:
-        raise UserError(f"{path}: a depth PNG must be 16-bit millimetres (got {depth.dtype}); or pass a .npy in metres")
-    return depth.astype(np.float32) / 1000.0
+    try:
+        return np.asarray(imageio.imread(path))
+    except (ValueError, OSError) as e:
+        raise UserError(f"{flag} {path} is not an image file imageio can read ({str(e).splitlines()[0]}); "
+                        f"pass {what}") from None
 
 
 def first_frame_from_files(rgb: Path, depth: Path, K: Path, normal: Path | None = None):
     """A one-frame Episode (env_id "user", identity camera pose) from user files."""
-    import imageio.v2 as imageio
-
     from tesseract4d.dataset_format import CameraFrames, Episode
     from tesseract4d.geometry import normals_from_depth
 
@@ -121,15 +160,19 @@ def first_frame_from_files(rgb: Path, depth: Path, K: Path, normal: Path | None 
             raise UserError("--rgb, --depth and --K go together: pass all three")
         if not Path(p).is_file():
             raise UserError(f"{name} {p} does not exist")
-    image = imageio.imread(rgb)
+    image = _read_image(rgb, "--rgb", "a PNG or JPEG colour image")
     if image.ndim != 3 or image.shape[-1] not in (3, 4):
         raise UserError(f"{rgb}: expected an RGB image, got shape {image.shape}")
-    image = np.ascontiguousarray(image[..., :3]).astype(np.uint8)
+    if image.dtype == np.uint16:  # a 16-bit PNG: its top 8 bits
+        image = (image // 257).astype(np.uint8)
+    elif image.dtype != np.uint8:
+        raise UserError(f"{rgb}: expected 8- or 16-bit colour, got {image.dtype}; save it as an 8-bit PNG")
+    image = np.ascontiguousarray(image[..., :3])
     depth_m = _read_depth(depth)
     if depth_m.shape != image.shape[:2]:
         raise UserError(f"depth {depth_m.shape} and rgb {image.shape[:2]} differ in size")
     K_mat = _read_K(K)
-    normal_cam = np.load(normal).astype(np.float32) if normal is not None else normals_from_depth(depth_m, K_mat)
+    normal_cam = _read_normals(normal, depth_m.shape) if normal is not None else normals_from_depth(depth_m, K_mat)
     cam = CameraFrames(rgb=image[None], depth_m=depth_m[None], normal_cam=normal_cam[None], K=K_mat[None],
                        T_world_cam=np.eye(4)[None])
     return Episode(env_id="user", seed=0, instruction="", cameras={"user": cam}, frame_steps=np.zeros(1, np.int32))
@@ -215,10 +258,15 @@ def run(args: argparse.Namespace) -> int:
                   f"(objects kept per draw: {scores})")
     out = Path(cfg.out)
     resolved = {k: (str(v) if isinstance(v, Path) else v) for k, v in dataclasses.asdict(cfg).items()}
-    with output as stage:
+    written = []
+    with output as stage:  # the files appear in OUT only when this block ends without an error
         for k, ep in enumerate(episodes):
             sub = Path() if len(episodes) == 1 else Path(f"sample_{k:02d}")
             path = write_prediction(ep, stage / sub)
-            print(f"wrote {out / sub / path.relative_to(stage / sub)}")
+            written.append(out / sub / path.relative_to(stage / sub))
         (stage / "predict_config.json").write_text(json.dumps({**resolved, "instruction": instruction}, indent=2))
+    for path in written:
+        print(f"wrote {path}")
+    if len(episodes) > 1:
+        print(f"each sample is its own prediction folder: reconstruct, evaluate or view {out / 'sample_00'} and the others")
     return 0

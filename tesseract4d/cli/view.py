@@ -11,6 +11,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from tesseract4d.cli.argument_types import whole
 from tesseract4d.model.checkpoint import SHIPPED_CHECKPOINT
 from tesseract4d.precision import add_precision_argument
 from viewer.scene import DEFAULT_MAX_POINTS
@@ -19,7 +20,7 @@ from viewer.scene import DEFAULT_MAX_POINTS
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("path", help="reconstruction folder, episode .h5, dataset/prediction folder, or DIR/ENV_ID/SEED")
     parser.add_argument("--host", default="127.0.0.1", help="address to serve on (default %(default)s; 0.0.0.0 for all)")
-    parser.add_argument("--port", type=int, default=8080, help="port to serve on (default %(default)s)")
+    parser.add_argument("--port", type=whole(0, 65535), default=8080, help="port to serve on (default %(default)s)")
     parser.add_argument("--export", type=Path, metavar="HTML", help="write a standalone HTML recording to this file and exit")
     parser.add_argument("--compare", metavar="GT_PATH", help="ground truth of the same episode, shown beside PATH")
     parser.add_argument("--labels", nargs=2, metavar=("LEFT", "RIGHT"),
@@ -28,10 +29,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--metrics", type=Path, metavar="REPORT_JSON",
                         help="per-frame metrics from `tesseract4d evaluate` for compare mode (default: cheap image metrics)")
     parser.add_argument("--checkpoint", type=Path, default=SHIPPED_CHECKPOINT,
-                        help="model checkpoint of the Generate panel (default: the shipped v2-2step, tesseract4d/checkpoints/v2-2step; tesseract4d/checkpoints/v2 is its 10-step teacher)")
+                        help="model checkpoint of the served viewer's Generate panel (not used by --export; default: the shipped v2-2step, tesseract4d/checkpoints/v2-2step; tesseract4d/checkpoints/v2 is its 10-step teacher)")
     parser.add_argument("--camera", help="which camera of an episode to show (default: the first)")
     parser.add_argument("--overwrite", action="store_true", help="with --export: replace a file that is not an earlier export")
-    parser.add_argument("--max-points", type=int, default=DEFAULT_MAX_POINTS,
+    parser.add_argument("--max-points", type=whole(1), default=DEFAULT_MAX_POINTS,
                         help="point budget per frame sent to the browser (default %(default)s)")
     add_precision_argument(parser)
 
@@ -39,11 +40,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from tesseract4d.errors import UserError
 
-    if args.max_points < 1:
-        raise UserError(f"--max-points must be positive, got {args.max_points}")
-    if not 0 <= args.port <= 65535:
-        raise UserError(f"--port must be in 0..65535, got {args.port}")
     if args.export is not None:
+        served_only = [flag for flag, value in (("--compare", args.compare), ("--labels", args.labels),
+                                                ("--metrics", args.metrics)) if value is not None]
+        if served_only:
+            raise UserError(f"--export records PATH alone (no compare mode), so it cannot use "
+                            f"{', '.join(served_only)}; drop them, or serve the viewer without --export to compare")
         from viewer.export import export_html
         from viewer.sources import load_source
 

@@ -135,7 +135,7 @@ def read_inference_config(checkpoint: str | os.PathLike) -> dict:
     with the fix when the folder is not a (readable) inference checkpoint."""
     ckpt = Path(checkpoint)
     if not ckpt.is_dir():
-        raise UserError(f"checkpoint {ckpt} not found; pass a folder written by `tesseract4d train` (RUN/final) "
+        raise UserError(f"checkpoint {ckpt} {'is a file, not a folder' if ckpt.exists() else 'not found'}; pass a folder written by `tesseract4d train` (RUN/final) "
                         f"or `tesseract4d train --export RUN --to DIR`")
     cfg_path = ckpt / INFERENCE_CONFIG_FILE
     if not cfg_path.is_file() or not (ckpt / TRANSFORMER_DIR / WEIGHTS_FILE).is_file():
