@@ -251,9 +251,10 @@ def test_rollout_bad_inputs(overfit, tmp_path, capsys):
     # the static world is an IDM arm: it needs --idm
     assert main(["rollout", "--arms", "static_world", "--tasks", "PushCube-v1", "--out", str(tmp_path / "r7")]) == 2
     assert "need --idm" in capsys.readouterr().err
-    assert main(["rollout", "--idm", idm, "--arms", "world_model", "--tasks", "PushCube-v1", "--draws", "0",
-                 "--out", str(tmp_path / "r8")]) == 2
-    assert "--draws must be at least 1" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as ended:  # refused at parse time
+        main(["rollout", "--idm", idm, "--arms", "world_model", "--tasks", "PushCube-v1", "--draws", "0",
+              "--out", str(tmp_path / "r8")])
+    assert ended.value.code == 2 and "--draws: must be a whole number >= 1" in capsys.readouterr().err
 
 
 @pytest.mark.sim

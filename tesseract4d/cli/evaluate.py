@@ -27,7 +27,7 @@ report.json and report.md (the README's results table) to --out.
 Examples:
   tesseract4d evaluate out/recon --gt data/test/episodes/PickCube-v1/seed_100000.h5 --json out/report.json
   tesseract4d evaluate --heldout data/heldout --out outputs/heldout_eval      # the shipped default (v2-2step)
-  tesseract4d evaluate --heldout data/heldout_groups --checkpoint tesseract4d/checkpoints/v2 \
+  tesseract4d evaluate --heldout data/heldout_groups --checkpoint tesseract4d/checkpoints/v2 \\
       --checkpoint tesseract4d/checkpoints/v2-2step --sample-seed 0 1 2 --out outputs/heldout_compare
 """
 
@@ -35,8 +35,10 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 from pathlib import Path
 
+from tesseract4d.cli.argument_types import number, seed, whole
 from tesseract4d.dataset_format import HELDOUT_SEED_START
 from tesseract4d.model.checkpoint import SHIPPED_CHECKPOINT
 
@@ -50,6 +52,7 @@ class _AppendCheckpoint(argparse.Action):
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+    from tesseract4d.model.predict import DEFAULT_SCENE_BATCH
     from tesseract4d.precision import add_precision_argument
 
     parser.add_argument("pred", nargs="?", help="reconstruction folder, or a predicted episode (.h5 / folder / DIR/ENV_ID/SEED)")
@@ -57,7 +60,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--camera", help="camera to compare (default: the ground truth's first)")
     parser.add_argument("--json", type=Path, metavar="REPORT", help="also write the report as JSON")
     parser.add_argument("--no-per-frame", action="store_true", help="print only the means")
-    parser.add_argument("--max-depth", type=float, metavar="M",
+    parser.add_argument("--max-depth", type=number(0, above=True), metavar="M",
                         help="evaluation range in metres: depth, normal and Chamfer metrics count only pixels whose true "
                              "depth is at most M (default: all pixels; held-out evaluation: the checkpoint's depth range)")
     held = parser.add_argument_group("held-out evaluation of a model (instead of PRED --gt)")
@@ -67,12 +70,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     held.add_argument("--heldout", type=Path,
                       help=f"held-out dataset folder (datagen --seed-start {HELDOUT_SEED_START} --instruction-split heldout)")
     held.add_argument("--out", type=Path, help="folder for report.json and report.md")
-    held.add_argument("--steps", type=int,
+    held.add_argument("--steps", type=whole(1),
                       help="sampler steps of every checkpoint (default: each checkpoint preset's own, e.g. 2 for a "
                            "distilled student beside 10 for its teacher)")
-    held.add_argument("--text-guidance", type=float, metavar="SCALE",
+    held.add_argument("--text-guidance", type=number(0, above=True, hint=" (1: no guidance)"), metavar="SCALE",
                       help="text guidance scale of the sampler (default: each checkpoint preset's; 1 = no guidance)")
-    held.add_argument("--sample-seed", type=int, nargs="+", default=[0], metavar="SEED",
+    held.add_argument("--sample-seed", type=seed(), nargs="+", default=[0], metavar="SEED",
                       help="diffusion noise seed (default 0); several (e.g. 0 1 2) predict every episode once per "
                            "seed and pool the scores: one noise draw decides much of an instruction's outcome, so "
                            "compare checkpoints on several")
@@ -82,10 +85,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                            "the scene's noise, and runs only the steps from there: how much of a right future the "
                            "network keeps (0 < SIGMA <= 1; 1 = from pure noise). Needs one-clip episodes at the "
                            "model's resolution")
-    held.add_argument("--max-per-task", type=int, help="episodes per task at most (default: all)")
-    held.add_argument("--batch-size", type=int, metavar="N",
-                      help="scenes per network call (default: predict_scenes' DEFAULT_SCENE_BATCH); each scene gets "
-                           "the noise it gets alone, so results do not depend on it beyond float rounding")
+    held.add_argument("--max-per-task", type=whole(1), metavar="N",
+                      help="episodes per task at most, a counterfactual group kept whole (default: all)")
+    held.add_argument("--batch-size", type=whole(1), metavar="N",
+                      help=f"scenes predicted together in one network call (default {DEFAULT_SCENE_BATCH}; more needs "
+                           f"more memory); each scene gets the noise it gets alone, so results do not depend on it "
+                           f"beyond float rounding")
     add_precision_argument(held)
     parser.add_argument("--overwrite", action="store_true",
                         help="replace a --json file / write into an --out folder that this command did not write")
@@ -99,6 +104,24 @@ def load_prediction(spec: str):
     if (Path(spec) / MANIFEST).is_file():
         return Recon4D.load(spec)
     return read_episode(resolve_episode(spec))
+
+
+def scene_mismatch(pred, gt) -> str | None:
+    """A warning when ``pred`` (an Episode or a Recon4D, which record the env id and seed of the
+    scene they came from) is of another scene than the ground-truth episode ``gt``; else None."""
+    from tesseract4d.dataset_format import Episode
+
+    if isinstance(pred, Episode):
+        env_id, scene_seed = pred.env_id, pred.seed
+    else:
+        env_id, scene_seed = pred.metadata.get("env_id"), pred.metadata.get("seed")
+    if env_id is None or scene_seed is None or (env_id, int(scene_seed)) == (gt.env_id, int(gt.seed)):
+        return None
+    if env_id == "user":  # a first frame from the user's own files (`predict --rgb`) names no scene
+        return None
+    return (f"warning: the prediction is of {env_id} seed {scene_seed} but the ground truth is of {gt.env_id} seed "
+            f"{gt.seed}: the metrics compare two different scenes; pass the ground truth of {env_id} seed "
+            f"{scene_seed} as --gt")
 
 
 def _is_episode_report(path: Path) -> bool:
@@ -153,7 +176,11 @@ def run(args: argparse.Namespace) -> int:
                             is_ours=_is_episode_report)
     pred = load_prediction(args.pred)
     gt_path = resolve_episode(args.gt)
-    report = evaluate_episode(pred, read_episode(gt_path), camera=args.camera, max_depth_m=args.max_depth)
+    gt = read_episode(gt_path)
+    mismatch = scene_mismatch(pred, gt)
+    if mismatch:
+        print(mismatch, file=sys.stderr)
+    report = evaluate_episode(pred, gt, camera=args.camera, max_depth_m=args.max_depth)
     report.update({"pred": str(args.pred), "gt": str(gt_path)})
     if report["pred_frames"] != report["gt_frames"]:
         print(f"note: prediction has {report['pred_frames']} frames, ground truth {report['gt_frames']}; "

@@ -17,6 +17,7 @@ import argparse
 from pathlib import Path
 
 from reconstruction.reconstruct import ReconConfig
+from tesseract4d.cli.argument_types import number, whole
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -27,20 +28,22 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--overwrite", action="store_true",
                         help="write into a folder holding other files (only this command's files are replaced)")
     parser.add_argument("--camera", help="camera of the episode to reconstruct (default: the first)")
-    parser.add_argument("--voxel-size", type=float, default=None, metavar="M",
+    parser.add_argument("--voxel-size", type=number(0, above=True), default=None, metavar="M",
                         help="TSDF voxel edge in metres (default: 1.5 pixel footprints at the median depth)")
-    parser.add_argument("--static-weight", type=float, default=d.static_weight,
+    parser.add_argument("--static-weight", type=number(0), default=d.static_weight,
                         help="weight tying static background to the previous frame (default %(default)s)")
-    parser.add_argument("--dynamic-weight", type=float, default=d.dynamic_weight,
+    parser.add_argument("--dynamic-weight", type=number(0), default=d.dynamic_weight,
                         help="weight tying moving parts to the previous frame (default %(default)s)")
-    parser.add_argument("--normal-weight", type=float, default=d.normal_weight,
+    parser.add_argument("--normal-weight", type=number(0), default=d.normal_weight,
                         help="weight of depth agreeing with the normals (default %(default)s)")
-    parser.add_argument("--reg-weight", type=float, default=d.reg_weight,
+    parser.add_argument("--reg-weight", type=number(0, above=True, hint=" (it fixes the depth scale)"), default=d.reg_weight,
                         help="weight pulling toward the input depth (default %(default)s)")
-    parser.add_argument("--iterations", type=int, default=d.iterations,
+    parser.add_argument("--iterations", type=whole(1), default=d.iterations,
                         help="maximum conjugate-gradient iterations (default %(default)s)")
-    parser.add_argument("--flow-threshold", type=float, default=d.flow_threshold_px, metavar="PX",
-                        help="flow beyond the camera's own motion that marks a pixel dynamic (default %(default)s)")
+    parser.add_argument("--flow-threshold", type=number(0, above=True, hint=" pixels"), default=d.flow_threshold_px,
+                        metavar="PX", help="flow in pixels beyond the camera's own motion that marks a pixel dynamic; "
+                                           "keep it above the optical flow's own error, up to about half a pixel, "
+                                           "or static pixels count as moving (default %(default)s)")
     parser.add_argument("--no-refine", action="store_true", help="plain back-projection of the input depth")
     parser.add_argument("--no-mesh", action="store_true", help="skip the background mesh")
     parser.add_argument("--no-ply", action="store_true", help="write only manifest.json + recon4d.npz")

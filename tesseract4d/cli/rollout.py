@@ -20,10 +20,13 @@ from __future__ import annotations
 
 import argparse
 
+from tesseract4d.cli.argument_types import seed, whole
+
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     from tesseract4d.precision import add_precision_argument
 
+    from datagen.generate import MAX_IMAGE_SIDE
     from tesseract4d.model.checkpoint import SHIPPED_CHECKPOINT
     from tesseract4d.policy.loop import LoopConfig
     from tesseract4d.policy.rollout_eval import ARMS, RolloutConfig
@@ -31,8 +34,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     d, lc = RolloutConfig(), LoopConfig()
     parser.add_argument("--out", required=True, help="output folder (report, videos, viewer folders)")
     parser.add_argument("--tasks", default=",".join(d.tasks), help="comma-separated task ids (default %(default)s)")
-    parser.add_argument("--episodes", type=int, default=d.episodes, help="held-out seeds per task and arm (default %(default)s)")
-    parser.add_argument("--seed-start", type=int, default=d.seed_start,
+    parser.add_argument("--episodes", type=whole(1), default=d.episodes, help="held-out seeds per task and arm (default %(default)s)")
+    parser.add_argument("--seed-start", type=seed(), default=d.seed_start,
                         help="first held-out seed (default %(default)s; never a training seed)")
     parser.add_argument("--arms", default=",".join(d.arms),
                         help=f"comma-separated arms from {', '.join(ARMS)} (default: %(default)s; static_world feeds "
@@ -42,26 +45,28 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--checkpoint", default=str(SHIPPED_CHECKPOINT),
                         help="world-model inference checkpoint (default: the shipped v2-2step, 2 steps; "
                              "tesseract4d/checkpoints/v2 takes 10 guided steps)")
-    parser.add_argument("--replan-every", type=int, default=lc.replan_every, help="predicted frames executed per prediction, k (default %(default)s)")
-    parser.add_argument("--max-steps", type=int, default=lc.max_steps, help="env steps per episode (default %(default)s)")
-    parser.add_argument("--sample-steps", type=int,
+    parser.add_argument("--replan-every", type=whole(1, lc.num_frames - 1, hint=f" (a clip has {lc.num_frames} frames)"),
+                        default=lc.replan_every,
+                        help="predicted frames executed per prediction, k (default %(default)s)")
+    parser.add_argument("--max-steps", type=whole(1), default=lc.max_steps, help="env steps per episode (default %(default)s)")
+    parser.add_argument("--sample-steps", type=whole(1),
                         help="diffusion steps per prediction (default: the checkpoint's, 2 for v2-2step, 10 for v2)")
-    parser.add_argument("--draws", type=int, metavar="N",
+    parser.add_argument("--draws", type=whole(1, hint=" (1: a single draw)"), metavar="N",
                         help="noise draws per prediction; each keeps the one whose objects (found by colour in the "
                              "observation) keep their colours best, at N times the prediction's cost (default: the "
                              "checkpoint's, 2 for the shipped models; 1 = a single draw)")
     parser.add_argument("--camera", default=lc.camera, help="camera preset (default %(default)s)")
-    parser.add_argument("--resolution", type=int,
+    parser.add_argument("--resolution", type=whole(1, MAX_IMAGE_SIDE),
                         help="rendered square image size (default: the world model's with the world_model arm, else "
                              "the IDM's); the world model and the IDM each get frames at their own resolution when it "
                              "differs by a whole factor")
     parser.add_argument("--instruction-split", default=lc.instruction_split, choices=["train", "heldout"],
                         help="instruction paraphrases (default %(default)s)")
-    parser.add_argument("--videos", type=int, default=d.videos, help="MP4s per arm and task (default %(default)s)")
-    parser.add_argument("--viewer-episodes", type=int, default=d.viewer_episodes,
+    parser.add_argument("--videos", type=whole(0), default=d.videos, help="MP4s per arm and task (default %(default)s)")
+    parser.add_argument("--viewer-episodes", type=whole(0), default=d.viewer_episodes,
                         help="episodes per future arm and task written for the viewer (default %(default)s)")
     add_precision_argument(parser)
-    parser.add_argument("--no-progress", action="store_true")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
 def run(args: argparse.Namespace) -> int:
