@@ -6,7 +6,7 @@ import argparse
 
 import pytest
 
-from tesseract4d.cli.argument_types import MAX_SEED, number, seed, whole
+from tesseract4d.cli.argument_types import MAX_SEED, number, probability, seed, whole
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -16,6 +16,7 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--scale", type=number(0))
     p.add_argument("--rate", type=number(0, above=True))
     p.add_argument("--seed", type=seed())
+    p.add_argument("--share", type=probability())
     return p
 
 
@@ -31,6 +32,7 @@ def test_good_values_parse_to_their_numbers():
     (["--scale", "-1"], "--scale: must be a finite number >= 0, got '-1'"),
     (["--scale", "nan"], "--scale: must be a finite number >= 0"),
     (["--rate", "0"], "--rate: must be a finite number > 0"),
+    (["--share", "1.5"], "--share: must be a finite number >= 0 and <= 1, got '1.5'"),
     (["--seed", "-5"], f"--seed: must be a whole number in 0..{MAX_SEED}, got '-5'"),
 ])
 def test_bad_values_end_with_the_rule_and_the_value(argv, said, capsys):

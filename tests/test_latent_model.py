@@ -457,6 +457,32 @@ def test_decoder_only_fine_tune_swaps_into_the_checkpoint_with_the_same_latents(
                                                   decoder_only=True, progress=False))
 
 
+@pytest.mark.parametrize("damage", ["junk", "truncated"])
+def test_swap_decoder_names_a_corrupt_autoencoder(tmp_path, capsys, damage):
+    """An --autoencoder whose config is fine but whose weights are not a safetensors file (or are cut
+    short) is one error line naming the file, as `predict` names a corrupt checkpoint; nothing is written
+    (before: a SafetensorError traceback)."""
+    from tesseract4d import cli
+    from tesseract4d.model.trainer import Trainer
+
+    data = write_segmented_dataset(tmp_path / "data", episodes=1)
+    final = Trainer(_config(data, tmp_path / "run", _autoencoder(tmp_path / "ae", data=data))).train()
+    bad = shutil.copytree(final / "autoencoder", tmp_path / "bad")
+    weights = bad / "model.safetensors"
+    weights.write_bytes(b"junk" if damage == "junk" else weights.read_bytes()[:-100])
+    rc = cli.main(["swap-decoder", "--checkpoint", str(final), "--autoencoder", str(bad),
+                   "--to", str(tmp_path / "to")])
+    err = capsys.readouterr().err
+    assert rc == 2 and "Traceback" not in err
+    assert f"tesseract4d swap-decoder: error: autoencoder weights {weights} are corrupt or truncated (" in err, err
+    assert "train them again with `tesseract4d train-autoencoder`" in err
+    assert not (tmp_path / "to").exists()
+    # encode-latents reads the same weights the same way (before: the same traceback).
+    rc = cli.main(["encode-latents", "--data", str(data), "--autoencoder", str(bad), "--cache", str(tmp_path / "cache")])
+    assert rc == 2 and f"autoencoder weights {weights} are corrupt or truncated" in capsys.readouterr().err
+    assert not (tmp_path / "cache").exists()
+
+
 def test_a_lighter_decoder_starts_from_the_init_and_swaps_into_the_checkpoint(tmp_path):
     """--decoder-layers-per-block 0 on a 1-layer init: the encoder and the kept resnets are the init's,
     the second resnet of each up block is dropped, the result swaps in (same latents) and decodes;

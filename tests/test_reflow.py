@@ -141,6 +141,71 @@ def test_distill_resumes_and_refuses_an_existing_run(teacher, tmp_path):
     assert json.loads((tmp_path / "run" / ".tesseract4d-output.json").read_text())["command"] == "distill"
 
 
+def _files(root: Path) -> dict[str, bytes]:
+    return {str(p.relative_to(root)): p.read_bytes() for p in sorted(root.rglob("*")) if p.is_file()}
+
+
+def test_distill_never_writes_into_its_inputs(teacher, tmp_path, capsys):
+    """--out and --pairs that are, lie inside or contain a --data folder, the --teacher (or, for --out,
+    the --pairs) are refused before the teacher samples, and nothing is written (before: pairs and a
+    student were written inside the dataset, exit 0)."""
+    ckpt = shutil.copytree(teacher[0], tmp_path / "teacher")
+    data = shutil.copytree(teacher[1], tmp_path / "data")
+    quick = ["--num-pairs", "2", "--teacher-steps", "2", "--pair-batch-size", "2", "--max-steps", "1",
+             "--batch-size", "2", "--val-every", "0", "--ckpt-every", "0", "--no-progress"]
+    cases = [
+        (["--data", data, "--pairs", tmp_path / "p", "--out", data / "student"],
+         f"--out {data / 'student'} lies inside the input {data}"),
+        (["--data", data, "--pairs", data / "pairs", "--out", tmp_path / "run"],
+         f"--pairs {data / 'pairs'} lies inside the input {data}"),
+        (["--data", data, "--pairs", data / "pairs", "--pairs-only"], f"--pairs {data / 'pairs'} lies inside the input {data}"),
+        (["--data", data, "--pairs", data, "--pairs-only"], f"--pairs {data} is the input {data}"),
+        (["--data", data, "--pairs", tmp_path, "--pairs-only"], f"--pairs {tmp_path} contains the input {data}"),
+        (["--data", data, "--pairs", ckpt / "pairs", "--pairs-only"], f"--pairs {ckpt / 'pairs'} lies inside the input {ckpt}"),
+        (["--data", data, "--pairs", tmp_path / "p", "--out", tmp_path / "p" / "run"],
+         f"--out {tmp_path / 'p' / 'run'} lies inside the input {tmp_path / 'p'}"),
+    ]
+    before = _files(tmp_path)
+    for argv, said in cases:
+        rc = main([str(a) for a in ["distill", "--teacher", ckpt, *argv, *quick]])
+        err = capsys.readouterr().err
+        assert rc == 2 and f"tesseract4d distill: error: {said}; write the output to a separate folder" in err, (argv, err)
+        assert _files(tmp_path) == before, argv
+        assert sorted(p.name for p in tmp_path.iterdir()) == ["data", "teacher"], argv
+
+
+def test_distill_names_its_pairs_folder(teacher, tmp_path, capsys):
+    """A --pairs folder holding someone's files, or a file, is refused as --pairs (it once said --out)."""
+    ckpt, data = teacher
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    (mine / "notes.txt").write_text("the user's own notes")
+    argv = ["distill", "--pairs-only", "--teacher", str(ckpt), "--data", str(data), "--num-pairs", "2",
+            "--teacher-steps", "2", "--no-progress", "--pairs"]
+    assert main([*argv, str(mine)]) == 2
+    err = capsys.readouterr().err
+    assert f"--pairs {mine} holds files that are not reflow pairs; choose a new or empty --pairs folder" in err, err
+    assert [p.name for p in mine.iterdir()] == ["notes.txt"]
+    assert main([*argv, str(mine / "notes.txt")]) == 2
+    assert f"--pairs {mine / 'notes.txt'} is a file, not a folder" in capsys.readouterr().err
+    generate_pairs(_pairs_cfg(ckpt, data, tmp_path / "p", 2), progress=False)
+    assert main([*argv, str(tmp_path / "p"), "--teacher-guidance", "3"]) == 2  # made with guidance 2
+    assert "choose a new --pairs folder for these settings" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("extra, said", [
+    (["--max-steps", "0"], "--max-steps must be a whole number >= 1 or 'auto', got 0"),
+    (["--max-steps", "auto"], "--max-steps auto fits the learning-rate schedule to a time budget; pass --max-minutes"),
+])
+def test_distill_training_options_are_checked_before_the_pairs(teacher, tmp_path, capsys, extra, said):
+    """A student run that cannot start is refused before the teacher spends its time on the pairs."""
+    ckpt, data = teacher
+    rc = main(["distill", "--teacher", str(ckpt), "--data", str(data), "--pairs", str(tmp_path / "p"), "--num-pairs",
+               "2", "--teacher-steps", "2", "--out", str(tmp_path / "run"), "--no-progress", *extra])
+    assert rc == 2 and said in capsys.readouterr().err
+    assert not (tmp_path / "p").exists() and not (tmp_path / "run").exists()
+
+
 def test_group_pairs_share_first_frame_and_noise(teacher, tmp_path):
     """--group-pairs draws whole counterfactual groups: a group's pairs share the first frame and the
     noise and differ by the words; the shards resume to the same pairs; data without groups is refused."""

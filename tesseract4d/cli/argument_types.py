@@ -32,20 +32,27 @@ def whole(low: int, high: int | None = None, hint: str = "") -> Callable[[str], 
     return parse
 
 
-def number(low: float, *, above: bool = False, hint: str = "") -> Callable[[str], float]:
-    """A finite float >= low (> low with ``above``); ``hint`` is appended to the refusal."""
+def number(low: float, *, above: bool = False, high: float | None = None, hint: str = "") -> Callable[[str], float]:
+    """A finite float >= low (> low with ``above``) and <= ``high`` when given; ``hint`` is appended
+    to the refusal."""
 
     def parse(text: str) -> float:
         try:
             value = float(text)
         except ValueError:
             value = math.nan
-        if not math.isfinite(value) or value < low or (above and value == low):
-            raise argparse.ArgumentTypeError(f"must be a finite number {'>' if above else '>='} {low:g}{hint}, got {text!r}")
+        if not math.isfinite(value) or value < low or (above and value == low) or (high is not None and value > high):
+            span = f"{'>' if above else '>='} {low:g}" + ("" if high is None else f" and <= {high:g}")
+            raise argparse.ArgumentTypeError(f"must be a finite number {span}{hint}, got {text!r}")
         return value
 
     parse.__name__ = "number"
     return parse
+
+
+def probability() -> Callable[[str], float]:
+    """A share of the time, 0..1."""
+    return number(0, high=1)
 
 
 def seed() -> Callable[[str], int]:

@@ -31,6 +31,7 @@ from pathlib import Path
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+    from tesseract4d.cli.argument_types import number, probability, seed, whole
     from tesseract4d.model.lr_schedule import add_max_steps_argument
     from tesseract4d.model.reflow import PairsConfig, ReflowConfig
     from tesseract4d.precision import add_precision_argument
@@ -42,23 +43,24 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--pairs", type=Path, required=True, help="pairs folder (written, or resumed, from --data)")
     parser.add_argument("--out", type=Path, help="the student's run folder (checkpoints, logs, final/)")
     parser.add_argument("--pairs-only", action="store_true", help="make the pairs and stop")
-    parser.add_argument("--num-pairs", type=int, default=p.num_pairs, help="teacher clips to sample (default %(default)s)")
-    parser.add_argument("--teacher-steps", type=int, help="the teacher's sampler steps (default: its preset's)")
-    parser.add_argument("--teacher-guidance", type=float, metavar="SCALE",
+    parser.add_argument("--num-pairs", type=whole(1), default=p.num_pairs, help="teacher clips to sample (default %(default)s)")
+    parser.add_argument("--teacher-steps", type=whole(1), help="the teacher's sampler steps (default: its preset's)")
+    parser.add_argument("--teacher-guidance", type=number(0, above=True, hint=" (1: no guidance)"), metavar="SCALE",
                         help="the teacher's text guidance scale (default: its preset's); the student learns the "
                              "guided clips, so this becomes the student's guidance at no cost")
     parser.add_argument("--group-pairs", action="store_true",
                         help="draw the pairs as whole counterfactual groups of --data (one scene under several "
                              "instructions, `datagen --instructions-per-scene`), a group's pairs sharing one noise")
-    parser.add_argument("--teacher-draws", type=int, default=p.teacher_draws, metavar="N",
+    parser.add_argument("--teacher-draws", type=whole(1, hint=" (1: a single draw)"), default=p.teacher_draws,
+                        metavar="N",
                         help="sample every pair from N teacher noises and keep the clip whose first-frame objects "
                              "(found by their colour) keep their colours best, a group keeping the draw best for all "
                              "its pairs; N times the pairs' sampling (default %(default)s: the teacher's single draw)")
-    parser.add_argument("--pair-batch-size", type=int, default=p.batch_size,
+    parser.add_argument("--pair-batch-size", type=whole(1), default=p.batch_size,
                         help="teacher clips per sampler call (default %(default)s)")
-    parser.add_argument("--student-steps", type=int, default=d.student_steps,
+    parser.add_argument("--student-steps", type=whole(1), default=d.student_steps,
                         help="the student's sampler steps, one network pass each (default %(default)s)")
-    parser.add_argument("--counterfactual-swap", type=float, default=d.counterfactual_swap, metavar="P",
+    parser.add_argument("--counterfactual-swap", type=probability(), default=d.counterfactual_swap, metavar="P",
                         help="train the student in batches of whole groups (needs --group-pairs pairs) and show a "
                              "pair at noise >= 0.3, with probability P, a sibling's noisy sample (default %(default)s)")
     parser.add_argument("--keep-following", action="store_true",
@@ -71,29 +73,41 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "the folder's pairs (a task whose teacher clips fail more often would otherwise lose "
                              "part of the student's training to the others); 'none' draws the kept pairs uniformly "
                              "(default %(default)s)")
-    parser.add_argument("--rephrase", type=float, default=d.rephrase, metavar="P",
+    parser.add_argument("--rephrase", type=probability(), default=d.rephrase, metavar="P",
                         help="probability of training a pair under another training wording of its instruction, the "
                              "teacher's clip staying the target (as `train --rephrase`) (default %(default)s)")
     add_max_steps_argument(parser, d.max_steps, "the student's training steps")
-    parser.add_argument("--max-minutes", type=float, help="stop with a checkpoint after this many minutes of this invocation")
-    parser.add_argument("--batch-size", type=int, help="pairs per step (default: the teacher preset's)")
-    parser.add_argument("--lr", type=float, help="peak learning rate (default: the teacher preset's)")
+    parser.add_argument("--max-minutes", type=number(0), help="stop with a checkpoint after this many minutes of this invocation")
+    parser.add_argument("--batch-size", type=whole(1), help="pairs per step (default: the teacher preset's)")
+    parser.add_argument("--lr", type=number(0, above=True), help="peak learning rate (default: the teacher preset's)")
     add_precision_argument(parser)
     parser.add_argument("--resume", action="store_true", help="continue the student's run from the latest checkpoint in --out")
-    parser.add_argument("--val-every", type=int, default=d.val_every,
+    parser.add_argument("--val-every", type=whole(0, hint=" (0 = never)"), default=d.val_every,
                         help="PSNR of the student against the teacher every K steps, 0 = never (default %(default)s)")
-    parser.add_argument("--ckpt-every", type=int, default=d.ckpt_every, help="checkpoint every K steps (default %(default)s)")
-    parser.add_argument("--seed", type=int, default=0, help="seed of the pairs' noise and of the training (default %(default)s)")
+    parser.add_argument("--ckpt-every", type=whole(0, hint=" (0 = only at the end)"), default=d.ckpt_every,
+                        help="checkpoint every K steps (default %(default)s)")
+    parser.add_argument("--seed", type=seed(), default=0,
+                        help="seed of the pairs' noise and of the training (default %(default)s)")
     parser.add_argument("--camera", help="camera of --data (default: the teacher's)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bars")
 
 
 def run(args: argparse.Namespace) -> int:
     from tesseract4d.errors import UserError
+    from tesseract4d.model.lr_schedule import check_max_steps
     from tesseract4d.model.reflow import MANIFEST, PairsConfig, ReflowConfig, ReflowTrainer, generate_pairs
+    from tesseract4d.outputs import check_not_input
 
     if not args.pairs_only and args.out is None:
         raise UserError("pass --out RUN (the student's run folder), or --pairs-only to make the pairs only")
+    # Every refusal before the teacher samples a single pair: the pairs take the longest.
+    inputs = [*(args.data or []), args.teacher]
+    check_not_input(args.pairs, inputs, "--pairs")
+    if args.pairs.exists() and not args.pairs.is_dir():
+        raise UserError(f"--pairs {args.pairs} is a file, not a folder; pass a folder path")
+    if not args.pairs_only:
+        check_not_input(args.out, [*inputs, args.pairs], "--out")
+        check_max_steps(args.max_steps, args.max_minutes, resume=args.resume)
     if args.data is not None:
         generate_pairs(PairsConfig(
             teacher=args.teacher, data=args.data[0] if len(args.data) == 1 else args.data, out=args.pairs, num_pairs=args.num_pairs,

@@ -25,8 +25,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from tesseract4d.errors import UserError
     from tesseract4d.model.latent_cache import ensure_latent_cache
 
+    if args.cache is not None:
+        # the cache folder, or the nearest of its parents that exists, must be a folder
+        there = next((p for p in (args.cache, *args.cache.parents) if p.exists()), None)
+        if there is not None and not there.is_dir():
+            what = "is a file" if there == args.cache else f"lies under the file {there}"
+            raise UserError(f"--cache {args.cache} {what}; --cache must be a folder (a new one, or a latent cache "
+                            f"written before): pass a folder path, or leave --cache out for DATA/latent_cache/<camera>")
     cache, built = ensure_latent_cache(args.data, args.autoencoder, camera=args.camera, folder=args.cache,
                                        rebuild=args.rebuild, progress=not args.quiet)
     shape = cache.meta["latent_shape"]

@@ -30,6 +30,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from tesseract4d.cli.argument_types import number, seed, whole
 from tesseract4d.model.autoencoder import AUTOENCODER_PRESETS
 from tesseract4d.model.autoencoder_trainer import AutoencoderTrainConfig
 from tesseract4d.model.lr_schedule import add_max_steps_argument
@@ -47,10 +48,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="with --init: train only the decoder; the encoder and latent statistics stay exactly as they "
                              "are, so a latent model trained on them keeps working: put the new decoder into its "
                              "checkpoint with `tesseract4d swap-decoder`")
-    parser.add_argument("--decoder-layers-per-block", type=int, default=None, metavar="N",
+    parser.add_argument("--decoder-layers-per-block", type=whole(0), default=None, metavar="N",
                         help="a decoder with N + 1 resnets per up block instead of the preset's (a lighter one decodes "
                              "faster); with --init --decoder-only it starts from the init's first N + 1 and drops the rest")
-    parser.add_argument("--frame-stride", type=int, default=d.frame_stride,
+    parser.add_argument("--frame-stride", type=whole(1), default=d.frame_stride,
                         help="train on every k-th frame of each episode (less memory; default %(default)s)")
     parser.add_argument("--heldout", type=Path, default=None,
                         help="held-out dataset folder for the fidelity gate (recommended; e.g. seeds >= 100000)")
@@ -59,26 +60,27 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="autoencoder architecture (default %(default)s)")
     parser.add_argument("--camera", default=None, help="camera of the dataset to train on (default: its first)")
     add_max_steps_argument(parser, d.max_steps)
-    parser.add_argument("--max-minutes", type=float, default=None, help="stop with a checkpoint after this many minutes")
-    parser.add_argument("--batch-size", type=int, default=d.batch_size, help="frames per step (default %(default)s)")
-    parser.add_argument("--lr", type=float, default=d.lr, help="peak learning rate (default %(default)s)")
-    parser.add_argument("--warmup-steps", type=int, default=d.warmup_steps, help="linear warm-up steps (default %(default)s)")
-    parser.add_argument("--object-weight", type=float, default=d.object_weight,
+    parser.add_argument("--max-minutes", type=number(0), default=None,
+                        help="stop with a checkpoint after this many minutes")
+    parser.add_argument("--batch-size", type=whole(1), default=d.batch_size, help="frames per step (default %(default)s)")
+    parser.add_argument("--lr", type=number(0, above=True), default=d.lr, help="peak learning rate (default %(default)s)")
+    parser.add_argument("--warmup-steps", type=whole(0), default=d.warmup_steps, help="linear warm-up steps (default %(default)s)")
+    parser.add_argument("--object-weight", type=number(0), default=d.object_weight,
                         help="loss weight of robot/object pixels relative to scenery (default %(default)s)")
-    parser.add_argument("--rgb-weight", type=float, default=d.rgb_weight, help="default %(default)s")
-    parser.add_argument("--depth-weight", type=float, default=d.depth_weight, help="default %(default)s")
-    parser.add_argument("--normal-weight", type=float, default=d.normal_weight, help="default %(default)s")
-    parser.add_argument("--rgb-grad-weight", type=float, default=d.rgb_grad_weight,
+    parser.add_argument("--rgb-weight", type=number(0), default=d.rgb_weight, help="default %(default)s")
+    parser.add_argument("--depth-weight", type=number(0), default=d.depth_weight, help="default %(default)s")
+    parser.add_argument("--normal-weight", type=number(0), default=d.normal_weight, help="default %(default)s")
+    parser.add_argument("--rgb-grad-weight", type=number(0), default=d.rgb_grad_weight,
                         help="weight of the colour gradient-difference loss |grad rgb_hat - grad rgb|, which keeps "
                              "colour edges sharp where the plain L1 loss blurs them; the gate's edge sharpness "
                              "measures it (default %(default)s)")
-    parser.add_argument("--kl-weight", type=float, default=d.kl_weight, help="default %(default)s")
+    parser.add_argument("--kl-weight", type=number(0), default=d.kl_weight, help="default %(default)s")
     add_precision_argument(parser)
-    parser.add_argument("--ckpt-minutes", type=float, default=d.ckpt_minutes,
+    parser.add_argument("--ckpt-minutes", type=number(0, above=True), default=d.ckpt_minutes,
                         help="minutes between checkpoints + fidelity gate (default %(default)s)")
-    parser.add_argument("--heldout-frames", type=int, default=d.heldout_frames,
+    parser.add_argument("--heldout-frames", type=whole(1), default=d.heldout_frames,
                         help="held-out frames in the fidelity gate (default %(default)s)")
-    parser.add_argument("--seed", type=int, default=d.seed)
+    parser.add_argument("--seed", type=seed(), default=d.seed)
     parser.add_argument("--resume", action="store_true", help="continue the latest checkpoint in --out exactly")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
 

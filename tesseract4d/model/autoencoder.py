@@ -260,13 +260,24 @@ def read_autoencoder_config(folder: str | os.PathLike) -> AutoencoderConfig:
     return AutoencoderConfig.from_dict(d)
 
 
-def load_autoencoder(folder: str | os.PathLike) -> RGBDNAutoencoder:
-    """Rebuild a saved autoencoder (eval mode, fp32)."""
+def _load_weights(folder: Path) -> dict:
+    """A saved autoencoder's tensors; a UserError naming the file when it is not a whole safetensors file."""
+    from safetensors import SafetensorError
     from safetensors.torch import load_file
 
+    path = folder / WEIGHTS_FILE
+    try:
+        return load_file(str(path))
+    except (SafetensorError, OSError) as e:
+        raise UserError(f"autoencoder weights {path} are corrupt or truncated ({e}); copy them again from the run that "
+                        f"wrote them (RUN/autoencoder), or train them again with `tesseract4d train-autoencoder`") from e
+
+
+def load_autoencoder(folder: str | os.PathLike) -> RGBDNAutoencoder:
+    """Rebuild a saved autoencoder (eval mode, fp32)."""
     folder = Path(folder)
     model = RGBDNAutoencoder(read_autoencoder_config(folder))
-    model.load_state_dict(load_file(str(folder / WEIGHTS_FILE)))
+    model.load_state_dict(_load_weights(folder))
     return model.eval().requires_grad_(False)
 
 
@@ -286,12 +297,10 @@ def latents_hash(folder: str | os.PathLike) -> str:
     """SHA-256 (hex, 16 chars) of what a saved autoencoder's latents depend on: its config but for
     ``DECODER_FIELDS`` (the latent statistics included) and its encoder weights as float32. Equal for an
     autoencoder and a decoder-only fine-tune of it, so a latent cache outlives a decoder swap."""
-    from safetensors.torch import load_file
-
     folder = Path(folder)
     config = read_autoencoder_config(folder).to_dict()
     h = hashlib.sha256(json.dumps({k: v for k, v in config.items() if k not in DECODER_FIELDS}, sort_keys=True).encode())
-    weights = load_file(str(folder / WEIGHTS_FILE))
+    weights = _load_weights(folder)
     for key in sorted(weights):
         if key.startswith(ENCODER_PREFIXES):
             h.update(key.encode())

@@ -88,7 +88,7 @@ def _check_manifest(out: Path, manifest: dict) -> None:
     path = out / MANIFEST
     if not path.is_file():
         if out.exists() and any(out.iterdir()):
-            raise UserError(f"{out} exists and is not a reflow pairs folder; choose a new --out")
+            raise UserError(f"--pairs {out} holds files that are not reflow pairs; choose a new or empty --pairs folder")
         return
     saved = json.loads(path.read_text())
     keys = ("teacher_digest", "teacher_steps", "text_guidance", "image_guidance", "guidance_min_sigma", "autoguidance",
@@ -96,7 +96,7 @@ def _check_manifest(out: Path, manifest: dict) -> None:
     differ = [k for k in keys if saved.get(k, _MANIFEST_DEFAULTS.get(k)) != manifest.get(k)]
     if differ:
         raise UserError(f"{out} holds pairs made with other settings ({', '.join(differ)} differ); "
-                        f"choose a new --out for these settings")
+                        f"choose a new --pairs folder for these settings")
 
 
 def generate_pairs(cfg: PairsConfig, progress: bool = True) -> Path:
@@ -110,7 +110,7 @@ def generate_pairs(cfg: PairsConfig, progress: bool = True) -> Path:
     from tesseract4d.model.recipe import share_within_groups
 
     if cfg.num_pairs < 1 or cfg.shard_size < 1 or cfg.batch_size < 1 or cfg.teacher_draws < 1:
-        raise UserError("--num-pairs, --shard-size, --batch-size and --teacher-draws must be at least 1")
+        raise UserError("--num-pairs, --pair-batch-size and --teacher-draws must be at least 1 (and the shard size of the pairs)")
     # On a GPU machine the teacher samples there, as the trainers train there (CUDA_VISIBLE_DEVICES= keeps it on the CPU).
     pipe = load_pipeline(cfg.teacher, device="cuda" if torch.cuda.is_available() else "cpu", precision=cfg.precision)
     p = pipe.preset
