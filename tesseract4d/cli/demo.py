@@ -14,7 +14,7 @@ StackCube) and none elsewhere unless ``--contrast-instruction`` gives one.
 Outputs under --out: first_frame/ (the rendered scene, dataset format), prediction/ (the main
 future, dataset format, with MP4 previews), reconstruction/ (Recon4D: NPZ, PLY per frame,
 background mesh), scene.html (standalone recording, opens from disk), instruction.txt; the
-contrast future under contrast/ with the same names; side_by_side.mp4 (both futures, each under
+contrast future under contrast/ with the same names but first_frame/ (both start from it); side_by_side.mp4 (both futures, each under
 its instruction); demo_config.json (the resolved config, both instructions included).
 """
 
