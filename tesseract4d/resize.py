@@ -94,6 +94,22 @@ def resize_rgbdn(rgb: np.ndarray, depth_m: np.ndarray, normal_cam: np.ndarray, K
             scale_intrinsics(K, s))
 
 
+def episode_at_resolution(episode, camera: str, hw: tuple[int, int]):
+    """A dataset Episode with only ``camera``, its RGB-D-N and K resized to ``hw`` by :func:`resize_rgbdn`
+    (itself when already there). The resized copy carries no segmentation (so a sampler with several
+    noise draws chooses among them by the objects found by their colour: draw_choice.py)."""
+    import dataclasses
+
+    from tesseract4d.dataset_format import CameraFrames
+
+    cam = episode.cameras[camera]
+    if tuple(cam.rgb.shape[1:3]) == tuple(hw) and list(episode.cameras) == [camera]:
+        return episode
+    rgb, depth_m, normal_cam, K = resize_rgbdn(cam.rgb, cam.depth_m, cam.normal_cam, cam.K, *hw)
+    frames = CameraFrames(rgb=rgb, depth_m=depth_m, normal_cam=normal_cam, K=K, T_world_cam=cam.T_world_cam)
+    return dataclasses.replace(episode, cameras={camera: frames})
+
+
 def _valid_depth(depth: np.ndarray) -> np.ndarray:
     return np.isfinite(depth) & (depth > 0)
 

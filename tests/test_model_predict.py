@@ -101,11 +101,27 @@ def test_predicted_episode_contract(pipe, tmp_path):
     assert df.read_info(tmp_path / "pred").source == "prediction"
 
 
+def test_a_first_frame_at_a_whole_multiple_of_the_models_size_is_resized_for_it(pipe):
+    """A 64² first frame for the 32² model: predicted from the frame as resize.py halves it (K halved),
+    exactly as from that frame given at 32², the original size recorded."""
+    from tesseract4d.resize import episode_at_resolution
+
+    big = synthetic_episode(3, frames=1, size=64)
+    pred = predict_episode(pipe, big, "push the square to the right", seed=1, num_steps=2)
+    small = episode_at_resolution(big, "close", (32, 32))
+    same = predict_episode(pipe, small, "push the square to the right", seed=1, num_steps=2)
+    cam = pred.cameras["close"]
+    assert cam.rgb.shape == (8, 32, 32, 3) and np.array_equal(cam.rgb, same.cameras["close"].rgb)
+    assert np.allclose(cam.K[0], big.cameras["close"].K[0] * [[0.5], [0.5], [1]])
+    assert pred.metadata["prediction"]["first_frame_resized_from"] == [64, 64]
+    assert "first_frame_resized_from" not in same.metadata["prediction"]
+
+
 def test_bad_inputs(pipe, checkpoint, tmp_path):
     first = synthetic_episode(0, frames=1)
     with pytest.raises(UserError, match="instruction is empty"):
         predict_episode(pipe, first, "   ")
-    with pytest.raises(UserError, match="model predicts 32x32"):
+    with pytest.raises(UserError, match="model predicts 32x32; it is resized for the model only by a whole factor"):
         predict_episode(pipe, synthetic_episode(0, frames=1, size=48), "push")
     with pytest.raises(UserError, match="not found"):
         load_pipeline(tmp_path / "missing")

@@ -7,6 +7,10 @@ The first frame comes from one of:
                                           K as .npy/.txt (3x3) or .json; normals (--normal .npy) are
                                           derived from depth when not given
 
+A first frame at a whole multiple or divisor of the model's resolution (e.g. 256x256 or 64x64 for
+the shipped 128x128 models) is resized to it, K with it, and predicted there; other sizes are
+refused with the sizes that work.
+
   tesseract4d predict --checkpoint runs/tiny/final --task PickCube-v1 --seed 100000 \\
       --instruction "pick up the red cube" --out out/pred
 
@@ -237,16 +241,23 @@ def run(args: argparse.Namespace) -> int:
     instruction = cfg.instruction if cfg.instruction is not None else first.instruction
     if isinstance(instruction, str) and (note := instruction_budget_note(pipe, instruction.strip())):
         print(note, file=sys.stderr)
-    bar = tqdm(desc="predict", unit="step")
+    bars = []  # made at the first step, so that a first frame refused before sampling leaves no empty bar
 
     def progress(step: int, total: int) -> None:
-        bar.total = total
-        bar.update(step - bar.n)
+        if not bars:
+            bars.append(tqdm(desc="predict", unit="step", total=total))
+        bars[0].total = total
+        bars[0].update(step - bars[0].n)
 
     episodes = predict_episodes(pipe, first, instruction, num_samples=cfg.num_samples, num_frames=cfg.num_frames,
                                 seed=cfg.sample_seed, num_steps=cfg.steps, text_guidance=cfg.text_guidance,
                                 image_guidance=cfg.image_guidance, progress=progress, draws=cfg.draws)
-    bar.close()
+    for bar in bars:
+        bar.close()
+    if resized := episodes[0].metadata["prediction"].get("first_frame_resized_from"):
+        print(f"note: the {resized[0]}x{resized[1]} first frame was resized to the model's "
+              f"{pipe.resolution[0]}x{pipe.resolution[1]} (K scaled with it); the prediction is at "
+              f"{pipe.resolution[0]}x{pipe.resolution[1]}", file=sys.stderr)
     if cfg.draws > 1 and not any(ep.metadata["prediction"].get("draws") for ep in episodes):
         print(f"note: {cfg.draws} noise draws are chosen among by the scene's objects, and none was found in this "
               f"first frame (no segmentation names one, and none stands out by its colour): one draw was sampled",

@@ -75,7 +75,7 @@ import numpy as np
 from tesseract4d import dataset_format as df
 from tesseract4d.errors import UserError
 from tesseract4d.evaluation.instruction_following import RIGHT_WAY_COSINE
-from tesseract4d.resize import resize_factor, resize_rgbdn
+from tesseract4d.resize import episode_at_resolution, resize_factor
 
 METHODS = ("model", "model_raw", "static")
 METHOD_LABELS = {"model": "model + consistency", "model_raw": "model, no consistency", "static": "static world"}
@@ -261,18 +261,6 @@ def token_px_in_data(patch_px: int, factor: Fraction) -> int | None:
     return int(px) if px.denominator == 1 and px >= 2 else None
 
 
-def at_resolution(episode: df.Episode, camera: str, hw: tuple[int, int]) -> df.Episode:
-    """``episode`` with only ``camera``, its RGB-D-N and K resized to ``hw`` (itself when already
-    there). The resized copy carries no segmentation (so such a checkpoint's noise draws, if it has
-    several, are chosen by the objects found by their colour: draw_choice.py)."""
-    cam = episode.cameras[camera]
-    if tuple(cam.rgb.shape[1:3]) == tuple(hw) and list(episode.cameras) == [camera]:
-        return episode
-    rgb, depth_m, normal_cam, K = resize_rgbdn(cam.rgb, cam.depth_m, cam.normal_cam, cam.K, *hw)
-    frames = df.CameraFrames(rgb=rgb, depth_m=depth_m, normal_cam=normal_cam, K=K, T_world_cam=cam.T_world_cam)
-    return dataclasses.replace(episode, cameras={camera: frames})
-
-
 def scene_noise_seed(sample_seed: int, env_id: str, scene_seed: int) -> int:
     """The noise seed of one held-out scene for a run's ``sample_seed``: its own draw for every scene
     (so the episodes of a run are independent draws, not one draw shared by all), and the same for
@@ -293,7 +281,7 @@ def predict_at_data_resolution(pipeline, firsts: list[df.Episode], instructions:
     ``num_frames[i]``: frames to predict. Scenes go ``batch_size`` per network call
     (``predict_scenes``), scene i from the noise ``predict_episode(..., seed=noise_seeds[i])`` draws
     (default: ``seed`` for every scene). A first frame of another resolution than the model's is
-    resized to it, and the prediction back (:func:`at_resolution`); frame 0 is then the given first
+    resized to it, and the prediction back (:func:`~tesseract4d.resize.episode_at_resolution`); frame 0 is then the given first
     frame again. ``start_clips`` (per scene, :func:`truth_clip`) and ``start_sigma``: the pipeline's
     ``start`` diagnostic (the data's resolution must be the model's; one noise draw, whatever the preset's).
     """
@@ -303,7 +291,7 @@ def predict_at_data_resolution(pipeline, firsts: list[df.Episode], instructions:
         noise_seeds = [seed] * len(firsts)
 
     model_hw = tuple(pipeline.resolution)
-    inputs = [at_resolution(f, cam, model_hw) for f, cam in zip(firsts, cameras)]
+    inputs = [episode_at_resolution(f, cam, model_hw) for f, cam in zip(firsts, cameras)]
     out: list[tuple[df.Episode, np.ndarray] | None] = [None] * len(firsts)
     for n in sorted(set(num_frames)):  # predict_scenes takes one clip length per call
         idx = [i for i, m in enumerate(num_frames) if m == n]
@@ -317,7 +305,7 @@ def predict_at_data_resolution(pipeline, firsts: list[df.Episode], instructions:
             first = firsts[i].cameras[cameras[i]]
             data_hw = tuple(first.rgb.shape[1:3])
             if data_hw != model_hw:
-                pred = at_resolution(pred, cameras[i], data_hw)
+                pred = episode_at_resolution(pred, cameras[i], data_hw)
                 cam = pred.cameras[cameras[i]]
                 # Frame 0 of a prediction is the given first frame, at the data's resolution too.
                 cam.rgb[0], cam.depth_m[0], cam.normal_cam[0] = first.rgb[0], first.depth_m[0], first.normal_cam[0]
@@ -354,7 +342,7 @@ def instruction_discrimination(pipeline, files: list[Path], camera: str | None, 
             ep = df.read_episode(path, cameras=[camera] if camera else None, frames=slice(0, p.num_frames))
             cam = camera or next(iter(ep.cameras))
             if ep.num_frames >= p.num_frames:
-                frames.append(at_resolution(ep, cam, tuple(pipeline.resolution)).cameras[cam])
+                frames.append(episode_at_resolution(ep, cam, tuple(pipeline.resolution)).cameras[cam])
                 texts.append(ep.instruction)
         distinct = len(set(texts))
         if distinct < 2:

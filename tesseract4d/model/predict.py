@@ -12,10 +12,15 @@ normals are unit vectors in the OpenCV camera frame.
 A checkpoint whose preset has ``draws`` N > 1 predicts every future from N noise draws and keeps the
 one whose objects keep their colours best (draw_choice.py; ``draws=`` overrides the preset); the
 kept draw and every draw's score are in the episode's ``metadata["prediction"]["draws"]``.
+
+A first frame at a whole multiple or divisor of the model's resolution (256² or 64² for a 128² model)
+is resized to it with its K (resize.py) and predicted there; ``metadata["prediction"]["first_frame_resized_from"]``
+keeps its size.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import os
 from pathlib import Path
 from typing import Callable
@@ -26,12 +31,16 @@ import torch
 from tesseract4d import dataset_format as df
 from tesseract4d.errors import UserError
 from tesseract4d.precision import announce, resolve_precision
+from tesseract4d.resize import episode_at_resolution, resize_factor
 from tesseract4d.model.model_space import ModelSpace
 from tesseract4d.model.draw_choice import check_draws, choose, draw_noise_seed, object_windows
 from tesseract4d.model.checkpoint import (GUIDE_DIR, INFERENCE_CONFIG_FILE, load_scheduler, load_transformer,
                                           read_inference_config)
 from tesseract4d.model.pipeline import RGBDNPipeline
 from tesseract4d.model.presets import PRESETS, preset_from_dict
+
+# Where a predicted episode records the size of a first frame it was resized from.
+RESIZED_FROM = "first_frame_resized_from"
 
 
 def load_pipeline(checkpoint: str | os.PathLike, device: str = "cpu", precision: str = "auto") -> RGBDNPipeline:
@@ -316,9 +325,16 @@ def _scene(pipeline: RGBDNPipeline, first_frame: df.Episode, instruction: str, c
         raise UserError("the instruction is empty; say what should happen, e.g. --instruction \"pick up the red cube\"")
     cam_name, cam = _first_frame_arrays(first_frame, camera)
     h, w = cam.rgb.shape[1:3]
-    if (h, w) != pipeline.resolution:
-        raise UserError(f"the first frame is {h}x{w} but the model predicts {pipeline.resolution[0]}x{pipeline.resolution[1]}; "
-                        f"render/resize the first frame to the model's resolution")
+    if (h, w) != tuple(pipeline.resolution):
+        H, W = pipeline.resolution
+        if resize_factor((h, w), (H, W)) is None:
+            raise UserError(f"the first frame is {h}x{w} but the model predicts {H}x{W}; it is resized for the model "
+                            f"only by a whole factor on both axes (e.g. {2 * H}x{2 * W} or {H // 2}x{W // 2}): crop or "
+                            f"render it to such a size, scaling K with it")
+        # A whole factor: the first frame at the model's resolution (resize.py), the prediction there.
+        first_frame = episode_at_resolution(first_frame, cam_name, (H, W))
+        first_frame = dataclasses.replace(first_frame, metadata={**first_frame.metadata, RESIZED_FROM: [h, w]})
+        cam = first_frame.cameras[cam_name]
     x = pipeline.model_space.encode(cam.rgb[:1], cam.depth_m[:1], cam.normal_cam[:1])  # (1, 7, H, W)
     return first_frame, instruction.strip(), cam_name, cam, x
 
@@ -349,6 +365,7 @@ def _predict_batch(pipeline: RGBDNPipeline, scenes: list, sample_indices: list[i
                 "checkpoint_preset": pipeline.preset.name, "sample_seed": int(seed), "sample_index": sample_indices[k],
                 "num_steps": int(num_steps), "text_guidance": text_guidance, "image_guidance": image_guidance,
                 **({} if start is None else {"started_from_clip_at_noise": float(start[1])}),
+                **({RESIZED_FROM: first_frame.metadata[RESIZED_FROM]} if RESIZED_FROM in first_frame.metadata else {}),
                 "depth_range_m": [pipeline.model_space.near_m, pipeline.model_space.far_m],
                 "training": pipeline.config.get("training"),
             }},
