@@ -61,7 +61,7 @@ from pathlib import Path
 import numpy as np
 
 from tesseract4d.errors import UserError
-from tesseract4d.outputs import MARKER, safe_name
+from tesseract4d.outputs import MARKER, safe_name, signals_held
 
 FORMAT_VERSION = 2
 READABLE_VERSIONS = (1, 2)
@@ -319,7 +319,8 @@ def write_episode(root: str | os.PathLike, episode: Episode, compression_level: 
         group.create_dataset(name, data=data, fletcher32=data.size > 0)
 
     try:
-        with h5py.File(tmp, "w") as f:
+        # An interrupt waits for the shard to be written and renamed (h5py's closing would swallow it).
+        with signals_held(), h5py.File(tmp, "w") as f:
             f.attrs["format_version"] = FORMAT_VERSION
             f.attrs["episode_id"] = episode.episode_id
             f.attrs["env_id"] = episode.env_id
@@ -352,7 +353,7 @@ def write_episode(root: str | os.PathLike, episode: Episode, compression_level: 
                 small(g, "K", np.asarray(cam.K, np.float64))
                 small(g, "T_world_cam", np.asarray(cam.T_world_cam, np.float64))
             f.flush()
-        os.replace(tmp, final)
+            os.replace(tmp, final)
     except BaseException:
         tmp.unlink(missing_ok=True)
         raise

@@ -23,6 +23,7 @@ Usage::
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import re
@@ -66,6 +67,18 @@ def check_not_input(out: str | os.PathLike, inputs: Iterable[str | os.PathLike |
             raise UserError(f"{flag} {out} {how} the input {inp}; write the output to a separate folder")
 
 
+def check_writable(path: str | os.PathLike, flag: str = "--out") -> None:
+    """Refuse, before any work, an output this user cannot write: an existing folder and its parent
+    (a rerun writes into it and swaps it), or else the nearest existing folder above it (where it
+    will be made)."""
+    p = _resolve(path)
+    need = [p, p.parent] if p.is_dir() else [next(q for q in p.parents if q.exists())]
+    for q in need:
+        if not os.access(q, os.W_OK | os.X_OK):
+            raise UserError(f"{flag} {path}: {q} is not writable by this user; choose an output folder you can write, "
+                            f"or change its permissions")
+
+
 def read_marker(folder: Path) -> dict | None:
     try:
         d = json.loads((folder / MARKER).read_text())
@@ -79,6 +92,35 @@ def _write_marker(folder: Path, command: str, files: list[str]) -> None:
     tmp.write_text(json.dumps({"command": command, "version": MARKER_VERSION, "written": time.time(),
                                "files": sorted(files)}, indent=2))
     os.replace(tmp, folder / MARKER)
+
+
+@contextlib.contextmanager
+def signals_held():
+    """Hold SIGINT and SIGTERM back while a block runs (a few renames, a file's writing) and act on
+    them when it ends, so an interrupt lands before or after the block, never inside it: an output
+    is the old result or the new one, a shard whole or absent. Python runs signal handlers in the
+    main thread only; elsewhere this is a no-op."""
+    import signal
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    caught: list[int] = []
+    held = (signal.SIGINT, signal.SIGTERM)
+    previous = {s: signal.signal(s, lambda signum, frame: caught.append(signum)) for s in held}
+    try:
+        yield
+    finally:
+        for s, handler in previous.items():
+            signal.signal(s, handler if handler is not None else signal.SIG_DFL)
+        if caught:  # the first signal that came, handled now as it would have been then
+            s = caught[0]
+            handler = previous[s]
+            if callable(handler):
+                handler(s, None)
+            elif handler in (signal.SIG_DFL, None):
+                os.kill(os.getpid(), s)
 
 
 def _umask() -> int:
@@ -121,6 +163,7 @@ class OutputDir:
         p = self.path
         if p.exists() and not p.is_dir():
             raise UserError(f"{self.flag} {p} is a file, not a folder; pass a folder path")
+        check_writable(p, self.flag)
         if not p.exists() or not any(p.iterdir()):
             return set()
         marker = read_marker(p)
@@ -145,7 +188,8 @@ class OutputDir:
     def __exit__(self, exc_type, exc, tb) -> bool:
         try:
             if exc_type is None:
-                self._commit()
+                with signals_held():  # the swap of folders or files runs whole
+                    self._commit()
         finally:
             if self.stage is not None and self.stage.exists():
                 shutil.rmtree(self.stage, ignore_errors=True)  # only our own staging folder
@@ -208,7 +252,8 @@ class OutputFile:
 
     def __exit__(self, exc_type, exc, tb) -> bool:
         if exc_type is None:
-            os.replace(self.tmp, self.path)
+            with signals_held():
+                os.replace(self.tmp, self.path)
         else:
             self.tmp.unlink(missing_ok=True)
         return False

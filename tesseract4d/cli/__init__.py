@@ -31,6 +31,25 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
 }
 
 
+class Terminated(KeyboardInterrupt):
+    """SIGTERM (``kill``, a scheduler's stop) raised as an interrupt, so every output stage is
+    cleaned up as on Ctrl-C (a training run installs its own handler that stops with a checkpoint)."""
+
+
+def _raise_terminated(signum, frame) -> None:
+    raise Terminated()
+
+
+def _stop_cleanly_on_sigterm():
+    """Install the SIGTERM handler for one command (main thread only); returns the previous handler."""
+    import signal
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        return None
+    return signal.signal(signal.SIGTERM, _raise_terminated)
+
+
 def _top_parser() -> argparse.ArgumentParser:
     width = max(len(name) for name in SUBCOMMANDS)
     lines = "\n".join(f"  {name:<{width}}  {help_}" for name, (_, help_) in SUBCOMMANDS.items())
@@ -70,8 +89,12 @@ def main(argv: list[str] | None = None) -> int:
     )
     module.add_arguments(parser)
     args = parser.parse_args(argv[1:])
+    previous = _stop_cleanly_on_sigterm()
     try:
         return int(module.run(args) or 0)
+    except Terminated:
+        print("\nterminated; finished work is kept on disk", file=sys.stderr)
+        return 143
     except KeyboardInterrupt:
         print("\ninterrupted; finished work is kept on disk", file=sys.stderr)
         return 130
@@ -86,5 +109,14 @@ def main(argv: list[str] | None = None) -> int:
         if isinstance(e, UserError):
             print(f"tesseract4d {name}: error: {e}", file=sys.stderr)
             return 2
+        if isinstance(e, PermissionError):
+            print(f"tesseract4d {name}: error: permission denied: {e.filename}; choose paths this user can write",
+                  file=sys.stderr)
+            return 2
         raise
+    finally:
+        if previous is not None:
+            import signal
+
+            signal.signal(signal.SIGTERM, previous)
 
