@@ -521,8 +521,23 @@ def _prepare_output(cfg: DatagenConfig) -> Path:
     root = Path(cfg.out)
     remove_partial_files(root)
     _remove_partial_previews(root)
+    if cfg.previews:
+        _write_missing_previews(root)
     atomic_write_text(root / CONFIG_FILE, cfg.to_json())
     return root
+
+
+def _write_missing_previews(root: Path) -> list[Path]:
+    """The MP4 previews of episodes on disk whose preview an interrupted run did not finish."""
+    from tesseract4d.dataset_format import preview_path, read_episode, read_episode_attrs
+    from tesseract4d.previews import write_preview
+
+    written = []
+    for path in list_episode_files(root):
+        attrs = read_episode_attrs(path)
+        if not preview_path(root, attrs["env_id"], attrs["seed"], attrs["variant"]).is_file():
+            written.append(write_preview(root, read_episode(path)))
+    return written
 
 
 def _seeds_done(cfg: DatagenConfig, root: Path) -> tuple[dict[str, set[int]], dict[str, int]]:

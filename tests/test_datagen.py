@@ -238,3 +238,24 @@ def test_datagen_modules_import_without_the_simulator():
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60, cwd=REPO)
     assert proc.returncode == 0, proc.stderr
     assert proc.stdout.strip() == ""
+
+
+def test_a_resumed_datagen_writes_the_previews_an_interrupted_run_did_not_finish(tmp_path):
+    """An interrupt between an episode's file and its MP4 preview leaves the episode without one; the
+    next run into the folder writes it (and leaves the others as they are)."""
+    from synthetic_scene import write_synthetic_dataset
+
+    from datagen.generate import _write_missing_previews
+    from tesseract4d.dataset_format import preview_path, read_episode_attrs
+    from tesseract4d.previews import write_preview
+
+    root = write_synthetic_dataset(tmp_path / "ds", episodes=2)
+    files = list_episode_files(root)
+    kept = write_preview(root, read_episode(files[0]))
+    kept_mtime = kept.stat().st_mtime_ns
+    attrs = read_episode_attrs(files[1])
+    lost = preview_path(root, attrs["env_id"], attrs["seed"], attrs["variant"])
+    lost.unlink(missing_ok=True)
+    assert _write_missing_previews(root) == [lost]
+    assert lost.stat().st_size > 0 and kept.stat().st_mtime_ns == kept_mtime
+    assert _write_missing_previews(root) == []
