@@ -14,7 +14,16 @@ from tesseract4d.errors import UserError
 from tesseract4d.outputs import OutputDir, check_writable, signals_held
 
 
-def test_a_signal_inside_a_held_block_is_delivered_after_it():
+@pytest.fixture
+def ctrl_c():
+    """SIGINT raising KeyboardInterrupt, as in a terminal (a suite started in the background inherits
+    SIGINT ignored); the handler before is restored after."""
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    yield
+    signal.signal(signal.SIGINT, previous)
+
+
+def test_a_signal_inside_a_held_block_is_delivered_after_it(ctrl_c):
     happened = []
     with pytest.raises(KeyboardInterrupt):
         with signals_held():
@@ -39,7 +48,7 @@ def test_sigterm_stops_a_command_as_an_interrupt_and_its_stage_is_removed(tmp_pa
     assert sorted(p.name for p in tmp_path.iterdir()) == []
 
 
-def test_an_earlier_result_survives_a_signal_during_its_replacement(tmp_path, monkeypatch):
+def test_an_earlier_result_survives_a_signal_during_its_replacement(tmp_path, monkeypatch, ctrl_c):
     """A signal that arrives while a rerun's result is being swapped in (here: right after the first
     rename of the swap) lands after the swap: the folder holds the new result whole, and no hidden
     copy of the old one is left beside it."""
