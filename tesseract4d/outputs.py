@@ -109,17 +109,17 @@ def signals_held():
     caught: list[int] = []
     held = (signal.SIGINT, signal.SIGTERM)
     previous = {s: signal.signal(s, lambda signum, frame: caught.append(signum)) for s in held}
+    previous = {s: signal.SIG_DFL if h is None else h for s, h in previous.items()}  # None: set outside Python
     try:
         yield
     finally:
         for s, handler in previous.items():
-            signal.signal(s, handler if handler is not None else signal.SIG_DFL)
+            signal.signal(s, handler)
         if caught:  # the first signal that came, handled now as it would have been then
             s = caught[0]
-            handler = previous[s]
-            if callable(handler):
-                handler(s, None)
-            elif handler in (signal.SIG_DFL, None):
+            if callable(previous[s]):
+                previous[s](s, None)
+            elif previous[s] == signal.SIG_DFL:
                 os.kill(os.getpid(), s)
 
 

@@ -52,7 +52,6 @@ class _AppendCheckpoint(argparse.Action):
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from tesseract4d.model.predict import DEFAULT_SCENE_BATCH
     from tesseract4d.precision import add_precision_argument
 
     parser.add_argument("pred", nargs="?", help="reconstruction folder, or a predicted episode (.h5 / folder / DIR/ENV_ID/SEED)")
@@ -87,10 +86,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                            "model's resolution")
     held.add_argument("--max-per-task", type=whole(1), metavar="N",
                       help="episodes per task at most, a counterfactual group kept whole (default: all)")
+    # "default 4" is model/predict.py's DEFAULT_SCENE_BATCH, written out so that --help needs no torch
+    # (tests/test_cli_eval_args.py compares the two).
     held.add_argument("--batch-size", type=whole(1), metavar="N",
-                      help=f"scenes predicted together in one network call (default {DEFAULT_SCENE_BATCH}; more needs "
-                           f"more memory); each scene gets the noise it gets alone, so results do not depend on it "
-                           f"beyond float rounding")
+                      help="scenes predicted together in one network call (default 4; more needs more memory); each "
+                           "scene gets the noise it gets alone, so results do not depend on it beyond float rounding")
     add_precision_argument(held)
     parser.add_argument("--overwrite", action="store_true",
                         help="replace a --json file / write into an --out folder that this command did not write")

@@ -112,11 +112,7 @@ def _read_K(path: Path) -> np.ndarray:
 
 def _read_depth(path: Path) -> np.ndarray:
     if path.suffix == ".npy":
-        try:
-            depth = np.load(path).astype(np.float32)
-        except (ValueError, TypeError, OSError) as e:
-            raise UserError(f"{path}: cannot read depth ({str(e).splitlines()[0]}); pass an (H, W) .npy in metres "
-                            f"or a 16-bit PNG in millimetres") from None
+        depth = _read_npy(path, f"{path}: cannot read depth", "pass an (H, W) .npy in metres or a 16-bit PNG in millimetres")
     else:
         depth = _read_image(path, "--depth", "a 16-bit PNG in millimetres, or an (H, W) .npy in metres")
         if depth.dtype != np.uint16:
@@ -125,22 +121,27 @@ def _read_depth(path: Path) -> np.ndarray:
     if depth.ndim != 2:
         raise UserError(f"{path}: depth must be one (H, W) image, got shape {depth.shape}")
     if not np.isfinite(depth).all() or (depth < 0).any() or not (depth > 0).any():
-        raise UserError(f"{path}: depth must be finite metres >= 0 (0: no reading) with some pixels > 0; "
-                        f"got {np.nanmin(depth) if np.isfinite(depth).any() else 'nan'} .. "
-                        f"{np.nanmax(depth) if np.isfinite(depth).any() else 'nan'}")
+        finite = depth[np.isfinite(depth)]
+        got = f"{finite.min()} .. {finite.max()}" if finite.size else "no finite value"
+        raise UserError(f"{path}: depth must be finite metres >= 0 (0: no reading) with some pixels > 0; got {got}")
     return depth
 
 
 def _read_normals(path: Path, size: tuple[int, int]) -> np.ndarray:
-    try:
-        normal_cam = np.load(path).astype(np.float32)
-    except (ValueError, TypeError, OSError) as e:
-        raise UserError(f"--normal {path}: cannot read it ({str(e).splitlines()[0]}); pass an (H, W, 3) .npy of unit "
-                        f"normals in the OpenCV camera frame, or leave --normal out to derive them from the depth") from None
+    normal_cam = _read_npy(path, f"--normal {path}: cannot read it", "pass an (H, W, 3) .npy of unit normals in the "
+                           "OpenCV camera frame, or leave --normal out to derive them from the depth")
     if normal_cam.shape != (*size, 3) or not np.isfinite(normal_cam).all():
         raise UserError(f"--normal {path}: expected finite (H, W, 3) = {(*size, 3)} unit normals, got shape "
                         f"{normal_cam.shape}; or leave --normal out to derive them from the depth")
     return normal_cam
+
+
+def _read_npy(path: Path, what: str, fix: str) -> np.ndarray:
+    """A .npy array as float32, or a UserError: ``what`` (the reason numpy gives); ``fix``."""
+    try:
+        return np.load(path).astype(np.float32)
+    except (ValueError, TypeError, OSError) as e:
+        raise UserError(f"{what} ({str(e).splitlines()[0]}); {fix}") from None
 
 
 def _read_image(path: Path, flag: str, what: str) -> np.ndarray:
