@@ -78,72 +78,83 @@ class Recon4D:
 
     # ------------------------------------------------------------------ save / load
 
-    def save(self, out_dir: str | os.PathLike, write_ply: bool = True) -> Path:
-        """Write the folder atomically (to a temporary sibling, then rename); returns it."""
+    def save(self, out_dir: str | os.PathLike, write_ply: bool = True, staged: bool = False) -> Path:
+        """Write the folder atomically (to a temporary sibling, then rename); returns it.
+
+        ``staged``: ``out_dir`` lies inside a staging folder of the caller's own (a command's
+        ``OutputDir``), which is renamed into place as a whole: write straight into it."""
         self.validate()
         out = Path(out_dir)
         if out.exists() and (not out.is_dir() or any(out.iterdir())):
             raise ReconFormatError(f"{out} exists and is not empty; a reconstruction is written only to a new or empty "
                                    f"folder (the command line's --overwrite replaces its own earlier output)")
+        if staged:
+            out.mkdir(parents=True, exist_ok=True)
+            self._write_files(out, write_ply)
+            return out
         tmp = out.with_name(f".{out.name}.{uuid.uuid4().hex}.partial")
         tmp.mkdir(parents=True)
         try:
-            offsets = np.cumsum([0] + [len(p) for p in self.points_world]).astype(np.int64)
-            cat = lambda seq, dt, w: (np.concatenate(seq).astype(dt) if offsets[-1] else np.zeros((0,) + w, dt))  # noqa: E731
-            np.savez_compressed(
-                tmp / ARRAYS,
-                offsets=offsets,
-                points_world=cat(self.points_world, np.float32, (3,)),
-                colors=cat(self.colors, np.uint8, (3,)),
-                normals_world=cat(self.normals_world, np.float32, (3,)),
-                dynamic=cat(self.dynamic, bool, ()),
-                rgb=self.rgb.astype(np.uint8),
-                depth_m=self.depth_m.astype(np.float32),
-                normal_cam=self.normal_cam.astype(np.float32),
-                K=self.K.astype(np.float64),
-                T_world_cam=self.T_world_cam.astype(np.float64),
-                background_points=self.background_points.astype(np.float32),
-                background_colors=self.background_colors.astype(np.uint8),
-                background_normals=self.background_normals.astype(np.float32),
-                mesh_vertices=self.mesh_vertices.astype(np.float32),
-                mesh_faces=self.mesh_faces.astype(np.int32),
-                mesh_colors=self.mesh_colors.astype(np.uint8),
-            )
-            files = [ARRAYS]
-            if write_ply:
-                (tmp / "frames").mkdir()
-                for t in range(self.num_frames):
-                    name = f"frames/frame_{t:04d}.ply"
-                    write_point_ply(tmp / name, self.points_world[t], self.colors[t], self.normals_world[t])
-                    files.append(name)
-                if len(self.background_points):
-                    write_point_ply(tmp / "background.ply", self.background_points, self.background_colors, self.background_normals)
-                    files.append("background.ply")
-                if len(self.mesh_faces):
-                    import trimesh
-
-                    mesh = trimesh.Trimesh(self.mesh_vertices, self.mesh_faces, vertex_colors=self.mesh_colors, process=False)
-                    mesh.export(tmp / "background_mesh.ply")
-                    mesh.export(tmp / "background_mesh.glb")
-                    files += ["background_mesh.ply", "background_mesh.glb"]
-            manifest = {
-                "format": "tesseract4d-recon4d",
-                "format_version": RECON_FORMAT_VERSION,
-                "num_frames": self.num_frames,
-                "image_size": list(self.rgb.shape[1:3]),
-                "fps": self.fps,
-                "points_per_frame": [int(len(p)) for p in self.points_world],
-                "background_points": int(len(self.background_points)),
-                "mesh_faces": int(len(self.mesh_faces)),
-                "files": files,
-                "metadata": self.metadata,
-            }
-            (tmp / MANIFEST).write_text(json.dumps(manifest, indent=2, default=str))
+            self._write_files(tmp, write_ply)
             os.replace(tmp, out)  # onto nothing or an empty folder
         except BaseException:
             shutil.rmtree(tmp, ignore_errors=True)
             raise
         return out
+
+    def _write_files(self, folder: Path, write_ply: bool) -> None:
+        """The arrays, the PLY files and the manifest (last) into the empty folder ``folder``."""
+        offsets = np.cumsum([0] + [len(p) for p in self.points_world]).astype(np.int64)
+        cat = lambda seq, dt, w: (np.concatenate(seq).astype(dt) if offsets[-1] else np.zeros((0,) + w, dt))  # noqa: E731
+        np.savez_compressed(
+            folder / ARRAYS,
+            offsets=offsets,
+            points_world=cat(self.points_world, np.float32, (3,)),
+            colors=cat(self.colors, np.uint8, (3,)),
+            normals_world=cat(self.normals_world, np.float32, (3,)),
+            dynamic=cat(self.dynamic, bool, ()),
+            rgb=self.rgb.astype(np.uint8),
+            depth_m=self.depth_m.astype(np.float32),
+            normal_cam=self.normal_cam.astype(np.float32),
+            K=self.K.astype(np.float64),
+            T_world_cam=self.T_world_cam.astype(np.float64),
+            background_points=self.background_points.astype(np.float32),
+            background_colors=self.background_colors.astype(np.uint8),
+            background_normals=self.background_normals.astype(np.float32),
+            mesh_vertices=self.mesh_vertices.astype(np.float32),
+            mesh_faces=self.mesh_faces.astype(np.int32),
+            mesh_colors=self.mesh_colors.astype(np.uint8),
+        )
+        files = [ARRAYS]
+        if write_ply:
+            (folder / "frames").mkdir()
+            for t in range(self.num_frames):
+                name = f"frames/frame_{t:04d}.ply"
+                write_point_ply(folder / name, self.points_world[t], self.colors[t], self.normals_world[t])
+                files.append(name)
+            if len(self.background_points):
+                write_point_ply(folder / "background.ply", self.background_points, self.background_colors, self.background_normals)
+                files.append("background.ply")
+            if len(self.mesh_faces):
+                import trimesh
+
+                mesh = trimesh.Trimesh(self.mesh_vertices, self.mesh_faces, vertex_colors=self.mesh_colors, process=False)
+                mesh.export(folder / "background_mesh.ply")
+                mesh.export(folder / "background_mesh.glb")
+                files += ["background_mesh.ply", "background_mesh.glb"]
+        manifest = {
+            "format": "tesseract4d-recon4d",
+            "format_version": RECON_FORMAT_VERSION,
+            "num_frames": self.num_frames,
+            "image_size": list(self.rgb.shape[1:3]),
+            "fps": self.fps,
+            "points_per_frame": [int(len(p)) for p in self.points_world],
+            "background_points": int(len(self.background_points)),
+            "mesh_faces": int(len(self.mesh_faces)),
+            "files": files,
+            "metadata": self.metadata,
+        }
+        (folder / MANIFEST).write_text(json.dumps(manifest, indent=2, default=str))
 
     @classmethod
     def load(cls, path: str | os.PathLike) -> "Recon4D":

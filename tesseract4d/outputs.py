@@ -10,7 +10,8 @@ Rules:
   a new file that would land on a foreign one is refused.
 - Results are written into a temporary sibling (``.NAME.tmp-XXXX``) and renamed into place, so
   a crash leaves the old result or the new one, never half of each; on failure only the
-  staging folder is removed.
+  staging folder is removed. A run killed outright (SIGKILL, a power cut) cannot remove it; the
+  next run writing NAME names such leftovers on stderr (``note_leftovers``) and keeps them.
 - An output that is, contains or lies inside one of the command's inputs is refused.
 - Names taken from data (task ids, episode ids, camera names) pass ``safe_name`` before they
   become path components.
@@ -24,10 +25,12 @@ Usage::
 from __future__ import annotations
 
 import contextlib
+import glob
 import json
 import os
 import re
 import shutil
+import sys
 import tempfile
 import time
 from pathlib import Path
@@ -140,6 +143,29 @@ def _files_under(folder: Path) -> list[str]:
     return sorted(str(p.relative_to(folder)) for p in folder.rglob("*") if p.is_file() or p.is_symlink())
 
 
+def note_leftovers(path: str | os.PathLike) -> list[Path]:
+    """Name on stderr what killed runs writing ``path`` left beside it: staging siblings
+    (``.NAME.tmp-XXXXXXXX``) and earlier results moved aside during a swap (``.NAME.old-XXXXXXXX``).
+    Nothing is removed: another run may be writing a stage now, and a moved-aside result may be
+    the only copy of it. Returns the leftovers."""
+    target = _resolve(path)
+    ours = re.compile(rf"^\.{re.escape(target.name)}\.(tmp|old)-[A-Za-z0-9_]{{8}}$")
+    leftovers = sorted(p for p in target.parent.glob(glob.escape(f".{target.name}.") + "*") if ours.match(p.name))
+    for p in leftovers:
+        kind = ours.match(p.name).group(1)
+        if kind == "tmp":
+            print(f"note: {p} is a staging {'folder' if p.is_dir() else 'file'} of a run writing {target} that was "
+                  f"killed before it finished; delete it once no run is writing there", file=sys.stderr)
+        elif (p / "x").exists():
+            only = "" if target.exists() else f" (the only copy: move it back to {target})"
+            print(f"note: {p / 'x'} is an earlier result of {target}, moved aside by a run killed while replacing "
+                  f"it{only}; delete {p} when you no longer need it", file=sys.stderr)
+        else:
+            print(f"note: {p} is an empty folder left by a run killed while replacing {target}; delete it",
+                  file=sys.stderr)
+    return leftovers
+
+
 class OutputDir:
     """Stage a command's output folder and move it into place on success (see the module doc).
 
@@ -182,6 +208,7 @@ class OutputDir:
     def __enter__(self) -> Path:
         parent = _resolve(self.path).parent
         parent.mkdir(parents=True, exist_ok=True)
+        note_leftovers(self.path)
         self.stage = _as_created(Path(tempfile.mkdtemp(prefix=f".{self.path.name}.tmp-", dir=parent)), 0o777)
         return self.stage
 
@@ -245,6 +272,7 @@ class OutputFile:
 
     def __enter__(self) -> Path:
         self.path.parent.mkdir(parents=True, exist_ok=True)
+        note_leftovers(self.path)
         fd, name = tempfile.mkstemp(prefix=f".{self.path.name}.tmp-", dir=self.path.parent)
         os.close(fd)
         self.tmp = _as_created(Path(name), 0o666)

@@ -489,3 +489,30 @@ def test_max_steps_auto_fits_the_autoencoder_schedule_and_resume_keeps_it(tmp_pa
     assert resumed.cfg.max_steps == fitted and resumed.cfg.max_steps_fit == saved["max_steps_fit"]
     with pytest.raises(UserError, match="--max-minutes"):
         AutoencoderTrainer(_train_cfg(data, tmp_path / "nobudget", max_steps="auto"))
+
+
+def test_a_stop_signal_ends_training_with_a_checkpoint_and_says_so(tmp_path, capsys, monkeypatch):
+    """SIGTERM (or Ctrl-C) during step 2 of 1,000: the trainer stops after the step, checkpoints and
+    exports it, says why, and gives both signals their handlers back."""
+    import os
+    import signal
+
+    from tesseract4d.model.autoencoder_trainer import AutoencoderTrainer
+
+    data = write_segmented_dataset(tmp_path / "data")
+    trainer = AutoencoderTrainer(_train_cfg(data, tmp_path / "run", max_steps=1000))
+    step = trainer.train_step
+
+    def step_then_sigterm():
+        logs = step()
+        if trainer.step == 2:
+            os.kill(os.getpid(), signal.SIGTERM)
+        return logs
+
+    monkeypatch.setattr(trainer, "train_step", step_then_sigterm)
+    before = {s: signal.getsignal(s) for s in (signal.SIGTERM, signal.SIGINT)}
+    gate = trainer.train()
+    assert {s: signal.getsignal(s) for s in before} == before
+    assert gate["step"] == 2
+    assert json.loads((tmp_path / "run" / "autoencoder" / "fidelity.json").read_text())["step"] == 2
+    assert "stopped at step 2; saving a checkpoint" in capsys.readouterr().out

@@ -80,3 +80,47 @@ def test_an_output_this_user_cannot_write_is_refused_before_any_work(tmp_path, m
         with pytest.raises(UserError, match=f"{locked}.* is not writable by this user"):
             check_writable(out)
     check_writable(tmp_path / "free")
+
+
+def _killed_while_staging(out) -> None:
+    """A real run of OutputDir killed with SIGKILL (which no handler can catch) in the middle of its
+    staging folder."""
+    import subprocess
+    import sys
+
+    code = ("import os, signal, sys\n"
+            "from tesseract4d.outputs import OutputDir\n"
+            "with OutputDir(sys.argv[1], 'predict') as stage:\n"
+            "    (stage / 'half.txt').write_text('half')\n"
+            "    os.kill(os.getpid(), signal.SIGKILL)\n")
+    done = subprocess.run([sys.executable, "-c", code, str(out)], capture_output=True)
+    assert done.returncode == -signal.SIGKILL
+
+
+def test_the_next_run_names_what_a_killed_run_left_and_keeps_it(tmp_path, capsys):
+    _killed_while_staging(tmp_path / "out")
+    (left,) = [p for p in tmp_path.iterdir()]
+    assert left.name.startswith(".out.tmp-") and (left / "half.txt").read_text() == "half"
+    (tmp_path / ".out.tmp-mine").mkdir()          # not a stage's name: the user's own
+    (tmp_path / ".outer.tmp-abcdefgh").mkdir()    # the stage of another output
+    with OutputDir(tmp_path / "out", "predict") as stage:
+        (stage / "result.txt").write_text("new")
+    err = capsys.readouterr().err
+    assert f"note: {left} is a staging folder of a run writing {tmp_path / 'out'} that was killed" in err
+    assert err.count("note:") == 1
+    assert (left / "half.txt").read_text() == "half"  # never removed: a run may still be writing it
+    assert (tmp_path / "out" / "result.txt").read_text() == "new"
+
+
+def test_a_result_moved_aside_by_a_killed_swap_is_named_as_the_only_copy(tmp_path, capsys):
+    """A kill between the two renames of a swap leaves the earlier result in ``.NAME.old-*/x`` and
+    no NAME; the next run says where it is."""
+    aside = tmp_path / ".out.old-k1ll3d_x"
+    (aside / "x").mkdir(parents=True)
+    (aside / "x" / "result.txt").write_text("old")
+    with OutputDir(tmp_path / "out", "predict") as stage:
+        (stage / "result.txt").write_text("new")
+    err = capsys.readouterr().err
+    assert f"note: {aside / 'x'} is an earlier result of {tmp_path / 'out'}" in err
+    assert f"(the only copy: move it back to {tmp_path / 'out'})" in err
+    assert (aside / "x" / "result.txt").read_text() == "old"

@@ -195,3 +195,28 @@ def test_max_steps_auto_fits_the_schedule_and_trains_as_that_number(dataset, tmp
     assert resumed.cfg.max_steps == fitted and resumed.cfg.max_steps_fit == saved["max_steps_fit"]
     with pytest.raises(UserError, match="--max-minutes"):
         Trainer(_config(dataset, tmp_path / "nobudget", max_steps="auto"))
+
+
+def test_sigterm_stops_training_with_a_checkpoint_an_export_and_a_word(dataset, tmp_path, capsys, monkeypatch):
+    """A scheduler's stop (SIGTERM) during step 2 of 1,000 ends the run after that step as --max-minutes
+    would: a checkpoint of step 2, the export, and a line saying why it stopped."""
+    import os
+    import signal
+
+    run = tmp_path / "run"
+    trainer = Trainer(_config(dataset, run, max_steps=1000, progress=True))
+    step = trainer.train_step
+
+    def step_then_sigterm():
+        logs = step()
+        if trainer.step == 2:
+            os.kill(os.getpid(), signal.SIGTERM)
+        return logs
+
+    monkeypatch.setattr(trainer, "train_step", step_then_sigterm)
+    before = signal.getsignal(signal.SIGTERM)
+    final = trainer.train()
+    assert signal.getsignal(signal.SIGTERM) == before
+    assert [c.name for c in list_checkpoints(run)] == ["checkpoint-000002"]
+    assert final == run / "final" and (final / "transformer" / "diffusion_pytorch_model.safetensors").is_file()
+    assert "terminated at step 2; saving a checkpoint" in capsys.readouterr().out

@@ -95,6 +95,10 @@ def test_recon4d_is_complete(result, scene, tmp_path):
     np.testing.assert_array_equal(back.dynamic[3], recon.dynamic[3])
     np.testing.assert_allclose(back.depth_m, recon.depth_m)
     assert json.loads((out / "manifest.json").read_text())["metadata"]["config"]["refine"] is True
+    # Inside a command's own staging folder it writes straight into the folder: nothing beside it.
+    staged = recon.save(tmp_path / "stage" / "recon", write_ply=False, staged=True)
+    assert [p.name for p in (tmp_path / "stage").iterdir()] == ["recon"]
+    assert Recon4D.load(staged).num_frames == FRAMES
 
 
 def test_no_refine_is_plain_back_projection(scene):

@@ -240,7 +240,7 @@ def _run_demo_stages(cfg: DemoConfig, out: Path) -> dict[str, Path]:
     for folder, pred, text, prefix in futures:
         recon = reconstruct_episode(pred, config=ReconConfig())
         recon.metadata.update({"instruction": text, "task": cfg.task, "seed": cfg.seed})
-        written[prefix + "reconstruction"] = recon.save(folder / "reconstruction")
+        written[prefix + "reconstruction"] = recon.save(folder / "reconstruction", staged=True)
         recons.append(recon)
     stages.update()
 

@@ -71,7 +71,7 @@ def run(args: argparse.Namespace) -> int:
     recon = reconstruct_episode(episode, camera=args.camera, config=config)
     recon.metadata["episode_path"] = str(path)
     with output as stage:
-        recon.save(stage, write_ply=not args.no_ply)
+        recon.save(stage, write_ply=not args.no_ply, staged=True)
     out = args.out
     if not args.quiet:
         m = recon.metadata

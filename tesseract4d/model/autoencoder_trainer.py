@@ -490,6 +490,8 @@ class AutoencoderTrainer:
                     last_ckpt = time.time()
                 if out_of_time:
                     break
+            if self.stop_requested:
+                bar.write(f"stopped at step {self.step}; saving a checkpoint")
             if not fidelity or fidelity.get("step") != self.step:
                 fidelity = self._checkpoint(writer, bar)
         finally:

@@ -193,7 +193,10 @@ def ensure_latent_cache(dataset: str | os.PathLike, autoencoder_dir: str | os.Pa
     # Build in a fresh temporary sibling of our own, then move its two files into place: the cache
     # file last, so an interruption leaves an invalid (rebuilt next time) cache, never a mixed one;
     # anything else in the folder is left alone.
+    from tesseract4d.outputs import note_leftovers
+
     folder.parent.mkdir(parents=True, exist_ok=True)
+    note_leftovers(folder)
     tmp = Path(tempfile.mkdtemp(dir=folder.parent, prefix=f".{folder.name}.tmp-"))
     try:
         _build(dataset, autoencoder_dir, camera, tmp / "cache", progress)

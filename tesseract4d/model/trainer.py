@@ -749,6 +749,8 @@ class Trainer:
                 if cfg.max_minutes is not None and time.monotonic() - start >= cfg.max_minutes * 60:
                     bar.write(f"stopping after {cfg.max_minutes} min at step {self.step}")
                     break
+            if self._stop_requested:
+                bar.write(f"terminated at step {self.step}; saving a checkpoint")
         except KeyboardInterrupt:
             bar.write(f"interrupted at step {self.step}; saving a checkpoint")
         finally:
