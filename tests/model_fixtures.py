@@ -77,3 +77,20 @@ def short_step_budget(monkeypatch, module: str, seconds_per_call: float = 1.0):
 
     monkeypatch.setattr(importlib.import_module(module), "StepBudget",
                         functools.partial(StepBudget, skip_steps=1, timed_steps=2, clock=clock))
+
+
+def sigterm_after_step(monkeypatch, trainer, step: int) -> None:
+    """Send this process SIGTERM right after ``trainer`` finishes training step ``step`` (a
+    scheduler's stop arriving mid-run); any trainer with ``train_step()`` and ``step``."""
+    import os
+    import signal
+
+    train_step = trainer.train_step
+
+    def step_then_sigterm():
+        logs = train_step()
+        if trainer.step == step:
+            os.kill(os.getpid(), signal.SIGTERM)
+        return logs
+
+    monkeypatch.setattr(trainer, "train_step", step_then_sigterm)

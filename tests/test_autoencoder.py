@@ -15,6 +15,7 @@ from tesseract4d.model.autoencoder import (
 )
 from tesseract4d.model.model_space import ModelSpace, channel_slices
 
+from model_fixtures import sigterm_after_step
 from synthetic_scene import synthetic_episode, write_segmented_dataset
 
 def test_round_trip_shapes_metric_depth_and_unit_normals():
@@ -492,24 +493,15 @@ def test_max_steps_auto_fits_the_autoencoder_schedule_and_resume_keeps_it(tmp_pa
 
 
 def test_a_stop_signal_ends_training_with_a_checkpoint_and_says_so(tmp_path, capsys, monkeypatch):
-    """SIGTERM (or Ctrl-C) during step 2 of 1,000: the trainer stops after the step, checkpoints and
+    """SIGTERM (a scheduler's stop; Ctrl-C is handled alike) during step 2 of 1,000: the trainer stops after the step, checkpoints and
     exports it, says why, and gives both signals their handlers back."""
-    import os
     import signal
 
     from tesseract4d.model.autoencoder_trainer import AutoencoderTrainer
 
     data = write_segmented_dataset(tmp_path / "data")
     trainer = AutoencoderTrainer(_train_cfg(data, tmp_path / "run", max_steps=1000))
-    step = trainer.train_step
-
-    def step_then_sigterm():
-        logs = step()
-        if trainer.step == 2:
-            os.kill(os.getpid(), signal.SIGTERM)
-        return logs
-
-    monkeypatch.setattr(trainer, "train_step", step_then_sigterm)
+    sigterm_after_step(monkeypatch, trainer, 2)
     before = {s: signal.getsignal(s) for s in (signal.SIGTERM, signal.SIGINT)}
     gate = trainer.train()
     assert {s: signal.getsignal(s) for s in before} == before

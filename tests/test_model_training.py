@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 import torch
-from model_fixtures import MICRO, register_preset, short_step_budget
+from model_fixtures import MICRO, register_preset, short_step_budget, sigterm_after_step
 from synthetic_scene import write_synthetic_dataset
 
 from tesseract4d import cli
@@ -200,20 +200,11 @@ def test_max_steps_auto_fits_the_schedule_and_trains_as_that_number(dataset, tmp
 def test_sigterm_stops_training_with_a_checkpoint_an_export_and_a_word(dataset, tmp_path, capsys, monkeypatch):
     """A scheduler's stop (SIGTERM) during step 2 of 1,000 ends the run after that step as --max-minutes
     would: a checkpoint of step 2, the export, and a line saying why it stopped."""
-    import os
     import signal
 
     run = tmp_path / "run"
     trainer = Trainer(_config(dataset, run, max_steps=1000, progress=True))
-    step = trainer.train_step
-
-    def step_then_sigterm():
-        logs = step()
-        if trainer.step == 2:
-            os.kill(os.getpid(), signal.SIGTERM)
-        return logs
-
-    monkeypatch.setattr(trainer, "train_step", step_then_sigterm)
+    sigterm_after_step(monkeypatch, trainer, 2)
     before = signal.getsignal(signal.SIGTERM)
     final = trainer.train()
     assert signal.getsignal(signal.SIGTERM) == before
