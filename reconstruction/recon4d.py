@@ -171,6 +171,9 @@ class Recon4D:
                 f"{path} is reconstruction format {manifest.get('format_version')}; this tesseract4d reads "
                 f"{RECON_FORMAT_VERSION}. Re-run `tesseract4d reconstruct` on the source video."
             )
+        if not (path / ARRAYS).is_file():
+            raise ReconFormatError(f"{path} has a {MANIFEST} but no {ARRAYS}: the reconstruction is incomplete; "
+                                   f"re-run `tesseract4d reconstruct`.")
         try:
             z = np.load(path / ARRAYS)
             off = z["offsets"]

@@ -125,6 +125,13 @@ def test_load_source_errors(tmp_path):
         load_source(tmp_path / "notes.txt")
     with pytest.raises(UserError, match="neither a reconstruction folder"):
         load_source(tmp_path)
+    recon_dir = recon_from_episode(analytic_episode(num_frames=2, height=32, width=32)).save(tmp_path / "r", write_ply=False)
+    with pytest.raises(UserError, match="reconstruction of camera 'base_camera'; --camera chooses among an episode's"):
+        load_source(recon_dir, camera="wrist")
+    assert load_source(recon_dir, camera="base_camera").num_frames == 2  # the camera it was made from
+    (recon_dir / "recon4d.npz").unlink()
+    with pytest.raises(UserError, match="has a manifest.json but no recon4d.npz: the reconstruction is incomplete"):
+        load_source(recon_dir)
 
 
 def _run_cli(*args, timeout=60):
@@ -156,7 +163,7 @@ def test_cli_port_in_use(tmp_path):
 
 
 def test_port_of_a_just_stopped_server_is_free():
-    from viewer.app import check_port_free
+    from viewer.app import check_address
 
     # A server that closed its connections first leaves them in TIME_WAIT on its port for a
     # minute; restarting the viewer right away must still work.
@@ -170,7 +177,7 @@ def test_port_of_a_just_stopped_server_is_free():
     conn.close()  # the server side closes first -> TIME_WAIT on (127.0.0.1, port)
     client.close()
     listener.close()
-    check_port_free("127.0.0.1", port)
+    check_address("127.0.0.1", port)
 
 
 def test_cli_export_of_a_dataset_episode(tmp_path):
@@ -257,6 +264,29 @@ def test_view_command_labels_the_two_clouds_of_compare_mode(tmp_path, monkeypatc
     argv = ["view", str(push), "--compare", str(still), "--labels", "push it", "keep still", "--port", "0"]
     assert main(argv) == 0 and served[-1] == ("push it", "keep still")
     assert main(["view", str(push), "--labels", "a", "b", "--port", "0"]) == 2  # no --compare: one line, no server
+    assert main(["view", str(push), "--metrics", str(tmp_path / "report.json"), "--port", "0"]) == 2  # likewise
+    assert main(["view", str(push), "--compare", str(tmp_path / "nowhere"), "--port", "0"]) == 2
+    assert served == [("push it", "keep still")]
+
+
+def test_view_errors_name_the_flag_they_are_about(tmp_path, capsys):
+    from tesseract4d.cli import main
+
+    push = recon_from_episode(analytic_episode(num_frames=2, height=32, width=32, seed=1)).save(tmp_path / "push", write_ply=False)
+    assert main(["view", str(push), "--metrics", str(tmp_path / "report.json"), "--port", "0"]) == 2
+    assert "--metrics shows per-frame metrics in compare mode: pass --compare" in capsys.readouterr().err
+    assert main(["view", str(push), "--compare", str(tmp_path / "nowhere"), "--port", "0"]) == 2
+    assert f"error: --compare: {tmp_path / 'nowhere'} does not exist" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("host, says", [("nosuchhost.invalid", "is not a name or address this machine can resolve"),
+                                        ("192.0.2.1", "is not an address of this machine")])
+def test_a_host_that_cannot_serve_is_named_before_any_warning(tmp_path, host, says):
+    """192.0.2.1 is a documentation address (RFC 5737), never one of this machine's."""
+    recon_dir = recon_from_episode(analytic_episode(num_frames=2, height=32, width=32)).save(tmp_path / "recon", write_ply=False)
+    res = _run_cli(recon_dir, "--host", host, "--port", 0)
+    assert res.returncode == 2 and f"--host {host} {says}" in res.stderr, res.stderr
+    assert "reachable from the network" not in res.stderr and "--port" not in res.stderr
 
 
 def test_model_generator_reports_a_missing_checkpoint(tmp_path):
@@ -265,3 +295,96 @@ def test_model_generator_reports_a_missing_checkpoint(tmp_path):
     source = recon_from_episode(analytic_episode(num_frames=2, height=32, width=32))
     with pytest.raises(UserError, match="checkpoint"):
         model_generator(tmp_path / "no_ckpt", source)
+
+
+def _slow_generator(calls: list):
+    """A generator that reports progress every 20 ms for 500 steps (10 s unless stopped), like a
+    sampler asked for many steps; back-projects the analytic scene when it gets to the end."""
+    import time
+
+    def generate(instruction, seed, steps, progress):
+        for step in range(500):
+            calls.append(step)
+            progress(step / 500, f"step {step}")
+            time.sleep(0.02)
+        return recon_from_episode(analytic_episode(num_frames=2, height=32, width=32, instruction=instruction))
+
+    return generate
+
+
+def test_stopping_the_viewer_ends_a_running_generation_first(capsys):
+    """The generation stops at its next step and its thread has ended when stop() returns (a model
+    left running in a thread while Python exits aborts the process)."""
+    import time
+
+    from viewer.app import ViewerApp
+
+    calls = []
+    app = ViewerApp(recon_from_episode(analytic_episode(num_frames=2, height=32, width=32)), port=0,
+                    generate=_slow_generator(calls))
+    app.start()
+    app.instruction_text.value = "push the box"
+    app._start_generation()
+    while len(calls) < 3:
+        time.sleep(0.01)
+    thread = app._generation_thread
+    app.stop()
+    assert not thread.is_alive() and len(calls) < 100
+    assert app.generation_count == 0 and app.generation_error is None
+    assert app.status_md.content == "Cancelled: the viewer is stopping."
+    assert "stopping the generation at its next step" in capsys.readouterr().err
+
+
+def test_a_generated_future_in_compare_mode_is_labelled_with_its_instruction():
+    from viewer.app import ViewerApp
+
+    def generate(instruction, seed, steps, progress):
+        return recon_from_episode(analytic_episode(num_frames=3, height=32, width=32, instruction=instruction))
+
+    push = recon_from_episode(analytic_episode(num_frames=3, height=32, width=32, seed=1))
+    still = recon_from_episode(analytic_episode(num_frames=3, height=32, width=32, seed=1, instruction="keep still"))
+    long = "lift the box " + "very " * 20 + "high"
+    with ViewerApp(push, compare=still, labels=("push it", "keep still"), port=0, generate=generate) as app:
+        app._run_generation(long, 0, 1)
+        label = app.layer._label_node.text
+        assert label.startswith("lift the box very") and label.endswith("…") and len(label) <= 48
+        assert app.right_layer._label_node.text == "keep still"
+        assert app.compare_md.content == f"Left: {label}. Right: keep still. Metrics: left against right."
+
+
+def test_play_at_the_last_frame_without_loop_plays_again_from_the_start():
+    from viewer.app import ViewerApp
+
+    with ViewerApp(recon_from_episode(analytic_episode(num_frames=4, height=32, width=32)), port=0) as app:
+        app.fps_slider.value = 1  # the playback thread then waits a second before the next frame
+        app.loop_checkbox.value = False
+        app.frame_slider.value = 3
+        app.play_checkbox.value = True
+        assert app.frame == 0 and app.frame_slider.value == 0 and app.play_checkbox.value
+
+
+def test_denoising_progress_counts_the_steps_asked_for():
+    from viewer.generate import denoising_message
+
+    assert denoising_message(3, 10, 10) == "denoising step 3/10"
+    # Two noise draws of two steps: the sampler runs twice.
+    assert [denoising_message(k, 4, 2) for k in (1, 2, 3, 4)] == [
+        "denoising step 1/2 of pass 1/2", "denoising step 2/2 of pass 1/2",
+        "denoising step 1/2 of pass 2/2", "denoising step 2/2 of pass 2/2"]
+
+
+def test_generate_from_a_first_frame_alone_predicts_the_models_clip(tmp_path):
+    """The shipped checkpoint on a one-frame source (a first frame, as the demo writes it) predicts
+    its own 16 frames, not one."""
+    from tesseract4d.model.checkpoint import SHIPPED_CHECKPOINT, read_inference_config
+    from viewer.generate import model_generator
+
+    info = read_inference_config(SHIPPED_CHECKPOINT)
+    h, w = info["resolution"]
+    source = recon_from_episode(analytic_episode(num_frames=1, height=h, width=w))
+    messages = []
+    recon = model_generator(SHIPPED_CHECKPOINT, source)("push the box to the left", 0, 1,
+                                                        lambda f, m: messages.append(m))
+    assert recon.num_frames == info["num_frames"] == 16
+    # One step asked for; the analytic scene's plain box stands out by no colour, so one draw is sampled.
+    assert "denoising step 1/1" in messages and messages[-1] == "reconstructing the 4D point cloud"

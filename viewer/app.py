@@ -27,7 +27,7 @@ from typing import Callable
 import numpy as np
 
 from reconstruction.recon4d import Recon4D
-from tesseract4d.errors import UserError
+from tesseract4d.errors import Terminated, UserError
 from tesseract4d.colors import COLOR_MODES, colorize_depth, colorize_normals
 from viewer.scene import DEFAULT_MAX_POINTS, POINT_MODES, SceneLayer, configure_rendering, initial_view, make_server, stop_server
 
@@ -41,19 +41,35 @@ COMPARE_LAYOUTS = ("Side by side", "Left only", "Right only")
 COMPARE_LABELS = ("prediction", "ground truth")
 # Range of the Generate panel's sampler steps.
 MIN_STEPS, MAX_STEPS = 1, 1000
+# How long stopping the viewer waits for a running generation to reach its next step and end.
+GENERATION_STOP_WAIT_S = 60.0
 
 
-def check_port_free(host: str, port: int) -> None:
-    """Raise UserError if (host, port) cannot be bound (viser would silently take the next port)."""
-    if port == 0:
-        return
-    with socket.socket(socket.AF_INET6 if ":" in host else socket.AF_INET, socket.SOCK_STREAM) as s:
+class GenerationCancelled(Exception):
+    """Raised inside a running generation (at its next progress report) when the viewer stops."""
+
+
+def check_address(host: str, port: int) -> None:
+    """Raise UserError if ``host`` is not an address of this machine or (host, port) cannot be bound
+    (viser would silently take the next port)."""
+    import errno
+
+    try:
+        infos = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM)
+    except socket.gaierror as e:
+        raise UserError(f"--host {host} is not a name or address this machine can resolve ({e.strerror}); pass one "
+                        f"of its addresses, e.g. --host 127.0.0.1 (this machine only) or --host 0.0.0.0 (all)") from e
+    family, _, _, _, address = infos[0]  # port 0 binds to a free port: the address is checked all the same
+    with socket.socket(family, socket.SOCK_STREAM) as s:
         # As the server binds: connections of a just-stopped viewer (TIME_WAIT) do not block the
         # port, a program listening on it does.
         s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
         try:
-            s.bind((host, port))
+            s.bind(address)
         except OSError as e:
+            if e.errno == errno.EADDRNOTAVAIL:
+                raise UserError(f"--host {host} is not an address of this machine ({e.strerror}); pass one of its "
+                                f"addresses, e.g. --host 127.0.0.1 (this machine only) or --host 0.0.0.0 (all)") from e
             raise UserError(f"port {port} on {host} is in use or not available ({e.strerror}); "
                             f"pass another --port (or stop the program using it).") from e
 
@@ -98,6 +114,8 @@ class ViewerApp:
         self._lock = threading.RLock()
         self._stop = threading.Event()
         self._playback_thread: threading.Thread | None = None
+        self._generation_thread: threading.Thread | None = None
+        self._cancel = threading.Event()
         self._generating = False
         self._panels_updated_at = 0.0
         self._slider_synced_at = 0.0
@@ -114,7 +132,12 @@ class ViewerApp:
         from viewer.sources import load_source
 
         source = load_source(path, camera=camera)
-        gt = load_source(compare, camera=camera) if compare is not None else None
+        gt = None
+        if compare is not None:
+            try:
+                gt = load_source(compare, camera=camera)
+            except UserError as e:
+                raise UserError(f"--compare: {e}") from e
         rows = None
         if metrics is not None:
             from viewer.compare import load_report_per_frame
@@ -139,7 +162,7 @@ class ViewerApp:
     def start(self) -> str:
         """Start serving in background threads; returns the URL."""
         _one_line_handshake_errors()
-        check_port_free(self.host, self.port)
+        check_address(self.host, self.port)
         self.server = make_server(self.host, self.port)
         if self.port and self.server.get_port() != self.port:  # lost a race for the port
             got = self.server.get_port()
@@ -159,6 +182,7 @@ class ViewerApp:
         self._stop.set()
         if self._playback_thread is not None:
             self._playback_thread.join(timeout=5)
+        self._cancel_generation()
         if self.server is not None:
             stop_server(self.server)
         self.server = None
@@ -238,18 +262,21 @@ class ViewerApp:
 
     def _build_compare(self, gui) -> None:
         self.layout_dropdown = None
-        self.metrics_md = None
+        self.metrics_md = self.compare_md = None
         if self.right_layer is None:
             return
         with gui.add_folder("Compare"):
             self.layout_dropdown = gui.add_dropdown("Layout", COMPARE_LAYOUTS, initial_value=COMPARE_LAYOUTS[0])
-            gui.add_markdown(f"Left: {self.labels[0]}. Right: {self.labels[1]}. Metrics: left against right.")
+            self.compare_md = gui.add_markdown(self._compare_text())
             self.metrics_md = gui.add_markdown("")
         if self._metrics is None:
             from viewer.compare import image_metrics
 
             self._metrics = image_metrics(self.layer.recon, self.right_layer.recon)
         self.layout_dropdown.on_update(lambda _: self._apply_layout())
+
+    def _compare_text(self) -> str:
+        return f"Left: {self.labels[0]}. Right: {self.labels[1]}. Metrics: left against right."
 
     def _build_generate(self, gui) -> None:
         with gui.add_folder("Generate"):
@@ -308,10 +335,14 @@ class ViewerApp:
             self.metrics_md.content = format_metrics(rows[t] if t < len(rows) else None, t)
 
     def _on_play_toggled(self) -> None:
-        if not self.play_checkbox.value:  # paused: the slider and images show the exact frame
-            with self._lock:
+        with self._lock:
+            if not self.play_checkbox.value:  # paused: the slider and images show the exact frame
                 self.frame_slider.value = self._frame
                 self._update_panels(self._frame)
+            elif self._frame >= self.num_frames - 1 and not self.loop_checkbox.value:
+                # Play at the end of a clip that does not loop plays it again from the start.
+                self._show_frame(0)
+                self.frame_slider.value = 0
 
     def _recolor(self) -> None:
         with self._lock:
@@ -388,7 +419,12 @@ class ViewerApp:
         """Replace the shown (predicted) source, e.g. with a freshly generated one."""
         with self._lock:
             self.layer.remove()
-            self.layer = SceneLayer(recon, self.layer.name, self.max_points, label=self.layer.label)
+            label = self.layer.label
+            if self.right_layer is not None and recon.metadata.get("instruction"):
+                label = _short_label(str(recon.metadata["instruction"]))
+                self.labels = (label, self.labels[1])
+                self.compare_md.content = self._compare_text()
+            self.layer = SceneLayer(recon, self.layer.name, self.max_points, label=label)
             if self.right_layer is not None:
                 from viewer.compare import image_metrics
 
@@ -406,13 +442,27 @@ class ViewerApp:
 
     def _start_generation(self) -> None:
         with self._lock:
-            if self._generating or self._generate is None:
+            if self._generating or self._generate is None or self._stop.is_set():
                 return
             self._generating = True
         args = (str(self.instruction_text.value), int(self.seed_number.value), int(self.steps_number.value))
-        threading.Thread(target=self._run_generation, args=args, name="viewer-generate", daemon=True).start()
+        self._generation_thread = threading.Thread(target=self._run_generation, args=args, name="viewer-generate",
+                                                   daemon=True)
+        self._generation_thread.start()
+
+    def _cancel_generation(self) -> None:
+        """Stop a running generation at its next step and wait for it (the model must not be left
+        running in a thread while the process exits)."""
+        thread = self._generation_thread
+        if thread is None or not thread.is_alive():
+            return
+        self._cancel.set()
+        print("viewer: stopping the generation at its next step", file=sys.stderr, flush=True)
+        thread.join(timeout=GENERATION_STOP_WAIT_S)
 
     def _progress(self, fraction: float, message: str) -> None:
+        if self._cancel.is_set():
+            raise GenerationCancelled()
         self.progress_bar.value = float(np.clip(100.0 * fraction, 0.0, 100.0))
         self.status_md.content = f"Generating: {message}"
 
@@ -425,11 +475,15 @@ class ViewerApp:
             if not instruction.strip():
                 raise UserError("type an instruction first")
             recon = self._generate(instruction, seed, steps, self._progress)
+            if self._cancel.is_set():
+                raise GenerationCancelled()
             recon.metadata.setdefault("instruction", instruction)
             self.set_source(recon)
             self.generation_count += 1
             self.progress_bar.value = 100.0
             self.status_md.content = f"Done: {recon.num_frames} frames for {instruction!r} (seed {seed}, {steps} steps)."
+        except GenerationCancelled:
+            self.status_md.content = "Cancelled: the viewer is stopping."
         except Exception as e:  # shown to the user; the server keeps running
             message = f"{type(e).__name__}: {e}" if not isinstance(e, UserError) else str(e)
             self.generation_error = message
@@ -448,6 +502,12 @@ class ViewerApp:
     @property
     def generating(self) -> bool:
         return self._generating
+
+
+def _short_label(text: str, max_chars: int = 48) -> str:
+    """A label drawn above a point cloud: the text on one line, cut with an ellipsis if long."""
+    text = " ".join(text.split())
+    return text if len(text) <= max_chars else text[: max_chars - 1].rstrip() + "…"
 
 
 def point_size_range(size: float) -> tuple[float, float, float, float]:
@@ -502,11 +562,12 @@ def serve_forever(app: ViewerApp) -> None:
     import signal
     import sys
 
+    check_address(app.host, app.port)  # before the warning: an address that does not serve warns of nothing
     if note := network_warning(app.host):
         print(note, file=sys.stderr, flush=True)
 
     def _terminate(signum, frame):
-        raise KeyboardInterrupt  # the same clean stop as Ctrl-C
+        raise Terminated()  # the same clean stop as Ctrl-C
 
     # Installed before the URL is printed: whoever reads the URL may stop the viewer at once.
     previous = signal.signal(signal.SIGTERM, _terminate) if threading.current_thread() is threading.main_thread() else None

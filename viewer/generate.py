@@ -45,9 +45,11 @@ def model_generator(checkpoint: str | os.PathLike, source: Recon4D,
             progress(0.0, f"loading {checkpoint}")
             cache["pipeline"] = load_pipeline(checkpoint, precision=precision)
         first = first_frame_episode(source)
+        # A source of one frame (a first frame alone) gets the model's own clip length.
+        num_frames = source.num_frames if source.num_frames > 1 else None
         pred = predict_episode(
-            cache["pipeline"], first, instruction, num_frames=source.num_frames, seed=seed, num_steps=steps,
-            progress=lambda step, total: progress(PREDICT_SHARE * step / max(total, 1), f"denoising step {step}/{total}"),
+            cache["pipeline"], first, instruction, num_frames=num_frames, seed=seed, num_steps=steps,
+            progress=lambda step, total: progress(PREDICT_SHARE * step / max(total, 1), denoising_message(step, total, steps)),
         )
         progress(PREDICT_SHARE, "reconstructing the 4D point cloud")
         recon = reconstruct_episode(pred, config=ReconConfig())
@@ -55,3 +57,12 @@ def model_generator(checkpoint: str | os.PathLike, source: Recon4D,
         return recon
 
     return generate
+
+
+def denoising_message(step: int, total: int, steps: int) -> str:
+    """The progress line of denoising step ``step`` of ``total``: the sampler runs its ``steps`` once
+    per noise draw (and per clip of a future longer than the model's), each run a pass."""
+    passes = max(1, total // max(steps, 1))
+    if passes == 1:
+        return f"denoising step {step}/{total}"
+    return f"denoising step {(step - 1) % steps + 1}/{steps} of pass {(step - 1) // steps + 1}/{passes}"

@@ -25,7 +25,13 @@ def load_source(path: str | os.PathLike, camera: str | None = None) -> Recon4D:
 
     p = Path(path)
     if p.is_dir() and (p / MANIFEST).is_file():
-        return Recon4D.load(p)
+        recon = Recon4D.load(p)
+        made_from = recon.metadata.get("camera")
+        if camera is not None and camera != made_from:
+            raise UserError(f"{p} is a reconstruction of {'camera ' + repr(made_from) if made_from else 'one camera'}; "
+                            f"--camera chooses among an episode's cameras: drop it, or reconstruct the episode with "
+                            f"--camera {camera}")
+        return recon
     if not p.exists() and not (p.parent.parent / "episodes").is_dir():
         raise UserError(
             f"{p} does not exist. Pass a reconstruction folder (from `tesseract4d reconstruct`), an episode "

@@ -10,6 +10,8 @@ import argparse
 import importlib
 import sys
 
+from tesseract4d.errors import Terminated
+
 # name -> (module, one-line help). The order is the data flow.
 SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "datagen": ("tesseract4d.cli.datagen", "generate RGB-D-N episodes from ManiSkill motion planners"),
@@ -29,11 +31,6 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "view": ("tesseract4d.cli.view", "open a reconstruction, episode or prediction in the browser viewer"),
     "demo": ("tesseract4d.cli.demo", "one command: render a scene, predict two futures from two instructions, reconstruct, view"),
 }
-
-
-class Terminated(KeyboardInterrupt):
-    """SIGTERM (``kill``, a scheduler's stop) raised as an interrupt, so every output stage is
-    cleaned up as on Ctrl-C (a training run installs its own handler that stops with a checkpoint)."""
 
 
 def _raise_terminated(signum, frame) -> None:

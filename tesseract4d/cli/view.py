@@ -1,8 +1,8 @@
 """Open a reconstruction, a dataset episode or a prediction in the browser viewer.
 
 PATH is a reconstruction folder (from `tesseract4d reconstruct`), an episode .h5 file, a dataset
-or prediction folder holding one episode, or DIR/ENV_ID/SEED. Episodes are back-projected on the
-fly. The command prints the URL and serves until Ctrl-C; with --export it writes a standalone
+or prediction folder holding one episode, DIR/ENV_ID/SEED, or DIR/ENV_ID/SEED_kK (future K of a
+counterfactual group). Episodes are back-projected on the fly. The command prints the URL and serves until Ctrl-C; with --export it writes a standalone
 HTML recording instead (it opens from disk, no server needed) and exits.
 """
 
@@ -18,7 +18,7 @@ from viewer.scene import DEFAULT_MAX_POINTS
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("path", help="reconstruction folder, episode .h5, dataset/prediction folder, or DIR/ENV_ID/SEED")
+    parser.add_argument("path", help="reconstruction folder, episode .h5, dataset/prediction folder, DIR/ENV_ID/SEED or DIR/ENV_ID/SEED_kK")
     parser.add_argument("--host", default="127.0.0.1", help="address to serve on (default %(default)s; 0.0.0.0 for all)")
     parser.add_argument("--port", type=whole(0, 65535), default=8080, help="port to serve on (default %(default)s)")
     parser.add_argument("--export", type=Path, metavar="HTML", help="write a standalone HTML recording to this file and exit")
@@ -68,6 +68,9 @@ def run(args: argparse.Namespace) -> int:
 
     if args.labels and args.compare is None:
         raise UserError("--labels names the two point clouds of compare mode: pass --compare PATH too")
+    if args.metrics is not None and args.compare is None:
+        raise UserError("--metrics shows per-frame metrics in compare mode: pass --compare GT_PATH (the ground truth "
+                        "the report was made against) too")
     labels = {"labels": tuple(args.labels)} if args.labels else {}
     app = ViewerApp.from_path(args.path, compare=args.compare, metrics=args.metrics, checkpoint=args.checkpoint, **labels,
                               precision=args.precision, camera=args.camera, host=args.host, port=args.port, max_points=args.max_points)
