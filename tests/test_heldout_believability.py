@@ -4,6 +4,8 @@ side by side."""
 
 from __future__ import annotations
 
+import copy
+
 import dataclasses
 import json
 import shutil
@@ -206,6 +208,7 @@ def test_evaluate_scores_several_checkpoints_side_by_side(two_checkpoints, tmp_p
     assert report["contrast"]["static"]["per_skill"] == {"keep_still": 1.0, "push": 0.0}
     assert report["contrast"]["static"]["per_task"] == {"Synthetic-v0": pytest.approx(1 / 3)}
     md = (out / "report.md").read_text()
+    _tables_hold_their_columns(md)
     for label in report["methods"].values():
         assert label in md
     assert "object permanence" in md and "instruction contrast" in md and "✗" in md and "per skill" in md
@@ -363,6 +366,27 @@ def test_single_checkpoint_keeps_the_report_keys(two_checkpoints):
     ci = report["contrast"]["model"]["wilson95"]
     assert f"({ci[0]:.2f}–{ci[1]:.2f})" in md and '"keep still" right' in md
     assert "active instructions right" in md
+    _tables_hold_their_columns(md)
+    # A set without a "keep still" instruction still shows its active instructions' row.
+    without_still = copy.deepcopy(report)
+    for c in without_still["contrast"].values():
+        c.pop("still_instructions", None), c.pop("still_right", None)
+    md = format_markdown(without_still)
+    assert '"keep still" right' not in md and "active instructions right" in md
+
+
+def _tables_hold_their_columns(md: str) -> None:
+    """Every row of every Markdown table has its header's number of cells (a "|" inside a cell
+    would split it)."""
+    table = []
+    for line in md.splitlines() + [""]:
+        if line.startswith("|"):
+            table.append(line)
+            continue
+        if table:
+            counts = {len(row.strip().strip("|").split("|")) for row in table}
+            assert len(counts) == 1, table
+        table = []
 
 
 @pytest.fixture(scope="module")

@@ -695,7 +695,7 @@ def format_markdown(report: dict) -> str:
         ("token_grid_ratio", f"token grid ratio (goal {TOKEN_GRID_GOAL[0]:g}–{TOKEN_GRID_GOAL[1]:g}; "
                              f"ground truth {_fmt(report.get('token_grid_ratio_gt'), '')})", "all"),
         ("edge_sharpness", f"edge sharpness vs ground truth (goal ≥ {EDGE_SHARPNESS_GOAL:g})", "ground-truth edges"),
-        ("motion", "motion: mean |RGB change| from the first predicted frame", "all"),
+        ("motion", "motion: mean absolute RGB change from the first predicted frame", "all"),
     )
     contrast = report.get("contrast") or {}
     for key, label, region in believe:
@@ -705,11 +705,13 @@ def format_markdown(report: dict) -> str:
                      + " | ".join(_fmt(summary[m].get(key), "") + _mark(key, summary[m].get(key))
                                   + (_interval(contrast.get(m), INTERVAL_OF[key]) if key in INTERVAL_OF else "")
                                   for m in methods) + " |")
-        if key == "contrast" and any(contrast.get(m, {}).get("still_instructions") for m in methods):
-            lines.append("| instruction contrast: \"keep still\" right | held-out groups | "
-                         + " | ".join(_right_of(contrast.get(m), "still") for m in methods) + " |")
-            lines.append("| instruction contrast: active instructions right | held-out groups | "
-                         + " | ".join(_right_of(contrast.get(m), "active") for m in methods) + " |")
+        if key == "contrast":
+            if any(contrast.get(m, {}).get("still_instructions") for m in methods):
+                lines.append("| instruction contrast: \"keep still\" right | held-out groups | "
+                             + " | ".join(_right_of(contrast.get(m), "still") for m in methods) + " |")
+            if any(contrast.get(m, {}).get("active_instructions") for m in methods):
+                lines.append("| instruction contrast: active instructions right | held-out groups | "
+                             + " | ".join(_right_of(contrast.get(m), "active") for m in methods) + " |")
             if any(contrast.get(m, {}).get("arm_judged") for m in methods):
                 lines.append("| where the arm goes: the instructed object | active instructions | "
                              + " | ".join(_arm_of(contrast.get(m)) for m in methods) + " |")
