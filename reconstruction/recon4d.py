@@ -7,7 +7,8 @@ Folder layout written by :meth:`Recon4D.save`::
     DIR/recon4d.npz                 every array below (what :meth:`Recon4D.load` reads)
     DIR/frames/frame_0000.ply ...   per-frame coloured points with normals (world frame)
     DIR/background.ply              fused static background points (if any)
-    DIR/background_mesh.ply/.glb    fused static background mesh (if any)
+    DIR/background_mesh.ply/.glb    fused static background mesh (if any); the PLY in the world frame,
+                                    the GLB turned so the scene's up is glTF's +y
 
 All points and normals are in the world frame (metres); cameras use OpenCV axes.
 Per-frame point sets have different sizes, so they are stored concatenated with offsets.
@@ -138,8 +139,14 @@ class Recon4D:
             if len(self.mesh_faces):
                 import trimesh
 
+                from tesseract4d.geometry import rotation_to_y_up, scene_up_axis
+
                 mesh = trimesh.Trimesh(self.mesh_vertices, self.mesh_faces, vertex_colors=self.mesh_colors, process=False)
-                mesh.export(folder / "background_mesh.ply")
+                mesh.export(folder / "background_mesh.ply")  # the world frame, as the point clouds
+                # glTF's +y is up: the scene's up axis (ManiSkill's +z) turned to it.
+                y_up = np.eye(4)
+                y_up[:3, :3] = rotation_to_y_up(scene_up_axis(self.T_world_cam[0]))
+                mesh.apply_transform(y_up)
                 mesh.export(folder / "background_mesh.glb")
                 files += ["background_mesh.ply", "background_mesh.glb"]
         manifest = {

@@ -127,3 +127,27 @@ def normals_from_depth(depth_m: np.ndarray, K: np.ndarray) -> np.ndarray:
     flip = (n * P).sum(-1) > 0
     n[flip] *= -1
     return n.astype(np.float32)
+
+
+def scene_up_axis(T_world_cam: np.ndarray) -> np.ndarray:
+    """The signed world axis closest to a camera's up direction (its -y: OpenCV y points down),
+    e.g. +z in ManiSkill's world. ``T_world_cam``: (4, 4). Returns a (3,) unit axis vector."""
+    up = -np.asarray(T_world_cam, np.float64)[:3, 1]
+    axis = int(np.argmax(np.abs(up)))
+    unit = np.zeros(3)
+    unit[axis] = 1.0 if up[axis] >= 0 else -1.0
+    return unit
+
+
+def rotation_to_y_up(up_axis: np.ndarray) -> np.ndarray:
+    """The (3, 3) rotation that turns the signed world axis ``up_axis`` into +y (glTF's up), by a
+    quarter turn about the axis they both lie across (a half turn about x when it is -y)."""
+    u = np.asarray(up_axis, np.float64)
+    y = np.array([0.0, 1.0, 0.0])
+    if np.allclose(u, y):
+        return np.eye(3)
+    if np.allclose(u, -y):
+        return np.diag([1.0, -1.0, -1.0])
+    k = np.cross(u, y)  # unit: u and y are orthogonal unit axes
+    K = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
+    return np.eye(3) + K + K @ K  # Rodrigues at 90 degrees

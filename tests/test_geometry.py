@@ -89,3 +89,26 @@ def test_normals_from_depth_zero_where_depth_missing():
     assert np.all(n[3, 3] == 0)
     ok = np.linalg.norm(n, axis=-1) > 0
     np.testing.assert_allclose(np.linalg.norm(n[ok], axis=-1), 1.0, atol=1e-5)
+
+
+@settings(max_examples=50, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1))
+def test_scene_up_is_the_axis_nearest_the_cameras_up_and_turns_to_y_up(seed):
+    from tesseract4d.geometry import rotation_to_y_up, scene_up_axis
+
+    T = random_pose(np.random.default_rng(seed))
+    up = scene_up_axis(T)
+    assert sorted(np.abs(up)) == [0.0, 0.0, 1.0]
+    assert up @ -T[:3, 1] == np.max(np.abs(T[:3, 1]))  # the camera's up leans most on this axis, this way
+    R = rotation_to_y_up(up)
+    np.testing.assert_allclose(R @ R.T, np.eye(3), atol=1e-12)
+    assert np.isclose(np.linalg.det(R), 1.0)
+    np.testing.assert_allclose(R @ up, [0.0, 1.0, 0.0], atol=1e-12)
+
+
+def test_z_up_turns_to_y_up_keeping_x():
+    from tesseract4d.geometry import rotation_to_y_up
+
+    R = rotation_to_y_up(np.array([0.0, 0.0, 1.0]))
+    np.testing.assert_allclose(R @ [1.0, 0.0, 0.0], [1.0, 0.0, 0.0], atol=1e-12)  # x stays
+    np.testing.assert_allclose(R @ [0.0, 1.0, 0.0], [0.0, 0.0, -1.0], atol=1e-12)  # +y (away) to -z

@@ -90,6 +90,13 @@ def test_recon4d_is_complete(result, scene, tmp_path):
     out = recon.save(tmp_path / "recon")
     for name in ("manifest.json", "recon4d.npz", "frames/frame_0000.ply", "background.ply", "background_mesh.glb"):
         assert (out / name).is_file(), name
+    # The GLB is glTF's +y up: the table (world z = 0, normals +z) becomes the plane y = 0 facing +y.
+    import trimesh
+
+    glb = trimesh.load(out / "background_mesh.glb", force="mesh")
+    assert len(glb.faces) == len(recon.mesh_faces)
+    assert np.median(np.abs(glb.vertices[:, 1])) < 0.01 and np.median(glb.face_normals[:, 1]) > 0.9
+    np.testing.assert_allclose(np.sort(glb.vertices[:, 0]), np.sort(recon.mesh_vertices[:, 0]), atol=1e-6)
     back = Recon4D.load(out)
     assert back.num_frames == FRAMES
     np.testing.assert_array_equal(back.dynamic[3], recon.dynamic[3])

@@ -19,6 +19,7 @@ import numpy as np
 
 from reconstruction.recon4d import Recon4D
 from tesseract4d.colors import depth_range, point_colors
+from tesseract4d.geometry import scene_up_axis
 
 DEFAULT_MAX_POINTS = 50_000
 # float16 has 11 significant bits: rounding error at |x| = r is at most r * 2**-11. Use it only
@@ -279,11 +280,9 @@ def initial_view(recon: Recon4D, look_at: np.ndarray, extra_distance: float = 0.
     """
     T = np.asarray(recon.T_world_cam[0], np.float64)
     eye = T[:3, 3]
-    up = -T[:3, 1]  # OpenCV y points down
-    axis = int(np.argmax(np.abs(up)))
-    up_axis = ("+" if up[axis] > 0 else "-") + "xyz"[axis]
-    up_world = np.zeros(3)
-    up_world[axis] = np.sign(up[axis])
+    up_world = scene_up_axis(T)
+    axis = int(np.argmax(np.abs(up_world)))
+    up_axis = ("+" if up_world[axis] > 0 else "-") + "xyz"[axis]
     # Swing 50 degrees around the up axis and pull back, so the recording camera's frustum is
     # seen from the side instead of covering the points it recorded.
     back = eye - look_at
