@@ -193,7 +193,7 @@ def test_evaluate_scores_several_checkpoints_side_by_side(two_checkpoints, tmp_p
     # The static world follows only "keep still"; the ground truth follows all.
     assert report["summary"]["static"]["contrast"] == pytest.approx(1 / 3)
     assert report["contrast"]["ground_truth"]["share"] == report["contrast"]["ground_truth"]["share_whole"] == 1.0
-    assert report["format_version"] == 10 and "arm_judged" in report["contrast"]["ground_truth"]
+    assert report["format_version"] == 11 and "arm_judged" in report["contrast"]["ground_truth"]
     # One network per checkpoint, one judgment per episode of the group (three distinct instructions).
     disc = report["discrimination"][names[0]]
     assert disc == report["discrimination"][names[0] + "_raw"] and disc["episodes"] == 3

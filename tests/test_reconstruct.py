@@ -221,6 +221,27 @@ def test_reconstruct_and_evaluate_cli(scene, tmp_path, capsys):
     assert "error" in capsys.readouterr().err
 
 
+def test_a_predictions_given_first_frame_is_not_scored(scene):
+    """A prediction's frame 0 is the first frame it was given (a perfect copy): its means start at
+    frame 1, for the episode and for its reconstruction; a recording's are over every frame."""
+    from reconstruction.backproject import recon_from_episode
+
+    pred = corrupt(scene, seed=3)
+    for cam, gt_cam in zip(pred.cameras.values(), scene.cameras.values()):
+        cam.rgb[0], cam.depth_m[0], cam.normal_cam[0] = gt_cam.rgb[0], gt_cam.depth_m[0], gt_cam.normal_cam[0]
+    pred.source = "prediction"
+    report = evaluate_episode(pred, scene)
+    err = [r["depth_abs_rel"] for r in report["per_frame"]]  # the corruption is in the depth
+    assert report["first_scored_frame"] == 1 and err[0] == 0.0 and min(err[1:]) > 0  # the given frame keeps its row
+    assert report["mean"]["depth_abs_rel"] == pytest.approx(np.mean(err[1:]))
+    assert evaluate_episode(recon_from_episode(pred), scene)["first_scored_frame"] == 1
+    recording = copy.deepcopy(pred)
+    recording.source = "sim"
+    whole = evaluate_episode(recording, scene)
+    assert whole["first_scored_frame"] == 0 and whole["mean"]["depth_abs_rel"] == pytest.approx(np.mean(err))
+    assert evaluate_episode(pred, scene, first_scored_frame=0)["mean"]["depth_abs_rel"] == pytest.approx(np.mean(err))
+
+
 # ----------------------------------------------------------------------------- simulator
 
 

@@ -4,11 +4,14 @@ moving region (keys ending in ``_moving``). Definitions in ``metrics.py``.
 
 The report (what ``tesseract4d evaluate --json`` writes and the viewer's compare mode reads)::
 
-    {"format": "tesseract4d-eval", "format_version": 1, "definitions": {...},
+    {"format": "tesseract4d-eval", "format_version": 2, "definitions": {...},
      "camera": str, "max_depth_m": M or null, "num_frames": n, "pred_frames": Tp, "gt_frames": Tg,
-     "mean": {metric: value}, "per_frame": [{metric: value}, ... one per frame]}
+     "first_scored_frame": f, "mean": {metric: value}, "per_frame": [{metric: value}, ... one per frame]}
 
 Values are floats; NaN (nothing to measure, e.g. an empty moving region) is written as null.
+The means are over frames ``first_scored_frame`` on: a prediction's frame 0 is the first frame it
+was given (scored, it would add a perfect frame to every mean), so its means start at frame 1
+(:func:`given_frames`); a reconstruction of a recorded episode is scored from frame 0.
 """
 
 from __future__ import annotations
@@ -25,7 +28,7 @@ from tesseract4d.errors import UserError
 from tesseract4d.geometry import depth_to_world_points, invert_pose, project_points, transform_points
 
 REPORT_FORMAT = "tesseract4d-eval"
-REPORT_VERSION = 1
+REPORT_VERSION = 2  # 2: means from first_scored_frame on (a prediction's given frame 0 no longer counts)
 
 DEFINITIONS = {
     "chamfer_l1_m": "0.5 * (mean_pred min_gt |p - g| + mean_gt min_pred |g - p|), Euclidean, metres; "
@@ -54,6 +57,14 @@ class _Frames:
     depth_m: np.ndarray  # (T, H, W)
     normal_cam: np.ndarray  # (T, H, W, 3)
     points_world: list[np.ndarray]  # T x (N_t, 3)
+
+
+def given_frames(pred: "Episode | Recon4D") -> int:
+    """How many leading frames of ``pred`` were given, not predicted: 1 for a prediction (its frame
+    0 is the conditioning frame, copied) or a reconstruction of one, 0 otherwise."""
+    if isinstance(pred, Episode):
+        return int(pred.source == "prediction")
+    return int(str(pred.metadata.get("source", "")).startswith("episode (prediction)"))
 
 
 def _episode_frames(episode: Episode, camera: str | None, role: str) -> tuple[str, _Frames, object]:
@@ -85,8 +96,11 @@ def _in_mask(points_world: np.ndarray, mask: np.ndarray, K: np.ndarray, T_world_
 
 
 def evaluate_episode(pred: Episode | Recon4D, gt: Episode, camera: str | None = None,
-                     moving_mask: np.ndarray | None = None, max_depth_m: float | None = None) -> dict:
+                     moving_mask: np.ndarray | None = None, max_depth_m: float | None = None,
+                     first_scored_frame: int | None = None) -> dict:
     """Metrics of ``pred`` against ``gt`` (see the module docstring for the report's shape).
+    ``first_scored_frame``: the first frame the means count (None: :func:`given_frames` of
+    ``pred``); every frame keeps its row in ``per_frame``.
 
     pred: a predicted/raw episode (its depth is back-projected as is) or a Recon4D (its points
     and refined depth are used). camera: the camera of ``gt`` (and of ``pred`` if it has one of
@@ -137,15 +151,17 @@ def evaluate_episode(pred: Episode | Recon4D, gt: Episode, camera: str | None = 
         row["moving_share"] = float(moving_mask[t].mean())
         per_frame.append(row)
 
+    first = given_frames(pred) if first_scored_frame is None else int(first_scored_frame)
+    scored = per_frame[first:] if first < len(per_frame) else per_frame  # a single given frame: scored as it is
     keys = list(per_frame[0]) if per_frame else []
     mean = {}
     for k in keys:
-        vals = np.array([r[k] for r in per_frame], np.float64)
+        vals = np.array([r[k] for r in scored], np.float64)
         mean[k] = float(np.mean(vals[np.isfinite(vals)])) if np.isfinite(vals).any() else float("nan")
     return {
         "format": REPORT_FORMAT, "format_version": REPORT_VERSION, "definitions": DEFINITIONS,
         "camera": cam_name, "max_depth_m": max_depth_m, "num_frames": n, "pred_frames": int(len(pred_frames.rgb)), "gt_frames": int(len(truth.rgb)),
-        "mean": mean, "per_frame": per_frame,
+        "first_scored_frame": first if first < len(per_frame) else 0, "mean": mean, "per_frame": per_frame,
     }
 
 
@@ -165,8 +181,11 @@ def format_report(report: dict, per_frame: bool = True) -> str:
     (optionally) a few key metrics per frame."""
     fmt = lambda v: "-" if v is None or (isinstance(v, float) and not math.isfinite(v)) else f"{v:.4g}"  # noqa: E731
     mean = report["mean"]
+    first = report.get("first_scored_frame", 0)
+    scored = f"; means over frames {first} to {report['num_frames'] - 1}" + (
+        " (frame 0 is the given first frame)" if first == 1 else "") if first else ""
     lines = [f"camera {report['camera']}, {report['num_frames']} frames "
-             f"(prediction {report['pred_frames']}, ground truth {report['gt_frames']})",
+             f"(prediction {report['pred_frames']}, ground truth {report['gt_frames']}){scored}",
              f"{'metric':<22}{'all':>12}{'moving':>12}"]
     for k in METRICS:
         lines.append(f"{k:<22}{fmt(mean.get(k)):>12}{fmt(mean.get(k + '_moving')):>12}")

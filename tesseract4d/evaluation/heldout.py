@@ -488,9 +488,12 @@ def evaluate_heldout(cfg: HeldoutConfig, progress: bool = True) -> dict:
                 """(metrics, per-object presence, contrast entry, direction score or None) of one output."""
                 frames = output.cameras[camera] if isinstance(output, df.Episode) else output  # episode or Recon4D
                 rgb = frames.rgb
-                metrics = evaluate_episode(output, gt, camera=camera, moving_mask=moving, max_depth_m=max_depth_m)["mean"]
+                # Frame 0 is given to every method (the ceiling's is the truth's round trip): each is
+                # scored on the frames it predicts, 1 on.
+                metrics = evaluate_episode(output, gt, camera=camera, moving_mask=moving, max_depth_m=max_depth_m,
+                                           first_scored_frame=1)["mean"]
                 believe = episode_believability(gt, camera, rgb, method_patch[method], token_rgb=token_rgb,
-                                                pred_depth_m=frames.depth_m)
+                                                pred_depth_m=frames.depth_m, first_scored_frame=1)
                 metrics.update(believe["metrics"])
                 sc = None
                 if gt.env_id in TARGET_OBJECT and gt_cam.segmentation is not None:
@@ -503,7 +506,8 @@ def evaluate_heldout(cfg: HeldoutConfig, progress: bool = True) -> dict:
             shared = {key: autoencoder_round_trip(pipelines[i], gt, camera) for key, i in ceilings.items()}
             shared["static"] = static_world(first, camera, num_frames[j])
             shared_scores = {method: score(method, output) for method, output in shared.items()}
-            gt_believe = episode_believability(gt, camera, gt_cam.rgb, static_patch_px, pred_depth_m=gt_cam.depth_m)
+            gt_believe = episode_believability(gt, camera, gt_cam.rgb, static_patch_px, pred_depth_m=gt_cam.depth_m,
+                                               first_scored_frame=1)
             skill = (gt.intent or {}).get("skill") or "task"
             for k, seed in enumerate(seeds):
                 scored = {}
@@ -569,7 +573,7 @@ def build_report(cfg, rows: list[dict], methods: list[str], labels: dict, scores
     config = {k: (str(v) if isinstance(v, Path) else [str(x) for x in v] if isinstance(v, (list, tuple)) else v)
               for k, v in dataclasses.asdict(cfg).items()}
     return {
-        "format": "tesseract4d-heldout-eval", "format_version": 10,
+        "format": "tesseract4d-heldout-eval", "format_version": 11,  # 11: clip measures from frame 1 on
         "config": config, "checkpoints": checkpoints, "sampler": sampler or {}, "token_patch_px": patch_px,
         "resolutions": resolutions or {},
         "episodes": len({r["episode"] for r in rows}), "sample_seeds": sorted({r.get("sample_seed", 0) for r in rows}),
@@ -731,7 +735,9 @@ def format_markdown(report: dict) -> str:
     lines.append("")
     noise = (f"each predicted with {ns} noise seeds ({', '.join(map(str, seeds))}), every mean over all "
              f"{ns * report['episodes']} predictions; " if ns > 1 else "")
-    lines.append(f"{report['episodes']} held-out episodes ({', '.join(report['tasks'])}); {noise}depth, normal and "
+    lines.append(f"{report['episodes']} held-out episodes ({', '.join(report['tasks'])}); {noise}every clip measure "
+                 f"over the predicted frames, 1 on (frame 0 is the given first frame; the ceiling's is its round "
+                 f"trip); depth, normal and "
                  f"Chamfer metrics over pixels with true depth ≤ {report['max_depth_m']:g} m (the model's depth range); "
                  f"instruction following over the {n} of them whose target object the colour tracker can follow "
                  f"(tracker error on the ground truth: {_fmt(follow[first].get('tracker_px'), '')} px).")

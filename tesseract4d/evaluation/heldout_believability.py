@@ -198,7 +198,8 @@ def contrast_entry(gt, camera: str, pred_rgb: np.ndarray, pred_depth_m: np.ndarr
 
 
 def episode_believability(gt, camera: str, pred_rgb: np.ndarray, patch_px: int | None,
-                          token_rgb: np.ndarray | None = None, pred_depth_m: np.ndarray | None = None) -> dict:
+                          token_rgb: np.ndarray | None = None, pred_depth_m: np.ndarray | None = None,
+                          first_scored_frame: int = 0) -> dict:
     """Every believability measure of one predicted clip (see the module docstring). ``patch_px``:
     the model's token size in pixels of ``token_rgb`` (default ``pred_rgb``), the clip whose token
     grid is measured (a prediction resized to the data's resolution is measured as the model made
@@ -207,20 +208,24 @@ def episode_believability(gt, camera: str, pred_rgb: np.ndarray, patch_px: int |
 
     Returns ``{"metrics": {objects_present, token_grid_ratio, edge_sharpness, motion},
     "per_object": {name: share}, "contrast_entry": dict | None}``. Frames are matched by index.
+    ``first_scored_frame``: permanence, token grid and edge sharpness count frames from this one on
+    (1 for a prediction, whose frame 0 is given); motion and the contrast read the whole clip
+    (they measure change from frame 0).
     """
     cam = gt.cameras[camera]
     gt_rgb = np.asarray(cam.rgb)
     pred_rgb = np.asarray(pred_rgb)
     n = min(len(gt_rgb), len(pred_rgb))
     gt_rgb, pred_rgb = gt_rgb[:n], pred_rgb[:n]
+    f = first_scored_frame if first_scored_frame < n else 0  # a clip of given frames only: scored whole
+    token_clip = pred_rgb if token_rgb is None else np.asarray(token_rgb)[:n]
     metrics = {"objects_present": float("nan"),
-               "token_grid_ratio": float("nan") if patch_px is None else token_grid_ratio(
-                   pred_rgb if token_rgb is None else np.asarray(token_rgb)[:n], patch_px),
-               "edge_sharpness": edge_sharpness(pred_rgb, gt_rgb), "motion": clip_motion(pred_rgb)}
+               "token_grid_ratio": float("nan") if patch_px is None else token_grid_ratio(token_clip[f:], patch_px),
+               "edge_sharpness": edge_sharpness(pred_rgb[f:], gt_rgb[f:]), "motion": clip_motion(pred_rgb)}
     per_object = {}
     if cam.segmentation is not None:
         ids = scene_object_ids(cam.seg_id_to_name)
-        presence = objects_present(gt_rgb, np.asarray(cam.segmentation)[:n], ids, pred_rgb)
+        presence = objects_present(gt_rgb[f:], np.asarray(cam.segmentation)[f:n], ids, pred_rgb[f:])
         metrics["objects_present"] = presence.frames_all_present
         per_object = {cam.seg_id_to_name[i]: v for i, v in presence.per_object.items()}
     return {"metrics": metrics, "per_object": per_object,
