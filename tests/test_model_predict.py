@@ -86,6 +86,9 @@ def test_predicted_episode_contract(pipe, tmp_path):
     assert np.array_equal(cam.rgb[0], src.rgb[0]) and np.array_equal(cam.depth_m[0], src.depth_m[0])
     assert np.allclose(cam.K, src.K[0]) and np.allclose(cam.T_world_cam, src.T_world_cam[0])
     assert (ep.env_id, ep.seed, ep.source, ep.instruction) == ("Synthetic-v0", 4, "prediction", "push the square to the left")
+    from tesseract4d.model.predict import PREDICTED_CLIP_FPS
+
+    assert ep.fps == PREDICTED_CLIP_FPS != first.fps  # the models' clip pace, not the first frame's recorded rate
     valid = cam.depth_m > 0
     assert ((cam.depth_m[valid] >= pipe.model_space.near_m) & (cam.depth_m[valid] <= pipe.model_space.far_m)).all()
     lengths = np.linalg.norm(cam.normal_cam, axis=-1)

@@ -41,6 +41,11 @@ from tesseract4d.model.presets import PRESETS, preset_from_dict
 
 # Where a predicted episode records the size of a first frame it was resized from.
 RESIZED_FROM = "first_frame_resized_from"
+# The rate a predicted clip plays at (frames per second). The models learn clips whose frames are
+# spread over a whole datagen episode, so a clip's pace is the training data's, not the first
+# frame's (a rendered first frame carries the simulator's 20 Hz control rate): the median clip rate
+# of the datasets the shipped models were trained on (v2_tabletop_160 3.2, v2_tasks_160 3.3 fps).
+PREDICTED_CLIP_FPS = 3.3
 
 
 def load_pipeline(checkpoint: str | os.PathLike, device: str = "cpu", precision: str = "auto") -> RGBDNPipeline:
@@ -360,7 +365,7 @@ def _predict_batch(pipeline: RGBDNPipeline, scenes: list, sample_indices: list[i
         out.append(df.Episode(
             env_id=first_frame.env_id, seed=first_frame.seed, instruction=instruction, cameras={cam_name: frames},
             frame_steps=np.arange(num_frames, dtype=np.int32), env_kwargs=dict(first_frame.env_kwargs),
-            control_mode=first_frame.control_mode, fps=first_frame.fps, source="prediction",
+            control_mode=first_frame.control_mode, fps=PREDICTED_CLIP_FPS, source="prediction",
             metadata={"prediction": {
                 "checkpoint_preset": pipeline.preset.name, "sample_seed": int(seed), "sample_index": sample_indices[k],
                 "num_steps": int(num_steps), "text_guidance": text_guidance, "image_guidance": image_guidance,
