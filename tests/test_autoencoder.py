@@ -170,7 +170,7 @@ def test_trainer_resume_is_exact_and_gate_is_stored(tmp_path):
         AutoencoderTrainer(_train_cfg(data, tmp_path / "split", max_steps=4))
 
 
-def test_train_autoencoder_command_writes_the_gate_and_a_reconstruction_sheet(tmp_path):
+def test_train_autoencoder_command_writes_the_gate_and_a_reconstruction_sheet(tmp_path, capsys):
     import imageio.v3 as iio
 
     from tesseract4d import cli
@@ -181,6 +181,7 @@ def test_train_autoencoder_command_writes_the_gate_and_a_reconstruction_sheet(tm
                      "--preset", "ae-test", "--max-steps", "2", "--batch-size", "2", "--precision", "fp32",
                      "--heldout-frames", "8", "--quiet"]) == 0
     assert json.loads((out / "autoencoder" / "fidelity.json").read_text())["step"] == 2
+    assert capsys.readouterr().out.count("fidelity gate on 8 held-out frames (step 2;") == 1  # printed once
     sheet = iio.imread(out / "reconstructions.png")
     assert sheet.shape == (4 * 2 * 32, 3 * 32, 3)  # 4 frames x (truth, reconstruction), RGB | depth | normals
     assert sheet.std() > 0

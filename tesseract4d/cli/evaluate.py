@@ -147,6 +147,8 @@ def run_heldout(args: argparse.Namespace) -> int:
                         max_depth_m=args.max_depth, precision=args.precision, batch_size=args.batch_size,
                         text_guidance=args.text_guidance, start_from_truth=args.start_from_truth)
     report = evaluate_heldout(cfg)
+    if args.out is not None:
+        report["config"]["out"] = str(args.out)  # written through a stage of its own, not by evaluate_heldout
     if output is not None:
         with output as stage:
             write_heldout_report(report, stage)

@@ -96,7 +96,7 @@ def format_markdown(summary: dict, arms: list[str], tasks: list[str], timing: di
                      f"{100 * m['mean_rate']:.0f} % (pooled {100 * m['pooled_wilson95'][0]:.0f}–{100 * m['pooled_wilson95'][1]:.0f})")
     lines.append("| **mean** | " + " | ".join(means) + " |")
     lines += ["", "## Seconds per replanning cycle and per episode (means)", "",
-              "| arm | predict | reconstruct | IDM | cycle (predict+reconstruct+IDM) | episode |", "|---|---|---|---|---|---|"]
+              "| arm | predict | reconstruct (back-projection) | IDM | cycle (predict+reconstruct+IDM) | episode |", "|---|---|---|---|---|---|"]
     for a, t in timing.items():
         lines.append(f"| {a} | {t['predict_s']:.3f} | {t['reconstruct_s']:.3f} | {t['idm_s']:.3f} | {t['cycle_s']:.3f} | {t['episode_s']:.1f} |")
     return "\n".join(lines) + "\n"
