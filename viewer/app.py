@@ -174,6 +174,7 @@ class ViewerApp:
         self._build_scene()
         self._build_gui()
         self._stop.clear()
+        self._cancel.clear()
         self._playback_thread = threading.Thread(target=self._playback_loop, name="viewer-playback", daemon=True)
         self._playback_thread.start()
         return self.url
