@@ -81,16 +81,18 @@ def short_step_budget(monkeypatch, module: str, seconds_per_call: float = 1.0):
 
 def sigterm_after_step(monkeypatch, trainer, step: int) -> None:
     """Send this process SIGTERM right after ``trainer`` finishes training step ``step`` (a
-    scheduler's stop arriving mid-run); any trainer with ``train_step()`` and ``step``."""
+    scheduler's stop arriving mid-run); any trainer with ``train_step()`` and ``step``, or a trainer
+    class (every instance, e.g. the one a command builds)."""
     import os
     import signal
 
-    train_step = trainer.train_step
-
-    def step_then_sigterm():
-        logs = train_step()
-        if trainer.step == step:
+    def stop_after(obj, logs):
+        if obj.step == step:
             os.kill(os.getpid(), signal.SIGTERM)
         return logs
 
-    monkeypatch.setattr(trainer, "train_step", step_then_sigterm)
+    train_step = trainer.train_step
+    if isinstance(trainer, type):
+        monkeypatch.setattr(trainer, "train_step", lambda self: stop_after(self, train_step(self)))
+    else:
+        monkeypatch.setattr(trainer, "train_step", lambda: stop_after(trainer, train_step()))

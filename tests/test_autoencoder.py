@@ -509,3 +509,4 @@ def test_a_stop_signal_ends_training_with_a_checkpoint_and_says_so(tmp_path, cap
     assert gate["step"] == 2
     assert json.loads((tmp_path / "run" / "autoencoder" / "fidelity.json").read_text())["step"] == 2
     assert "stopped at step 2; saving a checkpoint" in capsys.readouterr().out
+    assert trainer.stopped_by == signal.SIGTERM  # the command line then ends 143 (raise_for_stop)

@@ -211,3 +211,16 @@ def test_sigterm_stops_training_with_a_checkpoint_an_export_and_a_word(dataset, 
     assert [c.name for c in list_checkpoints(run)] == ["checkpoint-000002"]
     assert final == run / "final" and (final / "transformer" / "diffusion_pytorch_model.safetensors").is_file()
     assert "terminated at step 2; saving a checkpoint" in capsys.readouterr().out
+    assert trainer.stopped_by == signal.SIGTERM  # the command line then ends 143 (raise_for_stop)
+
+
+def test_a_train_command_stopped_by_sigterm_ends_143_with_its_checkpoint_and_export(dataset, tmp_path, capsys,
+                                                                                    monkeypatch):
+    """A scheduler can tell a stopped run from a finished one: exit 143, yet final/ is written."""
+    sigterm_after_step(monkeypatch, Trainer, 2)
+    run = tmp_path / "run"
+    assert cli.main(["train", "--preset", MICRO.name, "--data", str(dataset), "--out", str(run), "--max-steps", "100",
+                     "--val-every", "0", "--no-progress"]) == 143
+    assert [c.name for c in list_checkpoints(run)] == ["checkpoint-000002"]
+    assert (run / "final" / "transformer" / "diffusion_pytorch_model.safetensors").is_file()
+    assert "terminated; finished work is kept on disk" in capsys.readouterr().err

@@ -3,6 +3,8 @@ datagen episodes, an oracle-future rollout that succeeds, the static-world arm, 
 
 from __future__ import annotations
 
+import dataclasses
+
 import json
 
 import numpy as np
@@ -225,6 +227,38 @@ def test_train_idm_resume_is_exact(episodes, text_encoder, tmp_path):
     for (name, a), b in zip(straight.model.state_dict().items(), resumed.model.state_dict().values()):
         assert torch.equal(a, b), name
     assert json.loads((tmp_path / "b" / "train_idm_config.json").read_text())["resume"] is True
+
+
+@pytest.mark.sim
+def test_a_stopped_idm_run_keeps_its_checkpoint_and_final_and_says_which_signal(episodes, text_encoder, tmp_path,
+                                                                                monkeypatch, capsys):
+    """SIGTERM during step 3 of 1,000 (no periodic checkpoint): the run stops after the step with its
+    checkpoint and final/, which --resume continues from; the command line then ends 143."""
+    import signal
+
+    from model_fixtures import sigterm_after_step
+
+    from tesseract4d.policy.idm_trainer import IDMTrainConfig, IDMTrainer
+    from tesseract4d.stopping import raise_for_stop
+
+    cfg = IDMTrainConfig(data=str(episodes), out=str(tmp_path / "run"), steps=1000, batch_size=4, num_points=64,
+                         progress=False, ckpt_every=0)
+    trainer = IDMTrainer(cfg, text_encoder=text_encoder)
+    sigterm_after_step(monkeypatch, trainer, 3)
+    before = {s: signal.getsignal(s) for s in (signal.SIGTERM, signal.SIGINT)}
+    final = trainer.train()
+    assert {s: signal.getsignal(s) for s in before} == before
+    assert trainer.step == 3 and trainer.stopped_by == signal.SIGTERM
+    from tesseract4d.policy.idm import load_idm
+
+    assert load_idm(final).config.training["trained_steps"] == 3
+    assert json.loads((tmp_path / "run" / "checkpoint" / "trainer_state.json").read_text())["step"] == 3
+    assert "stopped at step 3; saving a checkpoint and final/" in capsys.readouterr().out
+    assert IDMTrainer(dataclasses.replace(cfg, resume=True), text_encoder=text_encoder).step == 3
+    from tesseract4d.errors import Terminated
+
+    with pytest.raises(Terminated):
+        raise_for_stop(trainer.stopped_by)
 
 
 @pytest.mark.sim

@@ -93,6 +93,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from tesseract4d.stopping import raise_for_stop
+
     from tesseract4d.errors import UserError
     from tesseract4d.model.lr_schedule import check_max_steps
     from tesseract4d.model.reflow import MANIFEST, PairsConfig, ReflowConfig, ReflowTrainer, generate_pairs
@@ -135,6 +137,8 @@ def run(args: argparse.Namespace) -> int:
         balance_tasks=args.keep_following and args.following_balance == "task")
     from datagen.paraphrases import train_paraphrases
 
-    final = ReflowTrainer(cfg, train_paraphrases).train()
+    trainer = ReflowTrainer(cfg, train_paraphrases)
+    final = trainer.train()
     print(f"student checkpoint: {final} ({args.student_steps} steps, one network pass each)")
+    raise_for_stop(trainer.stopped_by)  # a stopped run ends 130 / 143, its checkpoint and export kept
     return 0

@@ -104,6 +104,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from tesseract4d.stopping import raise_for_stop
+
     from tesseract4d.errors import UserError
     from tesseract4d.model.trainer import TrainConfig, Trainer, export_checkpoint
 
@@ -134,6 +136,8 @@ def run(args: argparse.Namespace) -> int:
     )
     from datagen.paraphrases import train_paraphrases
 
-    final = Trainer(cfg, train_paraphrases).train()
+    trainer = Trainer(cfg, train_paraphrases)
+    final = trainer.train()
     print(f"inference checkpoint: {final}")
+    raise_for_stop(trainer.stopped_by)  # a stopped run ends 130 / 143, its checkpoint and export kept
     return 0

@@ -86,6 +86,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from tesseract4d.stopping import raise_for_stop
+
     import functools
 
     import numpy as np
@@ -118,4 +120,5 @@ def run(args: argparse.Namespace) -> int:
         iio.imwrite(cfg.out / "reconstructions.png", sheet)
         print(f"held-out frames (truth above, reconstruction below; RGB | depth | normals): {cfg.out / 'reconstructions.png'}")
     print(f"autoencoder: {cfg.out / 'autoencoder'}  (resume with the same command plus --resume)")
+    raise_for_stop(trainer.stopped_by)  # a stopped run ends 130 / 143, its checkpoint and export kept
     return 0

@@ -79,6 +79,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from tesseract4d.policy.idm_trainer import IDMTrainConfig, IDMTrainer
+    from tesseract4d.stopping import raise_for_stop
 
     cfg = IDMTrainConfig(
         data=args.data, out=args.out, use_future=not args.no_future,
@@ -100,4 +101,5 @@ def run(args: argparse.Namespace) -> int:
     print(f"wrote {final}; fit on the training pairs: {json.dumps(training['fit'])}")
     if "fit_predicted" in training:
         print(f"fit on the pairs with predicted futures: {json.dumps(training['fit_predicted'])}")
+    raise_for_stop(trainer.stopped_by)  # a stopped run ends 130 / 143, its checkpoint and final/ kept
     return 0

@@ -36,7 +36,6 @@ import json
 import os
 import re
 import shutil
-import signal
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -51,6 +50,7 @@ from tesseract4d.configs import config_dict, folder_list
 from tesseract4d.errors import UserError
 from tesseract4d.precision import announce, resolve_precision
 from tesseract4d.segments import robot_object_mask
+from tesseract4d.stopping import StopSignals
 from tesseract4d.model.autoencoder import (
     FIDELITY_FILE, AutoencoderConfig, RGBDNAutoencoder, get_autoencoder_preset, load_autoencoder, save_autoencoder,
 )
@@ -302,7 +302,7 @@ class AutoencoderTrainer:
         claim_folder(self.out, "train-autoencoder", inputs=[*cfg.data_folders, cfg.heldout, cfg.init],
                      legacy_marker=CONFIG_FILE)
         self.step = 0
-        self.stop_requested = False
+        self.stopped_by: int | None = None  # the signal that stopped train(), if one did
 
     def _load_init(self, folder: Path) -> None:
         """Start from an exported autoencoder of the same preset (fine-tuning, e.g. on new scenes)."""
@@ -457,48 +457,41 @@ class AutoencoderTrainer:
               f"{len(self.frames)} training frames, {self.device.type}, precision {self.precision}, "
               f"{self.model.config.spatial_compression}x -> latent {self.model.config.latent_shape}")
         writer = SummaryWriter(str(self.out / "logs"))
-        previous = {s: signal.getsignal(s) for s in (signal.SIGTERM, signal.SIGINT)}
-
-        def request_stop(signum, frame):
-            self.stop_requested = True
-
-        for s in previous:
-            signal.signal(s, request_stop)
-        start = last_ckpt = time.time()
-        # "auto": the cosine is fitted to max_minutes after the first steps (the config says "auto" until then).
-        budget = StepBudget(cfg.max_minutes, self.step) if cfg.max_steps == AUTO else None
-        bar = tqdm(total=None if budget else cfg.max_steps, initial=self.step, desc="train-autoencoder", unit="step",
-                   disable=not cfg.progress)
-        fidelity: dict = {}
-        try:
-            while self.step < (UNFITTED_MAX_STEPS if cfg.max_steps == AUTO else cfg.max_steps) and not self.stop_requested:
-                t0 = time.perf_counter()
-                logs = self.train_step()
-                if budget is not None and budget.after_step(self.step) is not None:
-                    cfg.max_steps, cfg.max_steps_fit = budget.fitted, budget.record()
-                    bar.total = cfg.max_steps
-                    bar.write(budget.describe())
-                    df.atomic_write_text(self.out / CONFIG_FILE, json.dumps(cfg.to_dict(), indent=2))
-                logs["steps_per_s"] = 1.0 / (time.perf_counter() - t0)
-                for k, v in logs.items():
-                    writer.add_scalar(f"train/{k}", v, self.step)
-                bar.update(1)
-                bar.set_postfix(loss=f"{logs['loss']:.4f}", depth=f"{logs['depth']:.4f}", refresh=False)
-                out_of_time = cfg.max_minutes is not None and time.time() - start > cfg.max_minutes * 60
-                if time.time() - last_ckpt > cfg.ckpt_minutes * 60 or out_of_time:
+        with StopSignals() as stop:
+            start = last_ckpt = time.time()
+            # "auto": the cosine is fitted to max_minutes after the first steps (the config says "auto" until then).
+            budget = StepBudget(cfg.max_minutes, self.step) if cfg.max_steps == AUTO else None
+            bar = tqdm(total=None if budget else cfg.max_steps, initial=self.step, desc="train-autoencoder", unit="step",
+                       disable=not cfg.progress)
+            fidelity: dict = {}
+            try:
+                while self.step < (UNFITTED_MAX_STEPS if cfg.max_steps == AUTO else cfg.max_steps) and not stop.requested:
+                    t0 = time.perf_counter()
+                    logs = self.train_step()
+                    if budget is not None and budget.after_step(self.step) is not None:
+                        cfg.max_steps, cfg.max_steps_fit = budget.fitted, budget.record()
+                        bar.total = cfg.max_steps
+                        bar.write(budget.describe())
+                        df.atomic_write_text(self.out / CONFIG_FILE, json.dumps(cfg.to_dict(), indent=2))
+                    logs["steps_per_s"] = 1.0 / (time.perf_counter() - t0)
+                    for k, v in logs.items():
+                        writer.add_scalar(f"train/{k}", v, self.step)
+                    bar.update(1)
+                    bar.set_postfix(loss=f"{logs['loss']:.4f}", depth=f"{logs['depth']:.4f}", refresh=False)
+                    out_of_time = cfg.max_minutes is not None and time.time() - start > cfg.max_minutes * 60
+                    if time.time() - last_ckpt > cfg.ckpt_minutes * 60 or out_of_time:
+                        fidelity = self._checkpoint(writer, bar)
+                        last_ckpt = time.time()
+                    if out_of_time:
+                        break
+                if stop.requested:
+                    bar.write(f"stopped at step {self.step}; saving a checkpoint")
+                if not fidelity or fidelity.get("step") != self.step:
                     fidelity = self._checkpoint(writer, bar)
-                    last_ckpt = time.time()
-                if out_of_time:
-                    break
-            if self.stop_requested:
-                bar.write(f"stopped at step {self.step}; saving a checkpoint")
-            if not fidelity or fidelity.get("step") != self.step:
-                fidelity = self._checkpoint(writer, bar)
-        finally:
-            bar.close()
-            writer.close()
-            for s, h in previous.items():
-                signal.signal(s, h)
+            finally:
+                bar.close()
+                writer.close()
+        self.stopped_by = stop.signum
         return fidelity
 
     def _checkpoint(self, writer, bar) -> dict:

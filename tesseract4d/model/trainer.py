@@ -469,6 +469,7 @@ class Trainer:
         self.elapsed_s = 0.0
         self.last_loss: float | None = None
         self._stop_requested = False
+        self.stopped_by: int | None = None  # the signal that stopped train(), if one did
         if cfg.resume and existing:
             self._resume(existing)
         if self.accelerator.is_main_process:
@@ -752,6 +753,7 @@ class Trainer:
             if self._stop_requested:
                 bar.write(f"terminated at step {self.step}; saving a checkpoint")
         except KeyboardInterrupt:
+            self.stopped_by = signal.SIGINT
             bar.write(f"interrupted at step {self.step}; saving a checkpoint")
         finally:
             bar.close()
@@ -764,6 +766,7 @@ class Trainer:
 
     def _request_stop(self, signum, frame) -> None:
         self._stop_requested = True
+        self.stopped_by = signum
 
     def _agreed_max_steps(self, fitted: int) -> int:
         """The main process's fitted schedule, for every process (each timed its own steps; they must

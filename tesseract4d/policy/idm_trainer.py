@@ -31,6 +31,7 @@ from tesseract4d.policy.idm import (
     ARM_JOINTS, IDMConfig, InverseDynamics, clip_gap, encode_target, save_idm, sentence_embeddings,
 )
 from tesseract4d.policy.points import frame_points
+from tesseract4d.stopping import StopSignals
 
 @dataclass
 class IDMTrainConfig:
@@ -273,6 +274,7 @@ class IDMTrainer:
         self.model.qpos_std.copy_(torch.from_numpy(np.maximum(p.qpos.std(0), 1e-3)))
         self.optimizer = torch.optim.AdamW(self.model.parameters(), lr=cfg.lr, weight_decay=1e-4)
         self.step = 0
+        self.stopped_by: int | None = None  # the signal that stopped train(), if one did
         self.last_loss = float("nan")
         if cfg.resume:
             from tesseract4d.model.trainer import load_optimizer, load_rng
@@ -333,22 +335,28 @@ class IDMTrainer:
         t0 = time.monotonic()
         bar = tqdm(total=cfg.steps, initial=self.step, desc="train idm" if cfg.use_future else "train bc", unit="step",
                    disable=not cfg.progress)
-        while self.step < cfg.steps:
-            loss = self.train_step()
-            bar.update(1)
-            bar.set_postfix_str(f"loss {loss:.4f}")
-            if cfg.ckpt_every and self.step % cfg.ckpt_every == 0:
-                self.save_checkpoint()
-            if cfg.max_minutes is not None and time.monotonic() - t0 > 60 * cfg.max_minutes:
-                break
-        bar.close()
-        self.save_checkpoint()
-        self.model.config.training.update({"trained_steps": self.step, "last_loss": self.last_loss,
-                                           "minutes": round((time.monotonic() - t0) / 60, 2)})
-        self.model.config.training["fit"] = fit_report(self.model, self.pairs)
-        if len(self.pred_idx):
-            self.model.config.training["fit_predicted"] = fit_report(self.model, self.pairs, predicted=True)
-        final = save_idm(self.model, self.out / "final")
+        # Ctrl-C or SIGTERM stop after the step: the checkpoint and final/ are written, then the command
+        # line exits 130 / 143 (stopped_by).
+        with StopSignals() as stop:
+            while self.step < cfg.steps and not stop.requested:
+                loss = self.train_step()
+                bar.update(1)
+                bar.set_postfix_str(f"loss {loss:.4f}")
+                if cfg.ckpt_every and self.step % cfg.ckpt_every == 0:
+                    self.save_checkpoint()
+                if cfg.max_minutes is not None and time.monotonic() - t0 > 60 * cfg.max_minutes:
+                    break
+            bar.close()
+            if stop.requested:
+                print(f"stopped at step {self.step}; saving a checkpoint and final/", flush=True)
+            self.save_checkpoint()
+            self.model.config.training.update({"trained_steps": self.step, "last_loss": self.last_loss,
+                                               "minutes": round((time.monotonic() - t0) / 60, 2)})
+            self.model.config.training["fit"] = fit_report(self.model, self.pairs)
+            if len(self.pred_idx):
+                self.model.config.training["fit_predicted"] = fit_report(self.model, self.pairs, predicted=True)
+            final = save_idm(self.model, self.out / "final")
+        self.stopped_by = stop.signum
         return final
 
 
