@@ -443,6 +443,15 @@ def test_decoder_only_fine_tune_swaps_into_the_checkpoint_with_the_same_latents(
     zb = b(first, ["push"], num_inference_steps=2, generator=torch.Generator().manual_seed(1), output_type="latent")
     assert torch.equal(za, zb)
     assert not torch.equal(a.codec.decode(za), b.codec.decode(zb))
+    # A swap and an export own their folders apart: neither replaces the other's without --overwrite.
+    assert cli.main(["train", "--export", str(tmp_path / "run"), "--to", str(swapped)]) == 2
+    assert cfg == json.loads((swapped / "tesseract4d_config.json").read_text())
+    exported = tmp_path / "exported"
+    assert cli.main(["train", "--export", str(tmp_path / "run"), "--to", str(exported)]) == 0
+    assert cli.main(["swap-decoder", "--checkpoint", str(final), "--autoencoder", str(dec / "autoencoder"),
+                     "--to", str(exported)]) == 2
+    assert cli.main(["swap-decoder", "--checkpoint", str(final), "--autoencoder", str(dec / "autoencoder"),
+                     "--to", str(swapped), "--half"]) == 0  # its own earlier swap: replaced
 
     other = _autoencoder(tmp_path / "other", seed=9, data=data)
     with pytest.raises(UserError, match="--decoder-only"):

@@ -160,7 +160,7 @@ def replace_decoder(checkpoint: str | os.PathLike, autoencoder: str | os.PathLik
         raise UserError(f"{autoencoder} does not encode like {old_dir} ({'; '.join(diff[:3])}"
                         f"{'; ...' if len(diff) > 3 else ''}); make it with `tesseract4d train-autoencoder "
                         f"--init {old_dir} --decoder-only`")
-    with OutputDir(to, "export", inputs=[checkpoint, autoencoder], overwrite=overwrite, flag="--to") as tmp:
+    with OutputDir(to, "swap-decoder", inputs=[checkpoint, autoencoder], overwrite=overwrite, flag="--to") as tmp:
         shutil.copytree(checkpoint / TRANSFORMER_DIR, tmp / TRANSFORMER_DIR)
         shutil.copytree(checkpoint / SCHEDULER_DIR, tmp / SCHEDULER_DIR)
         dst = tmp / AUTOENCODER_DIR
