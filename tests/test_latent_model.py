@@ -359,6 +359,11 @@ def test_init_fine_tunes_a_checkpoint_in_its_own_latent_space(tmp_path):
     with pytest.raises(UserError, match=re.escape(f"started from --init {ckpt}; resume it with --init {ckpt} --resume")):
         Trainer(_config(data, tmp_path / "more", None, max_steps=3, resume=True))
     assert Trainer(_config(data, tmp_path / "more", None, init=ckpt, max_steps=3, resume=True)).step == 2
+    # ... and the autoencoder it trained in: another one's latents are another space.
+    other = _autoencoder(tmp_path / "ae_other", seed=5, data=data)
+    with pytest.raises(UserError, match=r"was trained in the latents of autoencoder .* resume with --autoencoder "):
+        Trainer(_config(data, tmp_path / "first", other, max_steps=4, resume=True))
+    assert Trainer(_config(data, tmp_path / "first", ae, max_steps=4, resume=True)).step == 3
 
     with pytest.raises(UserError, match="--prediction x0"):
         Trainer(_config(data, tmp_path / "r1", None, init=ckpt, prediction="velocity"))

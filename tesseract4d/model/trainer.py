@@ -659,6 +659,12 @@ class Trainer:
             raise UserError(f"{ckpt} was trained with preset {saved.get('name')!r}, which differs from --preset "
                             f"{self.preset.name!r} in {', '.join(diff)}; resume with the same preset or use a new --out")
         self._check_same_start(ckpt, state)
+        trained_with = (state.get("inference_config") or {}).get("autoencoder") or {}
+        now = getattr(self.codec, "autoencoder_hash", None)
+        if trained_with.get("hash") and now != trained_with["hash"]:
+            raise UserError(f"{ckpt.parent} was trained in the latents of autoencoder {trained_with.get('source_dir')} "
+                            f"(hash {trained_with['hash']}), but --autoencoder {self.cfg.autoencoder} has hash {now}; "
+                            f"resume with --autoencoder {trained_with.get('source_dir')}, or start a new --out")
         model = self.accelerator.unwrap_model(self.model)
         for target, sub in ((model, TRANSFORMER_DIR), (self.ema.model, EMA_DIR)):
             weights = load_file(str(ckpt / sub / WEIGHTS_FILE))
