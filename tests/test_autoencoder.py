@@ -446,8 +446,10 @@ def test_latent_cache_rejects_other_resolution(tmp_path):
 
     data = write_segmented_dataset(tmp_path / "data", episodes=1, size=64)
     save_autoencoder(RGBDNAutoencoder(get_autoencoder_preset("ae-test")), tmp_path / "ae")
+    before = sorted(p.relative_to(data) for p in data.rglob("*"))
     with pytest.raises(UserError, match="--resolution 32"):
         ensure_latent_cache(data, tmp_path / "ae")
+    assert sorted(p.relative_to(data) for p in data.rglob("*")) == before  # nothing left in the user's dataset
 
 
 def test_trainer_never_takes_over_a_folder_it_did_not_write(tmp_path):

@@ -21,6 +21,7 @@ reads and refuses a cache of another autoencoder with a message saying what to r
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import shutil
@@ -195,6 +196,7 @@ def ensure_latent_cache(dataset: str | os.PathLike, autoencoder_dir: str | os.Pa
     # anything else in the folder is left alone.
     from tesseract4d.outputs import note_leftovers
 
+    made_parent = not folder.parent.exists()
     folder.parent.mkdir(parents=True, exist_ok=True)
     note_leftovers(folder)
     tmp = Path(tempfile.mkdtemp(dir=folder.parent, prefix=f".{folder.name}.tmp-"))
@@ -204,8 +206,13 @@ def ensure_latent_cache(dataset: str | os.PathLike, autoencoder_dir: str | os.Pa
         (folder / CACHE_FILE).unlink(missing_ok=True)
         os.replace(tmp / "cache" / LATENTS_FILE, folder / LATENTS_FILE)
         os.replace(tmp / "cache" / CACHE_FILE, folder / CACHE_FILE)
-    finally:
+    except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)  # the temporary folder made above, nothing else
+        if made_parent and not folder.exists():
+            with contextlib.suppress(OSError):
+                folder.parent.rmdir()  # the empty folder made above for it: a refused build leaves nothing
+        raise
+    shutil.rmtree(tmp, ignore_errors=True)
     return open_latent_cache(folder), True
 
 
