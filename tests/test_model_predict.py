@@ -130,6 +130,9 @@ def test_bad_inputs(pipe, checkpoint, tmp_path):
         load_pipeline(tmp_path / "missing")
     with pytest.raises(UserError, match="not a tesseract4d inference checkpoint"):
         load_pipeline(tmp_path)
+    shutil.copytree(checkpoint, tmp_path / "run" / "final")  # a training run's folder, its export inside
+    with pytest.raises(UserError, match=f"it is a training run folder: pass its export, --checkpoint {tmp_path / 'run' / 'final'}"):
+        load_pipeline(tmp_path / "run")
     # A checkpoint whose weights belong to another preset.
     other = tmp_path / "other"
     shutil.copytree(checkpoint, other)

@@ -72,7 +72,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="store the guide as it is (16) or its matrices in 8 bits, one scale per output "
                              "row (8): half the bytes, loaded back as float32 (default: 16)")
     parser.add_argument("--overwrite", action="store_true",
-                        help="replace an earlier copy in --to (files it did not write are never touched)")
+                        help="write into a --to that holds files set-sampler did not write (an earlier set-sampler copy there is replaced without it; files it did not write are never touched)")
 
 
 def run(args: argparse.Namespace) -> int:

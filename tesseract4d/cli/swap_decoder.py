@@ -29,7 +29,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--to", type=Path, required=True, help="new checkpoint folder to write")
     parser.add_argument("--half", action="store_true", help="store the new autoencoder in float16 (half the size)")
     parser.add_argument("--overwrite", action="store_true",
-                        help="replace an earlier export in --to (files it did not write are never touched)")
+                        help="write into a --to that holds files swap-decoder did not write (an earlier swap-decoder copy there is replaced without it; files it did not write are never touched)")
 
 
 def run(args: argparse.Namespace) -> int:

@@ -139,7 +139,12 @@ def read_inference_config(checkpoint: str | os.PathLike) -> dict:
                         f"or `tesseract4d train --export RUN --to DIR`")
     cfg_path = ckpt / INFERENCE_CONFIG_FILE
     if not cfg_path.is_file() or not (ckpt / TRANSFORMER_DIR / WEIGHTS_FILE).is_file():
-        hint = " (a training checkpoint: export it with `tesseract4d train --export RUN`)" if (ckpt / "trainer_state.json").is_file() else ""
+        if (ckpt / "trainer_state.json").is_file():
+            hint = " (a training checkpoint: export it with `tesseract4d train --export RUN`)"
+        elif (ckpt / "final" / INFERENCE_CONFIG_FILE).is_file():
+            hint = f"; it is a training run folder: pass its export, --checkpoint {ckpt / 'final'}"
+        else:
+            hint = ""
         raise UserError(f"{ckpt} is not a tesseract4d inference checkpoint: it needs {INFERENCE_CONFIG_FILE} and "
                         f"{TRANSFORMER_DIR}/{WEIGHTS_FILE}{hint}")
     try:
