@@ -139,6 +139,17 @@ def _as_created(path: Path, mode: int) -> Path:
     return path
 
 
+def files_as_created(path: str | os.PathLike) -> Path:
+    """Give a file this command just wrote, or every file and folder under a folder it just wrote,
+    the mode a plain create would: safetensors writes its files 0600, which other users of a shared
+    checkpoint folder could not read."""
+    root = Path(path)
+    for p in [root, *root.rglob("*")] if root.is_dir() else [root]:
+        if not p.is_symlink():
+            _as_created(p, 0o777 if p.is_dir() else 0o666)
+    return root
+
+
 def _files_under(folder: Path) -> list[str]:
     return sorted(str(p.relative_to(folder)) for p in folder.rglob("*") if p.is_file() or p.is_symlink())
 
@@ -224,6 +235,7 @@ class OutputDir:
 
     def _commit(self) -> None:
         stage, target = self.stage, _resolve(self.path)
+        files_as_created(stage)
         new_files = _files_under(stage)
         if not target.exists() or not any(target.iterdir()):
             _write_marker(stage, self.command, new_files)

@@ -224,3 +224,19 @@ def test_a_train_command_stopped_by_sigterm_ends_143_with_its_checkpoint_and_exp
     assert [c.name for c in list_checkpoints(run)] == ["checkpoint-000002"]
     assert (run / "final" / "transformer" / "diffusion_pytorch_model.safetensors").is_file()
     assert "terminated; finished work is kept on disk" in capsys.readouterr().err
+
+
+def test_weights_are_as_readable_as_the_users_other_files(dataset, tmp_path):
+    """safetensors writes its files 0600; checkpoints and exports get the mode a plain create gives
+    under the user's umask (0644 under 022), so a shared checkpoint folder can be read by others."""
+    import os
+
+    previous = os.umask(0o022)
+    try:
+        final = Trainer(_config(dataset, tmp_path / "run", max_steps=1)).train()
+        assert cli.main(["train", "--export", str(tmp_path / "run"), "--to", str(tmp_path / "exported")]) == 0
+    finally:
+        os.umask(previous)
+    written = [p for root in (tmp_path / "run", tmp_path / "exported") for p in root.rglob("*.safetensors")]
+    assert len(written) >= 6 and final in [p.parents[1] for p in written]
+    assert {oct(p.stat().st_mode & 0o777) for p in written} == {"0o644"}

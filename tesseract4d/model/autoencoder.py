@@ -31,6 +31,7 @@ import torch
 import torch.nn.functional as F
 
 from tesseract4d.errors import UserError
+from tesseract4d.outputs import files_as_created
 from tesseract4d.model.model_space import NUM_CHANNELS, ModelSpace, renormalize_normals
 
 CONFIG_FILE = "config.json"
@@ -244,6 +245,7 @@ def save_autoencoder(model: RGBDNAutoencoder, folder: str | os.PathLike, state_d
     folder.mkdir(parents=True, exist_ok=True)
     sd = state_dict if state_dict is not None else model.state_dict()
     save_file({k: v.detach().cpu().contiguous() for k, v in sd.items()}, str(folder / WEIGHTS_FILE))
+    files_as_created(folder / WEIGHTS_FILE)  # safetensors writes 0600
     (folder / CONFIG_FILE).write_text(json.dumps({"format": FORMAT, **model.config.to_dict()}, indent=2))
     return folder
 

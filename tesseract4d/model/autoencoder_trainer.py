@@ -48,6 +48,7 @@ import torch.nn.functional as F
 from tesseract4d import dataset_format as df
 from tesseract4d.configs import config_dict, folder_list
 from tesseract4d.errors import UserError
+from tesseract4d.outputs import files_as_created
 from tesseract4d.precision import announce, resolve_precision
 from tesseract4d.segments import robot_object_mask
 from tesseract4d.stopping import StopSignals
@@ -367,6 +368,7 @@ class AutoencoderTrainer:
         save_optimizer(self.optimizer, tmp)
         (tmp / STATE_FILE).write_text(json.dumps({"step": self.step, "precision": self.precision,
                                                   "max_steps": self.cfg.max_steps}))
+        files_as_created(tmp)
         if final.exists():
             shutil.rmtree(final)
         os.replace(tmp, final)
@@ -408,6 +410,7 @@ class AutoencoderTrainer:
         shutil.rmtree(tmp, ignore_errors=True)
         save_autoencoder(model, tmp)
         (tmp / FIDELITY_FILE).write_text(json.dumps(fidelity, indent=2))
+        files_as_created(tmp)
         if final.exists():
             shutil.rmtree(final)
         os.replace(tmp, final)

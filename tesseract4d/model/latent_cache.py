@@ -34,6 +34,7 @@ import torch.nn.functional as F
 
 from tesseract4d import dataset_format as df
 from tesseract4d.errors import UserError
+from tesseract4d.outputs import files_as_created
 
 CACHE_FILE = "cache.json"
 LATENTS_FILE = "latents.safetensors"
@@ -109,6 +110,7 @@ def _build(dataset: Path, autoencoder_dir: Path, camera: str, folder: Path, prog
         episodes.append({"episode_id": ep.episode_id, "instruction": ep.instruction, "file": str(path.relative_to(dataset))})
     folder.mkdir(parents=True)
     save_file(tensors, str(folder / LATENTS_FILE))
+    files_as_created(folder / LATENTS_FILE)  # safetensors writes 0600
     meta = {
         "format": FORMAT, "autoencoder_hash": autoencoder_hash(autoencoder_dir), "autoencoder_dir": str(autoencoder_dir),
         "latents_hash": latents_hash(autoencoder_dir),

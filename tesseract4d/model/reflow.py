@@ -41,6 +41,7 @@ import numpy as np
 import torch
 
 from tesseract4d.errors import UserError
+from tesseract4d.outputs import files_as_created
 from tesseract4d.model.checkpoint import GUIDE_DIR, weights_digest
 from tesseract4d.model.trainer import TrainConfig, Trainer
 
@@ -174,6 +175,7 @@ def generate_pairs(cfg: PairsConfig, progress: bool = True) -> Path:
             tensors["leader"] = torch.tensor(leaders, dtype=torch.int64)
         tmp_st = path.with_name(f".{path.name}.tmp")
         save_file(tensors, str(tmp_st))
+        files_as_created(tmp_st)  # safetensors writes 0600
         tmp_js = path.with_name(f".{path.stem}.json.tmp")
         record = {"instructions": texts, "episodes": [data.sources[i].episode_id for i in indices], "starts": starts}
         if chosen is not None:

@@ -38,6 +38,7 @@ import torch
 
 from tesseract4d.configs import config_dict, folder_list
 from tesseract4d.errors import UserError
+from tesseract4d.outputs import files_as_created
 from tesseract4d.precision import announce, resolve_precision
 from tesseract4d.psnr import rgb_psnr
 from tesseract4d.model.lr_schedule import AUTO, UNFITTED_MAX_STEPS, StepBudget, check_max_steps, lr_at, resumed_max_steps
@@ -627,6 +628,7 @@ class Trainer:
                  "preset": self.preset.to_dict(), "config": self.cfg.to_dict(),
                  "inference_config": self._inference_config()}
         (tmp / STATE_FILE).write_text(json.dumps(state, indent=2))
+        files_as_created(tmp)
         shutil.rmtree(final, ignore_errors=True)
         os.replace(tmp, final)
         for old in list_checkpoints(self.out)[:-max(1, self.cfg.keep_checkpoints)]:

@@ -28,6 +28,7 @@ import torch
 from torch import nn
 
 from tesseract4d.errors import UserError
+from tesseract4d.outputs import files_as_created
 from tesseract4d.policy.points import POINT_CHANNELS
 
 CONFIG_FILE = "idm_config.json"
@@ -170,6 +171,7 @@ def save_idm(model: InverseDynamics, folder: str | os.PathLike) -> Path:
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     save_file({k: v.detach().contiguous() for k, v in model.state_dict().items()}, str(folder / WEIGHTS_FILE))
+    files_as_created(folder / WEIGHTS_FILE)  # safetensors writes 0600
     (folder / CONFIG_FILE).write_text(json.dumps({"format": FORMAT, **asdict(model.config)}, indent=2))
     return folder
 
