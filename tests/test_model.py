@@ -98,10 +98,11 @@ def test_first_frame_condition_modes():
     assert PixelCodec().encode(first) is first
 
 
-def test_text_encoder_pads_and_caches():
+def test_text_encoder_pads_and_caches(capfd):
     from tesseract4d.model.build import build_text_encoder
 
     enc = build_text_encoder(get_preset("tiny"))
+    assert "Loading weights" not in capfd.readouterr().err  # no progress bar of its own in every command
     e = enc.encode(["pick up the red cube", "push the blue cube to the goal", "pick up the red cube"])
     assert e.shape == (3, 32, 384)
     assert torch.equal(e[0], e[2]) and not torch.equal(e[0], e[1])

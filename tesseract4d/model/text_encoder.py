@@ -11,6 +11,7 @@ zeros (the pipeline's ``torch.zeros_like`` of the text embedding), never an enco
 
 from __future__ import annotations
 
+import contextlib
 import os
 from pathlib import Path
 
@@ -50,7 +51,8 @@ class TextEncoder:
         if kind == MINILM:
             folder = minilm_path()
             self.tokenizer = AutoTokenizer.from_pretrained(folder)
-            self.model = AutoModel.from_pretrained(folder)
+            with _no_loading_bar():  # the shipped 23 MB MiniLM loads at once: its bar is noise in every command
+                self.model = AutoModel.from_pretrained(folder)
         elif kind == T5:
             from transformers import T5EncoderModel
 
@@ -81,3 +83,17 @@ class TextEncoder:
             for s, h in zip(missing, hidden.float().cpu()):
                 self._cache[s] = h
         return torch.stack([self._cache[s] for s in instructions])
+
+
+@contextlib.contextmanager
+def _no_loading_bar():
+    """transformers' "Loading weights" progress bar off for the block (its previous state restored)."""
+    from transformers.utils import logging as hf_logging
+
+    enabled = hf_logging.is_progress_bar_enabled()
+    hf_logging.disable_progress_bar()
+    try:
+        yield
+    finally:
+        if enabled:
+            hf_logging.enable_progress_bar()
