@@ -97,7 +97,8 @@ def run(args: argparse.Namespace) -> int:
 
     from tesseract4d.errors import UserError
     from tesseract4d.model.lr_schedule import check_max_steps
-    from tesseract4d.model.reflow import MANIFEST, PairsConfig, ReflowConfig, ReflowTrainer, generate_pairs
+    from tesseract4d.model.reflow import (MANIFEST, PairsConfig, ReflowConfig, ReflowTrainer, check_pairs_of_teacher,
+                                          generate_pairs)
     from tesseract4d.outputs import check_not_input
 
     if not args.pairs_only and args.out is None:
@@ -120,6 +121,8 @@ def run(args: argparse.Namespace) -> int:
         print(f"pairs: {args.pairs}")
     elif args.pairs_only or not (args.pairs / MANIFEST).is_file():
         raise UserError(f"pass --data DIR: the pairs in {args.pairs} are made from a dataset folder")
+    else:
+        check_pairs_of_teacher(args.pairs, args.teacher, args.teacher_steps, args.teacher_guidance)
     if args.pairs_only:
         return 0
     if args.keep_following:
