@@ -117,12 +117,12 @@ def test_pairs_from_several_dataset_folders(teacher, tmp_path):
     # Reused without --data (a student trained on them), the pairs are checked against the teacher all the same.
     student = ["distill", "--teacher", str(ckpt), "--pairs", str(tmp_path / "p"), "--teacher-steps", "2",
                "--out", str(tmp_path / "student"), "--max-steps", "1", "--no-progress", "--val-every", "0"]
-    assert main(student) == 2 and not (tmp_path / "student").exists()  # the preset's guidance, not 2.5
+    assert main([*student, "--teacher-guidance", "1.5"]) == 2 and not (tmp_path / "student").exists()  # not 2.5
     from tesseract4d.model.checkpoint import write_sampler_copy
 
-    interval = write_sampler_copy(ckpt, tmp_path / "interval", {"text_guidance": 2.5, "guidance_min_sigma": 0.5})
+    interval = write_sampler_copy(ckpt, tmp_path / "interval", {"guidance_min_sigma": 0.5})
     assert main([*student[:2], str(interval), *student[3:]]) == 2  # its copy with a guidance interval: other pairs
-    assert main([*student, "--teacher-guidance", "2.5"]) == 0
+    assert main(student) == 0  # the steps and guidance the pairs were made with are the student's record
     # the same episodes twice is refused before any pair is made
     assert main([*argv[:5], str(tmp_path / "q"), *argv[6:], str(data)]) == 2 and not (tmp_path / "q").exists()
 

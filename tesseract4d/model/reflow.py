@@ -102,18 +102,21 @@ def _check_manifest(out: Path, manifest: dict) -> None:
 
 def check_pairs_of_teacher(pairs: Path, teacher: Path, teacher_steps: int | None = None,
                            text_guidance: float | None = None) -> None:
-    """Refuse pairs (a ``--pairs`` folder reused without ``--data``) that ``teacher`` did not make as
-    it samples now: other weights, steps, guidance or guidance interval (``set-sampler`` copies
-    share weights but not their sampler). Reads configs and digests only, no weights into memory."""
+    """Refuse pairs (a ``--pairs`` folder reused without ``--data``) that ``teacher`` did not make:
+    other weights, or a sampler its settings fix (image guidance, guidance interval, autoguidance:
+    ``set-sampler`` copies share weights but not these); the steps and text guidance the pairs were
+    made with (recorded in the student's ``distilled_from``) only when given. Reads configs and
+    digests only, no weights into memory."""
     from tesseract4d.model.checkpoint import read_inference_config
     from tesseract4d.model.presets import preset_from_dict
 
     saved = json.loads((Path(pairs) / MANIFEST).read_text())
     p = preset_from_dict(read_inference_config(teacher)["preset"])
-    now = {"teacher_digest": weights_digest(teacher), "teacher_steps": teacher_steps or p.num_steps,
-           "text_guidance": p.text_guidance if text_guidance is None else text_guidance,
-           "image_guidance": p.image_guidance, "guidance_min_sigma": p.guidance_min_sigma,
-           "autoguidance": p.autoguidance, "autoguidance_min_sigma": p.autoguidance_min_sigma}
+    now = {"teacher_digest": weights_digest(teacher), "image_guidance": p.image_guidance,
+           "guidance_min_sigma": p.guidance_min_sigma, "autoguidance": p.autoguidance,
+           "autoguidance_min_sigma": p.autoguidance_min_sigma,
+           **({} if teacher_steps is None else {"teacher_steps": teacher_steps}),
+           **({} if text_guidance is None else {"text_guidance": text_guidance})}
     differ = [k for k, v in now.items() if saved.get(k, _MANIFEST_DEFAULTS.get(k)) != v]
     if differ:
         raise UserError(f"--pairs {pairs} holds pairs that {teacher} did not make as it samples now "
