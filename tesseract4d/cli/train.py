@@ -12,7 +12,8 @@
   tesseract4d train --export runs/v2 --to checkpoints/v2 --half     # the same in float16 (half the size)
 
 Every run ends (max steps, --max-minutes, Ctrl-C or SIGTERM) with a checkpoint and an export of
-the EMA weights to RUN/final. Scale out with `accelerate launch -m tesseract4d.cli train ...`.
+the EMA weights to RUN/final; a run stopped by Ctrl-C or SIGTERM then exits 130 or 143, so a
+scheduler tells it from a finished one (0). Scale out with `accelerate launch -m tesseract4d.cli train ...`.
 """
 
 from __future__ import annotations
