@@ -253,6 +253,7 @@ def test_a_stopped_idm_run_keeps_its_checkpoint_and_final_and_says_which_signal(
 
     assert load_idm(final).config.training["trained_steps"] == 3
     assert json.loads((tmp_path / "run" / "checkpoint" / "trainer_state.json").read_text())["step"] == 3
+    assert not (tmp_path / "run" / ".checkpoint.tmp").exists()  # written beside and swapped in
     assert "stopped at step 3; saving a checkpoint and final/" in capsys.readouterr().out
     assert IDMTrainer(dataclasses.replace(cfg, resume=True), text_encoder=text_encoder).step == 3
     from tesseract4d.errors import Terminated

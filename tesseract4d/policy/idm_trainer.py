@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import os
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -318,14 +319,23 @@ class IDMTrainer:
         return self.last_loss
 
     def save_checkpoint(self) -> Path:
+        """RUN/checkpoint, written whole beside it and swapped in: a stop mid-write keeps the previous one."""
+        import shutil
+
         from tesseract4d.model.trainer import save_optimizer, save_rng
+        from tesseract4d.outputs import signals_held
 
         ckpt = self.out / "checkpoint"
-        save_idm(self.model, ckpt)
-        save_optimizer(self.optimizer, ckpt)
-        save_rng(ckpt)
-        df.atomic_write_text(ckpt / "trainer_state.json", json.dumps(
+        tmp = self.out / ".checkpoint.tmp"  # this run's own name; one a killed run left is replaced
+        shutil.rmtree(tmp, ignore_errors=True)
+        save_idm(self.model, tmp)
+        save_optimizer(self.optimizer, tmp)
+        save_rng(tmp)
+        df.atomic_write_text(tmp / "trainer_state.json", json.dumps(
             {"step": self.step, "use_future": self.config.use_future, "last_loss": self.last_loss}))
+        with signals_held():
+            shutil.rmtree(ckpt, ignore_errors=True)
+            os.replace(tmp, ckpt)
         return ckpt
 
     def train(self) -> Path:
