@@ -110,3 +110,22 @@ def test_local_workers_ignore_a_stale_cluster_file(ray_dir, tmp_path):
                           capture_output=True, text=True, timeout=480)
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert len(list_episode_files(tmp_path / "ds")) == 1
+
+
+@pytest.mark.sim
+@pytest.mark.slow
+def test_sigterm_stops_local_workers_cleanly(ray_dir, tmp_path):
+    """ray.init() installs a SIGTERM handler of its own in the driver; datagen puts the command
+    line's back, so a scheduler's stop ends it as documented (143, its one line), not with Ray's dump."""
+    env = dict(os.environ, RAY_TMPDIR=str(ray_dir))
+    assert DATAGEN[6] == "--episodes"
+    argv = [*DATAGEN[:7], "6", *DATAGEN[8:], "--out", str(tmp_path / "ds"), "--workers", "2"]
+    proc = subprocess.Popen(argv, cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    deadline = time.monotonic() + 300
+    while not list((tmp_path / "ds").glob("episodes/*/*.h5")):  # the workers are running: stop it now
+        assert proc.poll() is None and time.monotonic() < deadline, proc.stderr.read()[-3000:]
+        time.sleep(0.5)
+    proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 143, err[-3000:]
+    assert "terminated; finished work is kept on disk" in err and "SIGTERM received" not in err
