@@ -384,3 +384,18 @@ def test_predicted_futures_need_episodes_rendered_at_every_step(episodes):
     ep.frame_steps = ep.frame_steps * 2
     with pytest.raises(UserError, match="--frames 0"):
         PredictedFutures(str(SHIPPED_CHECKPOINT), sample_steps=1).pairs(ep, "close", 64, 8, np.random.default_rng(0))
+
+
+@pytest.mark.sim
+def test_the_motion_planner_gets_the_same_step_budget_as_the_other_arms(tmp_path):
+    """Its PushCube plan of seed 100000 takes 65 steps: a success within --max-steps 200, a failure
+    (with the reason) within 40, as for every other arm."""
+    from tesseract4d.cli import main
+
+    for budget, expected in ((40, False), (200, True)):
+        out = tmp_path / f"r{budget}"
+        assert main(["rollout", "--arms", "motion_planner", "--tasks", "PushCube-v1", "--episodes", "1",
+                     "--max-steps", str(budget), "--out", str(out), "--no-progress"]) == 0
+        (episode,) = json.loads((out / "report.json").read_text())["episodes"]
+        assert episode["steps"] == 65 and episode["success"] is expected
+        assert ("beyond --max-steps 40" in episode["error"]) is (not expected)

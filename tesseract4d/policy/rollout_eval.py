@@ -254,9 +254,15 @@ def run_rollouts(cfg: RolloutConfig, progress: bool = True) -> dict:
                     t0 = time.perf_counter()
                     planner = sim.run(seed)
                     if "motion_planner" in cfg.arms:
-                        r = EpisodeResult(task, seed, "motion_planner", planner.success, planner.success, planner.num_steps,
+                        # The same step budget as the other arms: a plan that succeeds only after it counts as failed
+                        # (its success is known at the plan's end, so a longer plan is not credited).
+                        within = planner.success and planner.num_steps <= lc.max_steps
+                        error = planner.error or ("" if within or not planner.success else
+                                                  f"the plan succeeded after {planner.num_steps} steps, beyond --max-steps "
+                                                  f"{lc.max_steps}")
+                        r = EpisodeResult(task, seed, "motion_planner", within, within, planner.num_steps,
                                           0, 0, time.perf_counter() - t0, {}, planner.episode.instruction if planner.episode else "",
-                                          planner.error)
+                                          error)
                         results["motion_planner"].append(r)
                         rows.append({"task": task, **_row(r)})
                         if i < cfg.videos and planner.episode is not None:
