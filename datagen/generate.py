@@ -200,24 +200,6 @@ class _LocalPool:
         self.worker.close()
 
 
-def _signal_handlers() -> dict:
-    """This process's SIGTERM and SIGINT handlers (main thread only: elsewhere none are set)."""
-    import signal
-    import threading
-
-    if threading.current_thread() is not threading.main_thread():
-        return {}
-    return {s: signal.getsignal(s) for s in (signal.SIGTERM, signal.SIGINT)}
-
-
-def _restore_signal_handlers(handlers: dict) -> None:
-    import signal
-
-    for s, handler in handlers.items():
-        if handler is not None:  # None: set outside Python; nothing of ours to put back
-            signal.signal(s, handler)
-
-
 class _RayPool:
     """K Ray actors, one CPU each; attempts go to whichever actor is free."""
 
@@ -226,17 +208,17 @@ class _RayPool:
 
         self.ray = ray
         if not ray.is_initialized():
-            # ray.init() installs its own SIGTERM handler in this process (a stack dump, then exit 1 or an
-            # abort): the command line's handlers are put back, so SIGTERM stops datagen cleanly (143).
-            handlers = _signal_handlers()
-            if cfg.ray_address:
-                ray.init(address=cfg.ray_address, log_to_driver=False)
-            else:
-                # "local": always a fresh instance of our own, whatever cluster file an earlier
-                # `ray start --head` left behind (ray.init() would try to join it).
-                ray.init(address="local", num_cpus=cfg.workers, include_dashboard=False, log_to_driver=False,
-                         configure_logging=False)
-            _restore_signal_handlers(handlers)
+            from tesseract4d.stopping import handlers_kept
+
+            # ray.init() installs its own SIGTERM handler: the command line's stays (SIGTERM ends datagen with 143).
+            with handlers_kept():
+                if cfg.ray_address:
+                    ray.init(address=cfg.ray_address, log_to_driver=False)
+                else:
+                    # "local": always a fresh instance of our own, whatever cluster file an earlier
+                    # `ray start --head` left behind (ray.init() would try to join it).
+                    ray.init(address="local", num_cpus=cfg.workers, include_dashboard=False, log_to_driver=False,
+                             configure_logging=False)
         threads = max(1, (os.cpu_count() or 1) // cfg.workers)
         actor_cls = ray.remote(num_cpus=1)(Worker)
         self.actors = [actor_cls.remote(str(cfg.out), dataclasses.asdict(cfg.sim), cfg.previews, threads,

@@ -161,9 +161,9 @@ def note_leftovers(path: str | os.PathLike) -> list[Path]:
     the only copy of it. Returns the leftovers."""
     target = _resolve(path)
     ours = re.compile(rf"^\.{re.escape(target.name)}\.(tmp|old)-[A-Za-z0-9_]{{8}}$")
-    leftovers = sorted(p for p in target.parent.glob(glob.escape(f".{target.name}.") + "*") if ours.match(p.name))
-    for p in leftovers:
-        kind = ours.match(p.name).group(1)
+    found = sorted((p, m.group(1)) for p in target.parent.glob(glob.escape(f".{target.name}.") + "*")
+                   if (m := ours.match(p.name)))
+    for p, kind in found:
         if kind == "tmp":
             print(f"note: {p} is a staging {'folder' if p.is_dir() else 'file'} of a run writing {target} that was "
                   f"killed before it finished; delete it once no run is writing there", file=sys.stderr)
@@ -174,7 +174,7 @@ def note_leftovers(path: str | os.PathLike) -> list[Path]:
         else:
             print(f"note: {p} is an empty folder left by a run killed while replacing {target}; delete it",
                   file=sys.stderr)
-    return leftovers
+    return [p for p, _ in found]
 
 
 class OutputDir:

@@ -8,6 +8,7 @@ a finished one (0).
 
 from __future__ import annotations
 
+import contextlib
 import signal
 import threading
 
@@ -48,3 +49,18 @@ def raise_for_stop(signum: int | None) -> None:
         raise Terminated()
     if signum == signal.SIGINT:
         raise KeyboardInterrupt()
+
+
+@contextlib.contextmanager
+def handlers_kept():
+    """Put this process's SIGTERM and SIGINT handlers back after a block that installs its own
+    (``ray.init()`` does, with a stack dump and exit 1 on SIGTERM), so the command line's stop still
+    applies. Main thread only; a handler set outside Python (None) is left as the block left it."""
+    saved = ({s: signal.getsignal(s) for s in StopSignals.SIGNALS}
+             if threading.current_thread() is threading.main_thread() else {})
+    try:
+        yield
+    finally:
+        for s, handler in saved.items():
+            if handler is not None:
+                signal.signal(s, handler)

@@ -563,9 +563,6 @@ def serve_forever(app: ViewerApp) -> None:
     import signal
     import sys
 
-    check_address(app.host, app.port)  # before the warning: an address that does not serve warns of nothing
-    if note := network_warning(app.host):
-        print(note, file=sys.stderr, flush=True)
 
     def _terminate(signum, frame):
         raise Terminated()  # the same clean stop as Ctrl-C
@@ -573,7 +570,9 @@ def serve_forever(app: ViewerApp) -> None:
     # Installed before the URL is printed: whoever reads the URL may stop the viewer at once.
     previous = signal.signal(signal.SIGTERM, _terminate) if threading.current_thread() is threading.main_thread() else None
     try:
-        url = app.start()
+        url = app.start()  # checks the address first: one that cannot serve warns of nothing
+        if note := network_warning(app.host):
+            print(note, file=sys.stderr, flush=True)
         print(f"viewer: {url}  (Ctrl-C to stop)", flush=True)
         while True:
             threading.Event().wait(3600)

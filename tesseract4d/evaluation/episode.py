@@ -152,7 +152,8 @@ def evaluate_episode(pred: Episode | Recon4D, gt: Episode, camera: str | None = 
         per_frame.append(row)
 
     first = given_frames(pred) if first_scored_frame is None else int(first_scored_frame)
-    scored = per_frame[first:] if first < len(per_frame) else per_frame  # a single given frame: scored as it is
+    first = first if first < len(per_frame) else 0  # a clip of given frames only: scored as it is
+    scored = per_frame[first:]
     keys = list(per_frame[0]) if per_frame else []
     mean = {}
     for k in keys:
@@ -161,7 +162,7 @@ def evaluate_episode(pred: Episode | Recon4D, gt: Episode, camera: str | None = 
     return {
         "format": REPORT_FORMAT, "format_version": REPORT_VERSION, "definitions": DEFINITIONS,
         "camera": cam_name, "max_depth_m": max_depth_m, "num_frames": n, "pred_frames": int(len(pred_frames.rgb)), "gt_frames": int(len(truth.rgb)),
-        "first_scored_frame": first if first < len(per_frame) else 0, "mean": mean, "per_frame": per_frame,
+        "first_scored_frame": first, "mean": mean, "per_frame": per_frame,
     }
 
 

@@ -410,7 +410,6 @@ class AutoencoderTrainer:
         shutil.rmtree(tmp, ignore_errors=True)
         save_autoencoder(model, tmp)
         (tmp / FIDELITY_FILE).write_text(json.dumps(fidelity, indent=2))
-        files_as_created(tmp)
         if final.exists():
             shutil.rmtree(final)
         os.replace(tmp, final)
