@@ -17,6 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from datagen.cameras import CameraView
+from datagen.palette import COLORS
 from tesseract4d.conventions import T_world_cam_from_cam2world_gl, depth_m_from_mm, normal_gl_to_cv
 
 SHADER_PACK = "default"  # the only prebuilt pack that renders normals
@@ -114,10 +115,8 @@ class SceneRenderer:
         """Recolour the ``colorable`` actors (recorded name -> ManiSkill Actor) and/or change the lights, or restore ManiSkill's defaults.
 
         Returns what was applied (JSON-able): {"colors": {actor: colour name}, "lighting": {...}}.
-        Colours are distinct named colours from instructions.COLORS, so instructions can say them.
+        Colours are distinct named colours from palette.COLORS, so instructions can say them.
         """
-        from datagen.instructions import COLORS
-
         self._track_scene(base_env)
         if self._default_appearance is None:
             self._default_appearance = self._read_appearance(base_env, colorable)

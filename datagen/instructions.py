@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from datagen.tasks import get_task
 from tesseract4d.errors import UserError
 
 SPLITS = ("train", "heldout")
@@ -127,18 +128,6 @@ TEMPLATES: dict[str, dict[str, list[str]]] = {
     },
 }
 
-# Named colours used by --randomize-colors (RGBA in [0, 1]). Instructions say the name.
-COLORS: dict[str, tuple[float, float, float, float]] = {
-    "red": (0.85, 0.1, 0.1, 1.0),
-    "green": (0.1, 0.7, 0.15, 1.0),
-    "blue": (0.05, 0.16, 0.63, 1.0),
-    "yellow": (0.95, 0.85, 0.1, 1.0),
-    "purple": (0.5, 0.15, 0.7, 1.0),
-    "orange": (1.0, 0.5, 0.05, 1.0),
-    "cyan": (0.1, 0.8, 0.85, 1.0),
-    "white": (0.95, 0.95, 0.95, 1.0),
-}
-
 # A goal closer than this (metres) to the object in the table plane counts as "straight up".
 _SAME_PLACE_M = 0.02
 
@@ -179,8 +168,6 @@ def scene_attributes(env_id: str, positions: dict[str, np.ndarray], colors: dict
     colors: recorded object name -> colour name for the task's colourable actors.
     Returns a JSON-able dict of words (color, color2, direction, height, side as the task uses).
     """
-    from datagen.tasks import get_task
-
     spec = get_task(env_id)
     attrs: dict = {}
     if spec.colorable:

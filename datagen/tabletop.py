@@ -7,7 +7,7 @@ Each reset, seeded by the episode seed:
 - 2 to 4 objects of the pool are placed on the table at random, non-overlapping positions
   (at least ``MIN_SPACING_M`` apart, centres within ``REGION_XY``) with random yaw; the rest
   are parked out of view under the floor far from the table;
-- every object present gets a distinct named colour from ``datagen.instructions.COLORS``
+- every object present gets a distinct named colour from ``datagen.palette.COLORS``
   (render-only, so physics and recorded actions do not depend on it), so instructions can say
   "the green cylinder";
 - with ``goal_marker=True`` a red and white target lies flat at a free spot of the table; by
@@ -20,6 +20,8 @@ Each reset, seeded by the episode seed:
 from __future__ import annotations
 
 import numpy as np
+
+from datagen.palette import COLORS
 
 ENV_ID = "Tesseract4dTabletop-v1"
 
@@ -35,7 +37,7 @@ CYLINDER_RADIUS_M = 0.02
 MIN_OBJECTS, MAX_OBJECTS = 2, 4
 REGION_XY = ((-0.1, 0.1), (-0.15, 0.15))  # (x range, y range) of object centres
 MIN_SPACING_M = 0.09
-# Colours drawn per episode (names of datagen.instructions.COLORS): only ones that stay easy to
+# Colours drawn per episode (names of datagen.palette.COLORS): only ones that stay easy to
 # tell apart at 64-128 pixels (orange next to yellow or red is not).
 PALETTE = ("red", "green", "blue", "yellow", "purple", "cyan")
 _PARK_Z = -5.0  # unused pool objects wait here, far below the floor and out of every camera
@@ -58,7 +60,6 @@ def register() -> str:
     from mani_skill.utils.scene_builder.table import TableSceneBuilder
     from mani_skill.utils.structs.pose import Pose
 
-    from datagen.instructions import COLORS
 
     if ENV_ID in REGISTERED_ENVS:
         _registered = True

@@ -108,3 +108,70 @@ def test_imports_from_the_same_floor_or_below_pass(tmp_path):
     module.write_text("import numpy\nfrom tesseract4d.errors import UserError\nfrom reconstruction.recon4d import Recon4D\n"
                       "from tesseract4d.evaluation import metrics\n")
     assert upward_imports(module, tmp_path) == []
+
+
+def import_graph(root: Path = ROOT) -> dict[str, set[str]]:
+    """Module -> the project modules it imports anywhere in its file (lazy imports count): a name
+    that is an attribute rather than a module resolves to the module that defines it."""
+    modules = {module_name(p, root): p for pkg in PACKAGES if (root / pkg).is_dir() for p in (root / pkg).rglob("*.py")}
+    graph: dict[str, set[str]] = {}
+    for name, path in modules.items():
+        targets = set()
+        for _, names in imports(path, root):
+            for n in names:
+                while n and n not in modules:
+                    n = n.rpartition(".")[0]
+                if n and n != name and not name.startswith(n + "."):  # a package's own __init__ is not an edge
+                    targets.add(n)
+        graph[name] = targets
+    return graph
+
+
+def import_cycles(graph: dict[str, set[str]]) -> list[list[str]]:
+    """The strongly connected components of more than one module (Tarjan), each sorted."""
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    on_stack: set[str] = set()
+    cycles: list[list[str]] = []
+
+    def visit(v: str) -> None:
+        index[v] = low[v] = len(index)
+        stack.append(v)
+        on_stack.add(v)
+        for w in graph.get(v, ()):
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in on_stack:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            component = []
+            while True:
+                w = stack.pop()
+                on_stack.discard(w)
+                component.append(w)
+                if w == v:
+                    break
+            if len(component) > 1:
+                cycles.append(sorted(component))
+
+    for v in sorted(graph):
+        if v not in index:
+            visit(v)
+    return cycles
+
+
+def test_no_import_circle():
+    cycles = import_cycles(import_graph())
+    assert not cycles, "modules that import each other (directly or around a circle):\n" + "\n".join(
+        " <-> ".join(c) for c in cycles)
+
+
+def test_an_import_circle_through_a_lazy_import_is_found(tmp_path):
+    (tmp_path / "datagen").mkdir()
+    (tmp_path / "datagen" / "a.py").write_text("from datagen.b import B\nA = 1\n")
+    (tmp_path / "datagen" / "b.py").write_text("def f():\n    from datagen.c import C\n")
+    (tmp_path / "datagen" / "c.py").write_text("from datagen import a\nC = 1\n")
+    (tmp_path / "datagen" / "d.py").write_text("from datagen.a import A\n")
+    assert import_cycles(import_graph(tmp_path)) == [["datagen.a", "datagen.b", "datagen.c"]]

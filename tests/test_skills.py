@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 
 from datagen import skills as sk
-from datagen.instructions import COLORS, direction_words
+from datagen.instructions import direction_words
+from datagen.palette import COLORS
 from datagen.skill_language import TEMPLATES, make_skill_instruction, skill_attributes
 from datagen.tabletop import ENV_ID as TABLETOP
 from tesseract4d.cli import main
