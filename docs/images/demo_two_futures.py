@@ -1,4 +1,11 @@
-"""Compose docs/images/demo_two_futures.png from `tesseract4d demo --headless`'s side_by_side.mp4."""
+"""Compose docs/images/demo_two_futures.png (the README's picture) from the demo's side_by_side.mp4.
+
+    tesseract4d demo --headless --out /tmp/demo_out
+    .venv/bin/python docs/images/demo_two_futures.py /tmp/demo_out/side_by_side.mp4 docs/images/demo_two_futures.png \
+        "shove the purple cube 10 cm to the left" "don't move"
+
+Per instruction: RGB at frames 0, 5, 10 and 15, then the depth and normals of frame 15.
+"""
 import sys
 import cv2
 import imageio.v3 as iio
