@@ -30,6 +30,9 @@ After changing the command line, run `.venv/bin/python scripts/cli_docs.py` (`te
 fails while this page is stale). How the commands fit together: [getting_started.md](getting_started.md).
 """
 
+# Groups the top-level help does not list (diagnostics for the project's own research); documented at the
+# end of the page when the command line has them.
+UNLISTED_GROUPS = ("research",)
 # The usage line of a parser with subparsers ends in "{a,b,c} ...".
 _SUBPARSERS = re.compile(r"\{([A-Za-z0-9_,-]+)\} \.\.\.")
 # A subcommand line of the top-level help's listing: two spaces, the name, two or more spaces, its help.
@@ -80,9 +83,17 @@ def nested(help_: str) -> list[str]:
 def render() -> str:
     top = help_text([])
     parts = [HEADER, "## tesseract4d\n", "```text\n" + top + "```\n"]
-    stack = [[name] for name in listed_subcommands(top)]
-    if not stack:
+    listed = listed_subcommands(top)
+    if not listed:
         raise RuntimeError("the top-level help lists no subcommands")
+    stack = [[name] for name in listed]
+    for name in UNLISTED_GROUPS:
+        if name not in listed:
+            try:
+                help_text([name])
+            except RuntimeError:  # this command line has no such group
+                continue
+            stack.append([name])
     while stack:
         argv = stack.pop(0)
         text = help_text(argv)
