@@ -20,7 +20,7 @@ written to OUT/ablation.md (and OUT/ablation.json).
       --autoencoder tesseract4d/checkpoints/v2/autoencoder --heldout data/heldout_groups128 --max-per-task 16 \\
       --out runs/ablation --minutes 9 [--variants baseline,velocity]
 
-(The README's table was made with v2's autoencoder before its decoder fine-tune, runs/v2/ae_ft: the
+(The recipe ablation of docs/research/training.md was made with v2's autoencoder before its decoder fine-tune, runs/v2/ae_ft: the
 same encoder, so the same latents, and an older decoder.)
 """
 

@@ -266,7 +266,7 @@ def check_ray_cluster(address: str, timeout_s: float = 5.0) -> None:
         socket.create_connection((host, int(port)), timeout=timeout_s).close()
     except OSError as e:
         raise UserError(f"no Ray cluster answers at {address} ({e.strerror or e}); start one on the head machine with "
-                        f"`ray start --head --port {port}` (see README, 'Generating on several machines') or fix "
+                        f"`ray start --head --port {port}` (see docs/ray_cluster.md) or fix "
                         f"--ray-address") from None
     try:
         from ray._raylet import GcsClient  # the first call ray.init() makes; fails fast on a bad token

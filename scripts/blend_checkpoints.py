@@ -9,7 +9,7 @@ stored in B's dtypes) and everything else B's (config, scheduler, autoencoder).
 The two must see the same inputs (resolution, frames, text encoder, latent space) and have the same
 tensors; the blend is recorded in the copy's tesseract4d_config.json under ``blended``.
 
-Example (the guide of README "Autoguidance": a quarter of the way back from step 6's v2 to step 5's):
+Example (the guide of docs/research/sampling.md, "Autoguidance": a quarter of the way back from step 6's v2 to step 5's):
   mkdir -p runs/v2_step5 runs/v2_step6
   git archive 228897b tesseract4d/checkpoints/v2 | tar -x -C runs/v2_step5
   git archive 66cad09 tesseract4d/checkpoints/v2 | tar -x -C runs/v2_step6

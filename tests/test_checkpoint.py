@@ -47,7 +47,7 @@ def test_the_default_is_a_one_pass_per_step_student_of_v2():
 
 def test_v2_skips_guidance_only_at_its_last_low_noise_steps():
     """v2 samples 10 guided steps but its last two (noise 0.11 and 0.001), where guidance changed none of
-    the held-out measures (README "Sampling v2"): 18 network passes per clip instead of 20."""
+    the held-out measures (docs/research/sampling.md): 18 network passes per clip instead of 20."""
     from tesseract4d.model.pipeline import make_scheduler
     from tesseract4d.model.presets import preset_from_dict
 
@@ -140,7 +140,7 @@ def test_a_checkpoint_can_share_the_autoencoder_of_the_one_beside_it(tmp_path):
 
 
 def test_v2_ships_an_8_bit_guide_that_autoguidance_turns_on(tmp_path):
-    """v2 carries an autoguidance guide in 8 bits (README "Autoguidance") but samples without it by
+    """v2 carries an autoguidance guide in 8 bits (docs/research/sampling.md) but samples without it by
     default (and does not load it); `set-sampler --autoguidance W` needs no --guide to turn it on. The default student reads
     v2's autoencoder instead of storing a second copy."""
     from tesseract4d import cli

@@ -16,19 +16,19 @@ wrong; one more network pass per step. `--autoguidance-min-sigma S` runs that pa
 
 Static compositing (`--static-tolerance T`): where the decoded clip stays within T of its frame 0, the
 given first frame's own pixels are shown instead of the decoder's redrawing of them; the parts of the
-scene the model moves are left as predicted (README "Static compositing").
+scene the model moves are left as predicted (docs/research/sampling.md, "Static compositing").
 
 Several noise draws (`--draws N`): every future is predicted from N noises and the one whose objects
 keep their colours best is kept (read from the first frame and the predicted clip only: its objects
-named by its segmentation, or found by their colour without one; README "The best of two noise
-draws"); N times the sampling.
+named by its segmentation, or found by their colour without one; docs/research/sampling.md); N times
+the sampling.
 
 Example (v2's 10 guided steps, guidance only at noise ≥ 0.5: 15 network passes per clip instead of 20):
   tesseract4d set-sampler --checkpoint tesseract4d/checkpoints/v2 --guidance-min-sigma 0.5 --to runs/v2_interval
   tesseract4d evaluate --heldout data/heldout_groups128 --checkpoint tesseract4d/checkpoints/v2 \\
       --checkpoint runs/v2_interval --sample-seed 0 1 --out outputs/interval
 
-Example (v2 carries a guide, in 8 bits, off by default; this turns it on; README "Autoguidance"):
+Example (v2 carries a guide, in 8 bits, off by default; this turns it on; docs/research/sampling.md):
   tesseract4d set-sampler --checkpoint tesseract4d/checkpoints/v2 --autoguidance 1 --to runs/v2_ag
 
 Example (another guide: an earlier v2 of the same latent space, taken from git history):
@@ -64,7 +64,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--draws", type=int, metavar="N",
                         help="predict every future from N noise draws and keep the one whose objects (named by the "
                              "first frame's segmentation, or found by their colour) keep their colours best; N times "
-                             "the sampling (1 = a single draw; README \"The best of two noise draws\")")
+                             "the sampling (1 = a single draw; docs/research/sampling.md)")
     parser.add_argument("--guide", type=Path, metavar="CKPT",
                         help="checkpoint whose transformer becomes the copy's autoguidance network: a weaker "
                              "model of the same latent space, e.g. an early checkpoint of the same training run")

@@ -15,7 +15,7 @@ first-frame segmentation, object poses and camera (a world with z up and a table
 
 The table's height is the median world height of the first frame's table pixels. On the held-out
 tabletop groups (two noise draws, 66 active instructions) this finds the ground truth's arm at the
-instructed object in 56, against 0.37 by chance (README, "Why the tabletop's instructions fail").
+instructed object in 56, against 0.37 by chance (docs/research/evaluation.md, "Where a model fails").
 """
 
 from __future__ import annotations

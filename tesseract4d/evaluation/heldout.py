@@ -79,7 +79,7 @@ from tesseract4d.resize import episode_at_resolution, resize_factor
 
 METHODS = ("model", "model_raw", "static")
 METHOD_LABELS = {"model": "model + consistency", "model_raw": "model, no consistency", "static": "static world"}
-# The metrics of the README table: (key, label, higher is better).
+# The metrics of the per-method table (docs/evaluation.md): (key, label, higher is better).
 TABLE_METRICS = (
     ("rgb_psnr_db", "RGB PSNR (dB)", True),
     ("rgb_ssim", "RGB SSIM", True),
@@ -109,8 +109,8 @@ class HeldoutConfig:
     batch_size: int | None = None  # scenes per network call; None = predict.DEFAULT_SCENE_BATCH
     text_guidance: float | None = None  # None: each checkpoint preset's text guidance scale
     # A diagnostic: every checkpoint's sampler starts from the episode's true future (through its
-    # codec) noised to its first noise level <= this, and runs only the steps from there (README,
-    # "Handed the true future part-way"). None: from pure noise, as a model is used.
+    # codec) noised to its first noise level <= this, and runs only the steps from there
+    # (docs/research/evaluation.md, "Where a model fails"). None: from pure noise, as a model is used.
     start_from_truth: float | None = None
 
 

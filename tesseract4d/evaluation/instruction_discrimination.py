@@ -18,7 +18,7 @@ for a group of n distinct instructions is 1/n.
 noisy sample of another future of its group (noise level :data:`SIBLING_T`, the group's noise), does
 the network's prediction from an episode's own words land closer to that episode's future than to the
 future it was shown? A denoiser that reads the future from its noisy sample and not from the words
-sides with the sample; docs/results_history.md, "Where the instruction is lost", has what v2 does.
+sides with the sample; docs/research/evaluation.md, "Where a model fails", has what v2 does.
 """
 
 from __future__ import annotations

@@ -305,7 +305,7 @@ def write_sampler_copy(checkpoint: str | os.PathLike, to: str | os.PathLike, set
     autoguidance, static compositing, noise draws), the weights byte for byte the same. ``guide``: a checkpoint whose transformer the
     copy carries as its autoguidance network (GUIDE_DIR), byte for byte, or with ``guide_bits`` 8 its
     matrices rounded to 8 bits per output row (half the bytes; a guide is a weaker network, and such a
-    guide samples nearly as its float16 original on the held-out screen, README "Autoguidance"). The
+    guide samples nearly as its float16 original on the held-out screen, docs/research/sampling.md). The
     previous settings and the source are recorded in INFERENCE_CONFIG_FILE under ``sampler_changed``;
     a model card is not copied (it describes the source)."""
     import shutil

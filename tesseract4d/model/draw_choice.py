@@ -1,7 +1,7 @@
 """Best of several noise draws: keep the future whose objects keep their colours.
 
-One noise draw decides much of a future (README "One noise draw decides much of an instruction's
-outcome"): in some draws a cube the arm reaches stays a cube, in others it turns into a blob of the
+One noise draw decides much of a future (docs/research/sampling.md, "The best of several noise
+draws"): in some draws a cube the arm reaches stays a cube, in others it turns into a blob of the
 other objects' colours or fades. With ``draws`` N > 1 the sampler predicts each scene from N noises
 and keeps the future that :func:`objects_kept` scores highest. The score reads only the given first
 frame (its RGB, and its segmentation where it has one) and the predicted clip, never anything of the

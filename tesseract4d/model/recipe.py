@@ -12,8 +12,8 @@
   cylinders; not the robot: share of their pixels per latent cell, from the cached segmentation) is
   weighted up on top, by their share of each cell. The scene's objects hold 1.5 % of the pixels of
   the training clips and, under v2's recipe, 1.9 % of the loss weight (the robot 25 %; weight 10:
-  6 %), and v2 turns a moved object into a smear at middle noise (README, "Handed the true future
-  part-way").
+  6 %), and v2 turns a moved object into a smear at middle noise (docs/research/evaluation.md, "Where a
+  model fails").
 - ``prediction``: the network's target. ``x0`` (the clean clip as "first frame + correction") or
   ``velocity`` (``noise - x0``, the same output read as a velocity after removing the first frame).
 - ``time_shift``: where training draws the diffusion time. ``t = s u / (1 + (s - 1) u)`` with
@@ -23,7 +23,7 @@
 - ``time_logit_normal``: with a standard deviation ``m > 0``, ``u`` above is drawn logit-normal
   instead of uniform (``u = sigmoid(m n)``, ``n ~ N(0, 1)``; SD3's sampling of training times), which
   trains most at middle noise: v2 started from the true future loses moved objects there, at noise
-  0.3-0.8 (README, "Handed the true future part-way"). 0 keeps the uniform draw.
+  0.3-0.8 (docs/research/evaluation.md, "Where a model fails"). 0 keeps the uniform draw.
 - ``group_batches``: every batch is made of whole counterfactual groups (one scene under several
   instructions, ``clips.draw_group_batch``) that share one noise and one diffusion time, so within a
   group the only thing that tells the futures apart is the words.
@@ -35,19 +35,19 @@
   at least ``SWAP_MIN_T`` is shown the noisy sample of another future of its group (same noise, same
   time) and must still predict its own instruction's future. It trains the network to side with the
   words where the noisy sample points elsewhere, as a sampler's intermediate samples do when they
-  drift back towards the first frame (docs/results_history.md, "Where the instruction is lost"). Below ``SWAP_MIN_T``
+  drift back towards the first frame (docs/research/evaluation.md, "Where a model fails"). Below ``SWAP_MIN_T``
   the noisy sample pins the future, and the swap would ask for the impossible.
 - ``rephrase``: with this probability, a clip's instruction is replaced by another training wording
   of the same meaning (same object, direction and distance; the paraphrases come from the datagen's
   train templates, ``datagen.paraphrases``, handed to the trainer by the command line). It trains the
   network to read what the words say rather than which of a few sentences it saw: a model trained
-  long on three wordings per skill kept still only under those three (README, "v2 trained with many
-  wordings").
+  long on three wordings per skill kept still only under those three (docs/research/training.md,
+  "Words").
 - ``text_noise``: Gaussian noise on the instruction's token embeddings during training, of std
   ``U(0, text_noise)`` per sample times each token's own root-mean-square (padding stays zero;
   sampling uses the clean words). Long training on a few hundred sentences learns those sentences:
-  a held-out wording whose embedding sits between two training meanings was lost (README, "Step 14
-  trained on for 6 minutes on a lent GPU"); noise fills the space around each training sentence so
+  a held-out wording whose embedding sits between two training meanings was lost (docs/research/training.md,
+  "Words"); noise fills the space around each training sentence so
   that nearby wordings read the same.
 - ``text_dropout`` (TrainConfig) and the guidance scales (``tesseract4d predict``) already exist.
 
