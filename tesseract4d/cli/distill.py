@@ -28,7 +28,7 @@ from pathlib import Path
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     from tesseract4d.cli.argument_types import number, probability, seed, whole
-    from tesseract4d.model.lr_schedule import add_max_steps_argument
+    from tesseract4d.training.schedule import add_max_steps_argument
     from tesseract4d.model.reflow import PairsConfig, ReflowConfig
     from tesseract4d.precision import add_precision_argument
 
@@ -77,7 +77,7 @@ def run(args: argparse.Namespace) -> int:
     from tesseract4d.stopping import raise_for_stop
 
     from tesseract4d.errors import UserError
-    from tesseract4d.model.lr_schedule import check_max_steps
+    from tesseract4d.training.schedule import check_max_steps
     from tesseract4d.model.reflow import (MANIFEST, PairsConfig, ReflowConfig, ReflowTrainer, check_pairs_of_teacher,
                                           generate_pairs)
     from tesseract4d.outputs import check_not_input
@@ -110,7 +110,7 @@ def run(args: argparse.Namespace) -> int:
         data=args.pairs, out=args.out, teacher=args.teacher, student_steps=args.student_steps,
         max_steps=args.max_steps, max_minutes=args.max_minutes, batch_size=args.batch_size, lr=args.lr,
         precision=args.precision, resume=args.resume, val_every=args.val_every, ckpt_every=args.ckpt_every,
-        seed=args.seed, progress=not args.no_progress, group_batches=args.counterfactual_swap > 0,
+        seed=args.seed, quiet=args.no_progress, group_batches=args.counterfactual_swap > 0,
         counterfactual_swap=args.counterfactual_swap, rephrase=args.rephrase)
     from datagen.paraphrases import train_paraphrases
 

@@ -26,7 +26,7 @@ from tesseract4d.model.presets import PRESETS
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     from tesseract4d.model.recipe import SWAP_MIN_T
-    from tesseract4d.model.lr_schedule import add_max_steps_argument
+    from tesseract4d.training.schedule import add_max_steps_argument
     from tesseract4d.model.trainer import TrainConfig
     from tesseract4d.precision import add_precision_argument
 
@@ -119,7 +119,7 @@ def run(args: argparse.Namespace) -> int:
         max_minutes=args.max_minutes, stop_at_step=args.stop_at_step, batch_size=args.batch_size, lr=args.lr,
         warmup_steps=args.warmup_steps,
         precision=args.precision, resume=args.resume, val_every=args.val_every, ckpt_every=args.ckpt_every, seed=args.seed,
-        camera=args.camera, progress=not args.no_progress, loss_weights=weights, autoencoder=args.autoencoder,
+        camera=args.camera, quiet=args.no_progress, loss_weights=weights, autoencoder=args.autoencoder,
         condition_noise=args.condition_noise, moving_weight=args.moving_weight, object_weight=args.object_weight,
         scene_object_weight=args.scene_object_weight,
         text_dropout=args.text_dropout, init=args.init, time_logit_normal=args.time_logit_normal,

@@ -1,7 +1,7 @@
 """Train the RGB-D-N autoencoder of the latent world model (per frame, continuous latents).
 
 Reads every frame of a dataset folder (RGB, metric depth, normals, segmentation) into memory and
-trains a diffusers AutoencoderKL behind a pixel-unshuffle stem. Every --ckpt-minutes it writes a
+trains a diffusers AutoencoderKL behind a pixel-unshuffle stem. Every --ckpt-every steps it writes a
 resumable checkpoint (RUN/checkpoint-XXXXXX/) and exports RUN/autoencoder/ (EMA weights, latent
 statistics), measures the fidelity gate on the --heldout frames (RGB PSNR, depth mm/AbsRel, normal
 angle; all pixels and robot/object pixels), prints it and stores it as RUN/autoencoder/fidelity.json.
@@ -31,7 +31,7 @@ from pathlib import Path
 from tesseract4d.cli.argument_types import number, seed, whole
 from tesseract4d.model.autoencoder import AUTOENCODER_PRESETS
 from tesseract4d.model.autoencoder_trainer import AutoencoderTrainConfig
-from tesseract4d.model.lr_schedule import add_max_steps_argument
+from tesseract4d.training.schedule import add_max_steps_argument
 from tesseract4d.precision import add_precision_argument
 
 
@@ -67,8 +67,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--normal-weight", type=number(0), default=d.normal_weight, help="default %(default)s")
     parser.add_argument("--kl-weight", type=number(0), default=d.kl_weight, help="default %(default)s")
     add_precision_argument(parser)
-    parser.add_argument("--ckpt-minutes", type=number(0, above=True), default=d.ckpt_minutes,
-                        help="minutes between checkpoints + fidelity gate (default %(default)s)")
+    parser.add_argument("--ckpt-every", type=whole(0, hint=" (0 = only at the end)"), default=d.ckpt_every,
+                        help="steps between checkpoints + fidelity gate (default %(default)s)")
     parser.add_argument("--heldout-frames", type=whole(1), default=d.heldout_frames,
                         help="held-out frames in the fidelity gate (default %(default)s)")
     parser.add_argument("--seed", type=seed(), default=d.seed)
@@ -92,8 +92,8 @@ def run(args: argparse.Namespace) -> int:
         frame_stride=args.frame_stride, warmup_steps=args.warmup_steps,
         max_steps=args.max_steps, max_minutes=args.max_minutes, batch_size=args.batch_size, lr=args.lr,
         object_weight=args.object_weight, rgb_weight=args.rgb_weight, depth_weight=args.depth_weight, normal_weight=args.normal_weight,
-        kl_weight=args.kl_weight, precision=args.precision, ckpt_minutes=args.ckpt_minutes,
-        heldout_frames=args.heldout_frames, seed=args.seed, resume=args.resume, progress=not args.quiet,
+        kl_weight=args.kl_weight, precision=args.precision, ckpt_every=args.ckpt_every,
+        heldout_frames=args.heldout_frames, seed=args.seed, resume=args.resume, quiet=args.quiet,
     )
     trainer = AutoencoderTrainer(cfg, format_fn=format_fidelity)
     if cfg.heldout is not None:
