@@ -46,7 +46,7 @@ def bench_autoencoder_codec(ae_dir: Path, bf16: bool, repeats: int) -> dict:
         enc = median_seconds(lambda: codec.encode(x), repeats)
         dec = median_seconds(lambda: codec.decode(z), repeats)
     return {"encode_s": enc, "decode_s": dec, "peak_mb": _peak_rss_mb(),
-            "decoder": f"{cfg.decoder_layers + 1}-resnet decoder blocks"}
+            "decoder": f"{cfg.layers_per_block + 1}-resnet decoder blocks"}
 
 
 def bench_autoencoder_training(data: Path, preset: str, bf16: bool, steps: int) -> dict:
@@ -54,7 +54,7 @@ def bench_autoencoder_training(data: Path, preset: str, bf16: bool, steps: int) 
 
     with tempfile.TemporaryDirectory() as out:
         trainer = AutoencoderTrainer(AutoencoderTrainConfig(data=data, out=Path(out) / "run", preset=preset,
-                                                            precision="bf16" if bf16 else "fp32", progress=False))
+                                                            precision="bf16" if bf16 else "fp32", quiet=True))
         trainer.train_step()
         _reset_peak_rss()
         s = median_seconds(trainer.train_step, steps)
@@ -68,7 +68,7 @@ def bench_latent_training(data: Path, ae_dir: Path, bf16: bool, steps: int, batc
         trainer = Trainer(TrainConfig(data=data, out=Path(out), preset="latent-128", autoencoder=ae_dir,
                                       precision="bf16" if bf16 else "fp32",
                                       max_steps=steps + 1, batch_size=batch_size, val_every=0, ckpt_every=0,
-                                      progress=False))
+                                      quiet=True))
         trainer.train_step()
         _reset_peak_rss()
         s = median_seconds(trainer.train_step, steps)

@@ -136,7 +136,7 @@ def _train_cfg(data, out, **kw):
     from tesseract4d.model.autoencoder_trainer import AutoencoderTrainConfig
 
     return AutoencoderTrainConfig(data=data, out=out, preset="ae-test", batch_size=2, warmup_steps=1,
-                                  precision="fp32", progress=False, **kw)
+                                  precision="fp32", quiet=True, **kw)
 
 
 def test_trainer_resume_is_exact_and_gate_is_stored(tmp_path):
@@ -237,30 +237,17 @@ def test_loss_weights_robot_and_object_pixels_and_edges():
     assert inside.any()
 
 
-def test_colour_gradient_loss_charges_a_blurred_edge_not_an_even_colour_error():
-    from tesseract4d.model.autoencoder_trainer import AutoencoderTrainConfig, reconstruction_loss
+def test_an_autoencoder_config_with_the_removed_decoder_depth_reads_only_at_its_no_op_value():
+    """Autoencoders saved before the lighter decoder was removed record ``decoder_layers_per_block``:
+    null (or the encoder's depth) reads as before, a lighter one is refused with the fix."""
+    from tesseract4d.errors import UserError
+    from tesseract4d.model.autoencoder import AutoencoderConfig, get_autoencoder_preset
 
-    s = channel_slices()
-    target = torch.zeros(1, 7, 16, 16)
-    target[:, s["normal"].stop - 1] = 1.0  # unit normals: the normal terms are 0 everywhere
-    target[:, s["rgb"], :, 8:] = 1.0  # a vertical colour edge between columns 7 and 8
-    blurred = target.clone()
-    blurred[:, s["rgb"], :, 7:9] = torch.tensor([0.25, 0.75]).view(1, 1, 1, 2)  # the edge in place, softened
-    offset = target.clone()
-    offset[:, s["rgb"]] += 0.5 / 16  # the same mean L1 error, spread evenly: no edge lost
-    mask, kl = torch.zeros(1, 16, 16, dtype=torch.bool), torch.zeros(1)
-    plain, with_grad = AutoencoderTrainConfig(edge_weight=0.0), AutoencoderTrainConfig(edge_weight=0.0, rgb_grad_weight=4.0)
-    assert AutoencoderTrainConfig().rgb_grad_weight == 0.0  # off unless asked for: existing recipes unchanged
-    for cfg in (plain, with_grad):
-        assert float(reconstruction_loss(target, target, mask, kl, cfg)[0]) == pytest.approx(0.0, abs=1e-7)
-    _, p_blur = reconstruction_loss(blurred, target, mask, kl, with_grad)
-    _, p_offset = reconstruction_loss(offset, target, mask, kl, with_grad)
-    assert p_blur["rgb"] == pytest.approx(p_offset["rgb"])  # L1 rates them alike ...
-    assert p_offset["rgb_grad"] == pytest.approx(0.0, abs=1e-7)  # ... the new term charges only the blur
-    assert p_blur["rgb_grad"] > 0.01
-    total_plain, _ = reconstruction_loss(blurred, target, mask, kl, plain)
-    total_grad, _ = reconstruction_loss(blurred, target, mask, kl, with_grad)
-    assert float(total_grad - total_plain) == pytest.approx(4.0 * p_blur["rgb_grad"], rel=1e-5)
+    saved = get_autoencoder_preset("ae-test").to_dict()
+    for no_op in (None, saved["layers_per_block"]):
+        assert AutoencoderConfig.from_dict({**saved, "decoder_layers_per_block": no_op}) == AutoencoderConfig.from_dict(saved)
+    with pytest.raises(UserError, match="decoder of 0 layers per block"):
+        AutoencoderConfig.from_dict({**saved, "decoder_layers_per_block": 0})
 
 
 def test_gate_measures_edge_sharpness_of_the_round_trip(tmp_path):
@@ -479,7 +466,7 @@ def test_max_steps_auto_fits_the_autoencoder_schedule_and_resume_keeps_it(tmp_pa
     from tesseract4d.model.autoencoder_trainer import AutoencoderTrainer
 
     # Clock reads: start 1, after steps 1/2/3: 2, 3, 4 -> 1 step/s with 0.2 min - 3 s left.
-    short_step_budget(monkeypatch, "tesseract4d.model.autoencoder_trainer")
+    short_step_budget(monkeypatch, "tesseract4d.training.loop")
     fitted = 3 + int(1.0 * (12.0 - 3.0) * 0.93)
     data = write_segmented_dataset(tmp_path / "data")
     run = tmp_path / "auto"
@@ -510,5 +497,5 @@ def test_a_stop_signal_ends_training_with_a_checkpoint_and_says_so(tmp_path, cap
     assert {s: signal.getsignal(s) for s in before} == before
     assert gate["step"] == 2
     assert json.loads((tmp_path / "run" / "autoencoder" / "fidelity.json").read_text())["step"] == 2
-    assert "stopped at step 2; saving a checkpoint" in capsys.readouterr().out
+    assert "stopped by SIGTERM at step 2; saving a checkpoint and the export" in capsys.readouterr().out
     assert trainer.stopped_by == signal.SIGTERM  # the command line then ends 143 (raise_for_stop)

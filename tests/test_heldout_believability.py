@@ -163,7 +163,7 @@ def two_checkpoints(micro_preset, tmp_path_factory):
     root = tmp_path_factory.mktemp("believe")
     data = write_synthetic_dataset(root / "train", episodes=2)
     a = Trainer(TrainConfig(data=data, out=root / "run", preset=MICRO.name, max_steps=4, val_every=0,
-                            ckpt_every=0, progress=False)).train()
+                            ckpt_every=0, quiet=True)).train()
     b = root / "other" / "v2"
     shutil.copytree(a, b)
     heldout = root / "heldout"
@@ -292,12 +292,8 @@ def test_a_guidance_interval_is_sampled_and_reported(two_checkpoints, tmp_path):
                                  "interval": {"num_steps": steps, "text_guidance": 2.0, "guidance_min_sigma": 0.5}}
     assert report["summary"]["guided"]["rgb_psnr_db"] != report["summary"]["interval"]["rgb_psnr_db"]
     assert "interval 10 steps, text guidance 2 at noise ≥ 0.5".replace("10", str(steps)) in format_markdown(report)
-    # An autoguidance interval is named after the scale it limits.
     from tesseract4d.evaluation.heldout import describe_sampler
 
-    assert describe_sampler({"num_steps": 10, "text_guidance": 1.5, "guidance_min_sigma": 0.2, "autoguidance": 1.0,
-                             "autoguidance_min_sigma": 0.5}) == ("10 steps, text guidance 1.5 at noise ≥ 0.2, "
-                                                                 "autoguidance 1 at noise ≥ 0.5")
     assert describe_sampler({"num_steps": 2, "text_guidance": 1.0, "static_tolerance": 0.2}) == (
         "2 steps, text guidance 1, first frame kept where still (tolerance 0.2)")
     assert describe_sampler({"num_steps": 2, "text_guidance": 1.0, "draws": 4}) == (
@@ -405,7 +401,7 @@ def checkpoint_64(micro_preset, tmp_path_factory):
         mp.setitem(PRESETS, preset.name, preset)
         data = write_synthetic_dataset(root / "train", episodes=2, size=2 * SIZE)
         run = Trainer(TrainConfig(data=data, out=root / "run", preset=preset.name, max_steps=2, val_every=0,
-                                  ckpt_every=0, progress=False)).train()
+                                  ckpt_every=0, quiet=True)).train()
         ckpt = root / "v2"
         shutil.copytree(run, ckpt)
         heldout = root / "heldout64"

@@ -6,8 +6,6 @@
   tesseract4d train --export runs/student --to checkpoints/v2-2step --half   # the student in float16
   tesseract4d distill --teacher tesseract4d/checkpoints/v2 --data data/groups --pairs runs/gpairs --group-pairs \\
       --counterfactual-swap 0.5 --out runs/student   # keeps reading the future from the words (as v2-2step)
-  tesseract4d distill --teacher tesseract4d/checkpoints/v2 --pairs runs/gpairs --counterfactual-swap 0.5 \\
-      --keep-following --out runs/student2   # only the teacher clips that do what their words say
 
 Two stages, each resumable:
 1. pairs: the teacher samples --num-pairs clips (on the GPU where torch sees one) with its full
@@ -19,9 +17,7 @@ Two stages, each resumable:
    batches of whole groups, and at noise >= 0.3 shown, with probability P, a sibling's noisy
    sample while its target stays its own teacher clip, as `train --counterfactual-swap`). RUN/final
    is an inference checkpoint whose preset samples in --student-steps steps without guidance, and
-   which records the teacher it was distilled from. With --keep-following it trains only on the pairs whose
-   teacher clip passes the held-out contrast check on the pair's own episode (evaluation/pair_following.py),
-   drawn so that each task keeps its share of the pairs (--following-balance).
+   which records the teacher it was distilled from.
 """
 
 from __future__ import annotations
@@ -32,7 +28,7 @@ from pathlib import Path
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     from tesseract4d.cli.argument_types import number, probability, seed, whole
-    from tesseract4d.model.lr_schedule import add_max_steps_argument
+    from tesseract4d.training.schedule import add_max_steps_argument
     from tesseract4d.model.reflow import PairsConfig, ReflowConfig
     from tesseract4d.precision import add_precision_argument
 
@@ -51,11 +47,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--group-pairs", action="store_true",
                         help="draw the pairs as whole counterfactual groups of --data (one scene under several "
                              "instructions, `datagen --instructions-per-scene`), a group's pairs sharing one noise")
-    parser.add_argument("--teacher-draws", type=whole(1, hint=" (1: a single draw)"), default=p.teacher_draws,
-                        metavar="N",
-                        help="sample every pair from N teacher noises and keep the clip whose first-frame objects "
-                             "(found by their colour) keep their colours best, a group keeping the draw best for all "
-                             "its pairs; N times the pairs' sampling (default %(default)s: the teacher's single draw)")
     parser.add_argument("--pair-batch-size", type=whole(1), default=p.batch_size,
                         help="teacher clips per sampler call (default %(default)s)")
     parser.add_argument("--student-steps", type=whole(1), default=d.student_steps,
@@ -63,16 +54,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--counterfactual-swap", type=probability(), default=d.counterfactual_swap, metavar="P",
                         help="train the student in batches of whole groups (needs --group-pairs pairs) and show a "
                              "pair at noise >= 0.3, with probability P, a sibling's noisy sample (default %(default)s)")
-    parser.add_argument("--keep-following", action="store_true",
-                        help="train only on the pairs whose teacher clip follows its instruction: the held-out "
-                             "contrast check (the instructed object moved the commanded way, 'keep still' still) on "
-                             "each pair's own training episode; scored once into PAIRS/following.json (rescored when "
-                             "the pairs grow), which also counts the teacher's right clips per skill")
-    parser.add_argument("--following-balance", choices=("task", "none"), default="task",
-                        help="with --keep-following: 'task' draws the kept pairs so that each task keeps its share of "
-                             "the folder's pairs (a task whose teacher clips fail more often would otherwise lose "
-                             "part of the student's training to the others); 'none' draws the kept pairs uniformly "
-                             "(default %(default)s)")
     parser.add_argument("--rephrase", type=probability(), default=d.rephrase, metavar="P",
                         help="probability of training a pair under another training wording of its instruction, the "
                              "teacher's clip staying the target (as `train --rephrase`) (default %(default)s)")
@@ -96,7 +77,7 @@ def run(args: argparse.Namespace) -> int:
     from tesseract4d.stopping import raise_for_stop
 
     from tesseract4d.errors import UserError
-    from tesseract4d.model.lr_schedule import check_max_steps
+    from tesseract4d.training.schedule import check_max_steps
     from tesseract4d.model.reflow import (MANIFEST, PairsConfig, ReflowConfig, ReflowTrainer, check_pairs_of_teacher,
                                           generate_pairs)
     from tesseract4d.outputs import check_not_input
@@ -116,7 +97,7 @@ def run(args: argparse.Namespace) -> int:
             teacher=args.teacher, data=args.data[0] if len(args.data) == 1 else args.data, out=args.pairs, num_pairs=args.num_pairs,
             batch_size=args.pair_batch_size, teacher_steps=args.teacher_steps,
             text_guidance=args.teacher_guidance, seed=args.seed, camera=args.camera,
-            precision=args.precision, groups=args.group_pairs, teacher_draws=args.teacher_draws),
+            precision=args.precision, groups=args.group_pairs),
             progress=not args.no_progress)
         print(f"pairs: {args.pairs}")
     elif args.pairs_only or not (args.pairs / MANIFEST).is_file():
@@ -125,19 +106,12 @@ def run(args: argparse.Namespace) -> int:
         check_pairs_of_teacher(args.pairs, args.teacher, args.teacher_steps, args.teacher_guidance)
     if args.pairs_only:
         return 0
-    if args.keep_following:
-        from tesseract4d.evaluation.pair_following import score_pairs, scores_of, summary
-
-        record = scores_of(args.pairs) or score_pairs(args.pairs, args.teacher, progress=not args.no_progress)
-        print(summary(record) + ("; drawn so each task keeps its share of the pairs"
-                                 if args.following_balance == "task" else ""))
     cfg = ReflowConfig(
         data=args.pairs, out=args.out, teacher=args.teacher, student_steps=args.student_steps,
         max_steps=args.max_steps, max_minutes=args.max_minutes, batch_size=args.batch_size, lr=args.lr,
         precision=args.precision, resume=args.resume, val_every=args.val_every, ckpt_every=args.ckpt_every,
-        seed=args.seed, progress=not args.no_progress, group_batches=args.counterfactual_swap > 0,
-        counterfactual_swap=args.counterfactual_swap, rephrase=args.rephrase, keep_following=args.keep_following,
-        balance_tasks=args.keep_following and args.following_balance == "task")
+        seed=args.seed, quiet=args.no_progress, group_batches=args.counterfactual_swap > 0,
+        counterfactual_swap=args.counterfactual_swap, rephrase=args.rephrase)
     from datagen.paraphrases import train_paraphrases
 
     trainer = ReflowTrainer(cfg, train_paraphrases)

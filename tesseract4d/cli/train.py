@@ -26,7 +26,7 @@ from tesseract4d.model.presets import PRESETS
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     from tesseract4d.model.recipe import SWAP_MIN_T
-    from tesseract4d.model.lr_schedule import add_max_steps_argument
+    from tesseract4d.training.schedule import add_max_steps_argument
     from tesseract4d.model.trainer import TrainConfig
     from tesseract4d.precision import add_precision_argument
 
@@ -54,20 +54,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="added loss weight of the cells of the scene's objects alone (cubes, cylinders; not the "
                              "robot), latent presets: they hold about 2 %% of the loss weight of v2's recipe, "
                              "the robot 25 %% (default %(default)s = off)")
-    parser.add_argument("--prediction", choices=("x0", "velocity"), default=d.prediction,
-                        help="network target: clean clip (x0) or velocity (default %(default)s)")
-    parser.add_argument("--time-shift", type=float, default=d.time_shift,
-                        help="diffusion times t = s*u / (1 + (s-1)*u), u uniform: 1 = uniform, > 1 trains more at high "
-                             "noise (default %(default)s)")
     parser.add_argument("--time-logit-normal", type=float, default=d.time_logit_normal, metavar="STD",
-                        help="draw u above logit-normal, sigmoid(STD * n) with n ~ N(0, 1), instead of uniform: trains "
+                        help="draw the diffusion time logit-normal, sigmoid(STD * n) with n ~ N(0, 1), instead of uniform: trains "
                              "most at middle noise, as SD3 does (1 is SD3's; default %(default)s = uniform)")
     parser.add_argument("--group-batches", action="store_true",
                         help="make every batch of whole counterfactual groups (one scene under several instructions, "
                              "from `datagen --instructions-per-scene`) sharing one noise and diffusion time")
-    parser.add_argument("--difference-weight", type=float, default=d.difference_weight,
-                        help="with --group-batches: loss weight of the cells where a group's futures differ "
-                             "(default %(default)s)")
     parser.add_argument("--counterfactual-swap", type=float, default=d.counterfactual_swap,
                         help=f"with --group-batches: probability that a clip at noise >= {SWAP_MIN_T} is shown another "
                              f"future of its group as its noisy sample and must still predict its own (default %(default)s)")
@@ -127,12 +119,11 @@ def run(args: argparse.Namespace) -> int:
         max_minutes=args.max_minutes, stop_at_step=args.stop_at_step, batch_size=args.batch_size, lr=args.lr,
         warmup_steps=args.warmup_steps,
         precision=args.precision, resume=args.resume, val_every=args.val_every, ckpt_every=args.ckpt_every, seed=args.seed,
-        camera=args.camera, progress=not args.no_progress, loss_weights=weights, autoencoder=args.autoencoder,
+        camera=args.camera, quiet=args.no_progress, loss_weights=weights, autoencoder=args.autoencoder,
         condition_noise=args.condition_noise, moving_weight=args.moving_weight, object_weight=args.object_weight,
         scene_object_weight=args.scene_object_weight,
-        prediction=args.prediction, text_dropout=args.text_dropout, init=args.init, time_shift=args.time_shift,
-        time_logit_normal=args.time_logit_normal,
-        group_batches=args.group_batches, difference_weight=args.difference_weight,
+        text_dropout=args.text_dropout, init=args.init, time_logit_normal=args.time_logit_normal,
+        group_batches=args.group_batches,
         counterfactual_swap=args.counterfactual_swap, rephrase=args.rephrase, text_noise=args.text_noise,
     )
     from datagen.paraphrases import train_paraphrases

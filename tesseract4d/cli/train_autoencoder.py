@@ -1,7 +1,7 @@
 """Train the RGB-D-N autoencoder of the latent world model (per frame, continuous latents).
 
 Reads every frame of a dataset folder (RGB, metric depth, normals, segmentation) into memory and
-trains a diffusers AutoencoderKL behind a pixel-unshuffle stem. Every --ckpt-minutes it writes a
+trains a diffusers AutoencoderKL behind a pixel-unshuffle stem. Every --ckpt-every steps it writes a
 resumable checkpoint (RUN/checkpoint-XXXXXX/) and exports RUN/autoencoder/ (EMA weights, latent
 statistics), measures the fidelity gate on the --heldout frames (RGB PSNR, depth mm/AbsRel, normal
 angle; all pixels and robot/object pixels), prints it and stores it as RUN/autoencoder/fidelity.json.
@@ -19,8 +19,6 @@ Example:
       --lr 1.5e-4 --warmup-steps 50 --max-steps 1500 --heldout data/skills128_heldout --out runs/ae_ft   # fine-tune
   tesseract4d train-autoencoder --init tesseract4d/checkpoints/v2/autoencoder --decoder-only --data data/skills128 \\
       --heldout data/skills128_heldout --out runs/dec_ft     # a better decoder for v2's latents (see swap-decoder)
-  tesseract4d train-autoencoder --init tesseract4d/checkpoints/v2/autoencoder --decoder-only --decoder-layers-per-block 0 \\
-      --data data/skills128 --heldout data/skills128_heldout --out runs/dec_light   # a lighter, faster one
   tesseract4d train-autoencoder --data data/ae128 --heldout data/ae128_heldout --max-steps auto --max-minutes 8 \\
       --out runs/ae_gpu     # the cosine decay fitted to an 8-minute budget (e.g. a lent GPU)
 """
@@ -33,7 +31,7 @@ from pathlib import Path
 from tesseract4d.cli.argument_types import number, seed, whole
 from tesseract4d.model.autoencoder import AUTOENCODER_PRESETS
 from tesseract4d.model.autoencoder_trainer import AutoencoderTrainConfig
-from tesseract4d.model.lr_schedule import add_max_steps_argument
+from tesseract4d.training.schedule import add_max_steps_argument
 from tesseract4d.precision import add_precision_argument
 
 
@@ -48,9 +46,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="with --init: train only the decoder; the encoder and latent statistics stay exactly as they "
                              "are, so a latent model trained on them keeps working: put the new decoder into its "
                              "checkpoint with `tesseract4d swap-decoder`")
-    parser.add_argument("--decoder-layers-per-block", type=whole(0), default=None, metavar="N",
-                        help="a decoder with N + 1 resnets per up block instead of the preset's (a lighter one decodes "
-                             "faster); with --init --decoder-only it starts from the init's first N + 1 and drops the rest")
     parser.add_argument("--frame-stride", type=whole(1), default=d.frame_stride,
                         help="train on every k-th frame of each episode (less memory; default %(default)s)")
     parser.add_argument("--heldout", type=Path, default=None,
@@ -70,14 +65,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--rgb-weight", type=number(0), default=d.rgb_weight, help="default %(default)s")
     parser.add_argument("--depth-weight", type=number(0), default=d.depth_weight, help="default %(default)s")
     parser.add_argument("--normal-weight", type=number(0), default=d.normal_weight, help="default %(default)s")
-    parser.add_argument("--rgb-grad-weight", type=number(0), default=d.rgb_grad_weight,
-                        help="weight of the colour gradient-difference loss |grad rgb_hat - grad rgb|, which keeps "
-                             "colour edges sharp where the plain L1 loss blurs them; the gate's edge sharpness "
-                             "measures it (default %(default)s)")
     parser.add_argument("--kl-weight", type=number(0), default=d.kl_weight, help="default %(default)s")
     add_precision_argument(parser)
-    parser.add_argument("--ckpt-minutes", type=number(0, above=True), default=d.ckpt_minutes,
-                        help="minutes between checkpoints + fidelity gate (default %(default)s)")
+    parser.add_argument("--ckpt-every", type=whole(0, hint=" (0 = only at the end)"), default=d.ckpt_every,
+                        help="steps between checkpoints + fidelity gate (default %(default)s)")
     parser.add_argument("--heldout-frames", type=whole(1), default=d.heldout_frames,
                         help="held-out frames in the fidelity gate (default %(default)s)")
     parser.add_argument("--seed", type=seed(), default=d.seed)
@@ -97,13 +88,12 @@ def run(args: argparse.Namespace) -> int:
 
     cfg = AutoencoderTrainConfig(
         data=args.data, heldout=args.heldout, out=args.out, preset=args.preset, camera=args.camera,
-        init=args.init, decoder_only=args.decoder_only, decoder_layers_per_block=args.decoder_layers_per_block,
+        init=args.init, decoder_only=args.decoder_only,
         frame_stride=args.frame_stride, warmup_steps=args.warmup_steps,
         max_steps=args.max_steps, max_minutes=args.max_minutes, batch_size=args.batch_size, lr=args.lr,
         object_weight=args.object_weight, rgb_weight=args.rgb_weight, depth_weight=args.depth_weight, normal_weight=args.normal_weight,
-        rgb_grad_weight=args.rgb_grad_weight,
-        kl_weight=args.kl_weight, precision=args.precision, ckpt_minutes=args.ckpt_minutes,
-        heldout_frames=args.heldout_frames, seed=args.seed, resume=args.resume, progress=not args.quiet,
+        kl_weight=args.kl_weight, precision=args.precision, ckpt_every=args.ckpt_every,
+        heldout_frames=args.heldout_frames, seed=args.seed, resume=args.resume, quiet=args.quiet,
     )
     trainer = AutoencoderTrainer(cfg, format_fn=format_fidelity)
     if cfg.heldout is not None:

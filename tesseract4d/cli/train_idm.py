@@ -51,7 +51,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--max-episodes-per-task", type=whole(0, hint=" (0 = all)"), default=d.max_episodes_per_task,
                         help="0 = all (default)")
     parser.add_argument("--camera", help="camera of the dataset (default: its first)")
-    parser.add_argument("--steps", type=whole(1), default=d.steps, help="training steps (default %(default)s)")
+    parser.add_argument("--steps", type=whole(1), default=d.max_steps, help="training steps (default %(default)s)")
     parser.add_argument("--batch-size", type=whole(1), default=d.batch_size, help="pairs per step (default %(default)s)")
     parser.add_argument("--lr", type=number(0, above=True), default=d.lr, help="peak learning rate (default %(default)s)")
     parser.add_argument("--num-points", type=whole(1), default=d.num_points, help="points per cloud (default %(default)s)")
@@ -84,11 +84,11 @@ def run(args: argparse.Namespace) -> int:
     cfg = IDMTrainConfig(
         data=args.data, out=args.out, use_future=not args.no_future,
         tasks=[t.strip() for t in args.tasks.split(",") if t.strip()] if args.tasks else None,
-        max_episodes_per_task=args.max_episodes_per_task, camera=args.camera, steps=args.steps,
+        max_episodes_per_task=args.max_episodes_per_task, camera=args.camera, max_steps=args.steps,
         batch_size=args.batch_size, lr=args.lr, num_points=args.num_points, chunk_len=args.chunk_len,
         noise_frac=args.noise_frac, noise_m=args.noise_m,
         gap_scales=args.gap_scales, seed=args.seed, ckpt_every=args.ckpt_every,
-        max_minutes=args.max_minutes, resume=args.resume, progress=not args.no_progress,
+        max_minutes=args.max_minutes, resume=args.resume, quiet=args.no_progress,
         predicted_futures=args.predicted_futures, predicted_share=args.predicted_share,
         predicted_starts=args.predicted_starts, predicted_sample_steps=args.predicted_steps,
     )

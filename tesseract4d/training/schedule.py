@@ -1,8 +1,9 @@
 """The learning-rate schedule of the trainers, and fitting its length to a time budget.
 
-Every trainer of this package (``train``, ``distill``, ``train-autoencoder``) warms the learning
-rate up linearly and then decays it along a cosine that ends at ``max_steps``. A run that has a
-fixed amount of time rather than a number of steps (a lent GPU, a session) should end its decay
+Every trainer (``train``, ``distill``, ``train-autoencoder``, ``train-idm``; the loop of
+``training/loop.py`` sets it before each step) warms the learning rate up linearly and then decays it
+along a cosine that ends at ``max_steps``. A run that has a fixed amount of time rather than a number
+of steps (a lent GPU, a fixed slot on a shared machine) should end its decay
 when its time ends: ``--max-steps auto --max-minutes M`` times the invocation's first steps and then
 fixes ``max_steps`` so that the cosine ends at ``M`` minutes (``StepBudget``). The fitted number is
 written into the run's config and checkpoints, so ``--resume`` (with ``auto`` or without a new
