@@ -103,7 +103,8 @@ def test_a_checkpoint_can_share_the_autoencoder_of_the_one_beside_it(tmp_path):
     """The shipped student reads v2's autoencoder (its config names ../v2/autoencoder) and samples exactly
     as a self-contained copy of it; copies written elsewhere (set-sampler, swap-decoder) carry the
     autoencoder again; a shared checkpoint moved away from its sibling is refused with the fix."""
-    from tesseract4d.model.latent_checkpoint import AUTOENCODER_DIR, checkpoint_autoencoder, replace_decoder
+    from tesseract4d.model.checkpoint_copies import replace_decoder, write_sampler_copy
+    from tesseract4d.model.latent_checkpoint import AUTOENCODER_DIR, checkpoint_autoencoder
     from tesseract4d.model.predict import load_pipeline
 
     pair = tmp_path / "pair"
@@ -112,7 +113,7 @@ def test_a_checkpoint_can_share_the_autoencoder_of_the_one_beside_it(tmp_path):
     entry = ck.read_inference_config(shared)["autoencoder"]
     assert entry["dir"] == "../v2/autoencoder" and not (shared / AUTOENCODER_DIR).exists()
     assert checkpoint_autoencoder(SHIPPED_CHECKPOINT, entry).resolve() == (V2_CHECKPOINT / AUTOENCODER_DIR).resolve()
-    own = ck.write_sampler_copy(shared, tmp_path / "own", {"num_steps": 2})  # self-contained
+    own = write_sampler_copy(shared, tmp_path / "own", {"num_steps": 2})  # self-contained
     assert (own / AUTOENCODER_DIR / "model.safetensors").is_file()
     first = torch.rand(1, 7, 128, 128, generator=torch.Generator().manual_seed(0)) * 2 - 1
 
@@ -151,6 +152,7 @@ def test_a_checkpoint_recording_removed_options_at_their_no_op_values_loads_and_
     folder, prediction x0, time shift 1, difference weight 1 and a null decoder depth: it loads and
     samples bit for bit as the shipped one; set-sampler's copy of it leaves the guide folder and the
     removed settings out. Any other value of a removed option is refused with a message that names it."""
+    from tesseract4d.model.checkpoint_copies import write_sampler_copy
     from tesseract4d.model.predict import load_pipeline
 
     cfg = ck.read_inference_config(v2_copy)
@@ -168,7 +170,7 @@ def test_a_checkpoint_recording_removed_options_at_their_no_op_values_loads_and_
                                                        generator=torch.Generator().manual_seed(1))
 
     assert torch.equal(sample(v2_copy), sample(V2_CHECKPOINT))
-    copy = ck.write_sampler_copy(v2_copy, tmp_path / "copy", {"draws": 1})
+    copy = write_sampler_copy(v2_copy, tmp_path / "copy", {"draws": 1})
     written = ck.read_inference_config(copy)
     assert not (copy / ck.REMOVED_GUIDE_DIR).exists() and "guide" not in written
     assert "autoguidance" not in written["preset"] and "autoguidance_min_sigma" not in written["preset"]

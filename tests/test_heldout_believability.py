@@ -281,7 +281,7 @@ def test_a_guidance_interval_is_sampled_and_reported(two_checkpoints, tmp_path):
     """A checkpoint guided only at high noise (set-sampler --guidance-min-sigma) is evaluated with its
     interval, and the report names it."""
     from tesseract4d.evaluation.heldout import HeldoutConfig, evaluate_heldout, format_markdown
-    from tesseract4d.model.checkpoint import write_sampler_copy
+    from tesseract4d.model.checkpoint_copies import write_sampler_copy
 
     a, _, heldout = two_checkpoints
     guided = write_sampler_copy(a, tmp_path / "guided", {"text_guidance": 2.0})

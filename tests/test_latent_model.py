@@ -429,7 +429,7 @@ def test_decoder_only_fine_tune_swaps_into_the_checkpoint_with_the_same_latents(
 
     other = _autoencoder(tmp_path / "other", seed=9, data=data)
     with pytest.raises(UserError, match="--decoder-only"):
-        from tesseract4d.model.latent_checkpoint import replace_decoder
+        from tesseract4d.model.checkpoint_copies import replace_decoder
 
         replace_decoder(final, other, tmp_path / "refused")
     assert not (tmp_path / "refused").exists()

@@ -117,7 +117,7 @@ def test_pairs_from_several_dataset_folders(teacher, tmp_path):
     student = ["distill", "--teacher", str(ckpt), "--pairs", str(tmp_path / "p"), "--teacher-steps", "2",
                "--out", str(tmp_path / "student"), "--max-steps", "1", "--no-progress", "--val-every", "0"]
     assert main([*student, "--teacher-guidance", "1.5"]) == 2 and not (tmp_path / "student").exists()  # not 2.5
-    from tesseract4d.model.checkpoint import write_sampler_copy
+    from tesseract4d.model.checkpoint_copies import write_sampler_copy
 
     interval = write_sampler_copy(ckpt, tmp_path / "interval", {"guidance_min_sigma": 0.5})
     assert main([*student[:2], str(interval), *student[3:]]) == 2  # its copy with a guidance interval: other pairs

@@ -50,7 +50,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from tesseract4d.model.checkpoint import write_sampler_copy
+    from tesseract4d.model.checkpoint_copies import write_sampler_copy
 
     settings = {name: value for name, value in (("num_steps", args.steps), ("text_guidance", args.text_guidance),
                                                 ("image_guidance", args.image_guidance),

@@ -33,7 +33,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from tesseract4d.model.latent_checkpoint import replace_decoder
+    from tesseract4d.model.checkpoint_copies import replace_decoder
 
     to = replace_decoder(args.checkpoint, args.autoencoder, args.to, half=args.half, overwrite=args.overwrite)
     print(f"checkpoint with the new decoder: {to}")

@@ -19,7 +19,7 @@ RUN/autoencoder and measures its fidelity gate.
 ``decoder_only`` fine-tunes only the decoder of an ``init`` autoencoder: its encoder and latent
 statistics stay bit-identical, so the latents (and a latent model trained on them, its latent
 caches' contents) stay valid and the new decoder can replace the old one in a latent checkpoint
-(``latent_checkpoint.replace_decoder``).
+(``checkpoint_copies.replace_decoder``).
 
 Run folder::
 

@@ -201,34 +201,3 @@ def copy_checkpoint_files(checkpoint: Path, folder: Path, skip: tuple[str, ...] 
         if child.name == INFERENCE_CONFIG_FILE or child.name.startswith(".") or child.name in skip:
             continue
         (shutil.copytree if child.is_dir() else shutil.copy2)(child, Path(folder) / child.name)
-
-
-def write_sampler_copy(checkpoint: str | os.PathLike, to: str | os.PathLike, settings: dict,
-                       overwrite: bool = False) -> Path:
-    """Write a copy of ``checkpoint`` into ``to`` (a new folder; the checkpoint is never changed) whose
-    preset samples with ``settings`` (SAMPLER_FIELDS: steps, guidance scales, guidance interval,
-    static compositing, noise draws), the weights byte for byte the same. The previous settings and
-    the source are recorded in INFERENCE_CONFIG_FILE under ``sampler_changed``; a model card is not
-    copied (it describes the source)."""
-    from tesseract4d.model.latent_checkpoint import own_autoencoder
-    from tesseract4d.model.presets import preset_from_dict, without_removed_fields
-    from tesseract4d.outputs import OutputDir
-
-    if not settings:
-        raise UserError("nothing to change: give --steps, --text-guidance, --image-guidance, --guidance-min-sigma, "
-                        "--static-tolerance or --draws")
-    check_sampler_settings(settings)
-    checkpoint = Path(checkpoint)
-    config = read_inference_config(checkpoint)
-    preset = without_removed_fields(config["preset"])
-    saved = preset_from_dict(preset)  # settings an older checkpoint lacks read as their defaults
-    previous = {name: getattr(saved, name) for name in settings}
-    with OutputDir(to, "set-sampler", inputs=[checkpoint], overwrite=overwrite, flag="--to") as tmp:
-        copy_checkpoint_files(checkpoint, tmp, skip=(MODEL_CARD_FILE, REMOVED_GUIDE_DIR))
-        preset.update(settings)
-        change = {"source": str(checkpoint), "previous": previous, "new": dict(settings)}
-        out = {**{k: v for k, v in config.items() if k != "guide"}, "preset": preset}
-        out["sampler_changed"] = list(config.get("sampler_changed", [])) + [change]
-        out = own_autoencoder(checkpoint, out, tmp)  # a copy elsewhere carries the autoencoder it shares
-        (tmp / INFERENCE_CONFIG_FILE).write_text(json.dumps(out, indent=2))
-    return Path(to)

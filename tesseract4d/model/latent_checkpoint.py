@@ -2,7 +2,7 @@
 
 The exported folder holds a copy of the autoencoder (``CKPT/autoencoder/``) and its hash in
 ``tesseract4d_config.json``; loading refuses a checkpoint whose autoencoder is missing or differs.
-A decoder fine-tuned on the same latents can replace the checkpoint's (``replace_decoder``).
+A decoder fine-tuned on the same latents can replace the checkpoint's (``checkpoint_copies.replace_decoder``).
 
 Two checkpoints side by side that carry the same autoencoder may store it once, as the shipped
 ``v2-2step`` reads ``v2``'s: the second's config then names its sibling's folder (``dir``:
@@ -12,8 +12,6 @@ takes its own copy of it again (``own_autoencoder``).
 
 from __future__ import annotations
 
-import json
-import os
 import shutil
 from pathlib import Path
 
@@ -77,10 +75,10 @@ def own_autoencoder(checkpoint: Path, config: dict, folder: Path) -> dict:
         return config
     source = checkpoint_autoencoder(checkpoint, entry)
     shutil.copytree(source, Path(folder) / AUTOENCODER_DIR)
-    return {**config, "autoencoder": _own_entry(entry)}
+    return {**config, "autoencoder": own_entry(entry)}
 
 
-def _own_entry(entry: dict) -> dict:
+def own_entry(entry: dict) -> dict:
     """An autoencoder entry naming the checkpoint's own copy (AUTOENCODER_DIR), not a sibling's."""
     return {**{k: v for k, v in entry.items() if k != "shared_with"}, "dir": AUTOENCODER_DIR}
 
@@ -100,55 +98,3 @@ def encoder_differences(a, b) -> list[str]:
         if key.startswith(ENCODER_PREFIXES) and not torch.equal(sa[key].float(), sb[key].float()):
             out.append(f"weight {key}")
     return out
-
-
-def replace_decoder(checkpoint: str | os.PathLike, autoencoder: str | os.PathLike, to: str | os.PathLike,
-                    half: bool = False, overwrite: bool = False) -> Path:
-    """Write a copy of the latent ``checkpoint`` into ``to`` whose autoencoder is ``autoencoder``: a
-    decoder-only fine-tune of the checkpoint's own (``train-autoencoder --decoder-only``), so the
-    transformer's latents are unchanged. Refused, naming what differs, when its encoder, latent
-    statistics or architecture are not the checkpoint's. ``half`` stores the new decoder in float16
-    (the encoder is copied as the checkpoint stores it, the transformer as it is)."""
-    from tesseract4d.model.autoencoder import WEIGHTS_FILE as AE_WEIGHTS
-    from tesseract4d.model.autoencoder import autoencoder_hash, load_autoencoder, read_autoencoder_config
-    import torch
-    from safetensors.torch import load_file, save_file
-
-    from tesseract4d.model.checkpoint import INFERENCE_CONFIG_FILE, SCHEDULER_DIR, TRANSFORMER_DIR, read_inference_config
-    from tesseract4d.outputs import OutputDir
-
-    checkpoint, autoencoder = Path(checkpoint), Path(autoencoder)
-    config = read_inference_config(checkpoint)
-    if "autoencoder" not in config:
-        raise UserError(f"{checkpoint} is a pixel-space checkpoint (preset {config.get('preset', {}).get('name')!r}); "
-                        f"only a latent checkpoint has a decoder to replace")
-    old_dir = checkpoint_autoencoder(checkpoint, config["autoencoder"])
-    read_autoencoder_config(autoencoder)  # a UserError naming the fix when it is not an autoencoder
-    diff = encoder_differences(load_autoencoder(old_dir), load_autoencoder(autoencoder))
-    if diff:
-        raise UserError(f"{autoencoder} does not encode like {old_dir} ({'; '.join(diff[:3])}"
-                        f"{'; ...' if len(diff) > 3 else ''}); make it with `tesseract4d train-autoencoder "
-                        f"--init {old_dir} --decoder-only`")
-    with OutputDir(to, "swap-decoder", inputs=[checkpoint, autoencoder], overwrite=overwrite, flag="--to") as tmp:
-        shutil.copytree(checkpoint / TRANSFORMER_DIR, tmp / TRANSFORMER_DIR)
-        shutil.copytree(checkpoint / SCHEDULER_DIR, tmp / SCHEDULER_DIR)
-        dst = tmp / AUTOENCODER_DIR
-        dst.mkdir()
-        for name in ("config.json", "fidelity.json"):
-            if (autoencoder / name).is_file():
-                shutil.copy2(autoencoder / name, dst / name)
-        # The encoder's tensors are the checkpoint's own, as stored (float16 stays float16), so its
-        # latents stay bit-identical; the rest comes from the new autoencoder (float16 with ``half``).
-        old_weights, new_weights = load_file(str(old_dir / AE_WEIGHTS)), load_file(str(autoencoder / AE_WEIGHTS))
-        merged = {k: old_weights[k] if k.startswith(ENCODER_PREFIXES) else
-                  (v.half() if half and v.dtype == torch.float32 else v) for k, v in new_weights.items()}
-        save_file({k: v.contiguous() for k, v in merged.items()}, str(dst / AE_WEIGHTS))
-        old = config["autoencoder"]
-        config["autoencoder"] = {
-            **_own_entry(old), "hash": autoencoder_hash(dst), "source_dir": str(autoencoder),
-            # The autoencoder the transformer was trained with: its encoder is this one's.
-            "trained_with_hash": old.get("trained_with_hash", old["hash"]),
-            "decoder_replaced": {"previous_hash": old["hash"], "source_hash": autoencoder_hash(autoencoder)},
-        }
-        (tmp / INFERENCE_CONFIG_FILE).write_text(json.dumps(config, indent=2))
-    return Path(to)
