@@ -52,17 +52,32 @@ class _AppendCheckpoint(argparse.Action):
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from tesseract4d.precision import add_precision_argument
+    from tesseract4d.cli.config_args import add_deprecated
 
     parser.add_argument("pred", nargs="?", help="reconstruction folder, or a predicted episode (.h5 / folder / DIR/ENV_ID/SEED)")
     parser.add_argument("--gt", help="ground-truth episode (.h5 / folder / DIR/ENV_ID/SEED)")
-    parser.add_argument("--camera", help="camera to compare (default: the ground truth's first)")
     parser.add_argument("--json", type=Path, metavar="REPORT", help="also write the report as JSON")
     parser.add_argument("--no-per-frame", action="store_true", help="print only the means")
-    parser.add_argument("--max-depth", type=number(0, above=True), metavar="M",
-                        help="evaluation range in metres: depth, normal and Chamfer metrics count only pixels whose true "
-                             "depth is at most M (default: all pixels; held-out evaluation: the checkpoint's depth range)")
-    held = parser.add_argument_group("held-out evaluation of a model (instead of PRED --gt)")
+    add_heldout_arguments(parser, full=True)
+    add_deprecated(parser, "--start-from-truth", use="`tesseract4d research from-truth --sigma SIGMA`",
+                   dest="start_from_truth", type=float, metavar="SIGMA")
+    parser.set_defaults(start_from_truth=None)
+
+
+def add_heldout_arguments(parser: argparse.ArgumentParser, full: bool = False) -> None:
+    """The options of held-out evaluation (``full``: also camera, depth range, batch size and text
+    guidance, which `research from-truth` leaves at their defaults)."""
+    from tesseract4d.precision import add_precision_argument
+
+    if full:
+        parser.add_argument("--camera", help="camera to compare (default: the ground truth's first)")
+        parser.add_argument("--max-depth", type=number(0, above=True), metavar="M",
+                            help="evaluation range in metres: depth, normal and Chamfer metrics count only pixels whose "
+                                 "true depth is at most M (default: all pixels; held-out evaluation: the checkpoint's "
+                                 "depth range)")
+    else:
+        parser.set_defaults(camera=None, max_depth=None, batch_size=None, text_guidance=None)
+    held = parser.add_argument_group("held-out evaluation of a model" + (" (instead of PRED --gt)" if full else ""))
     held.add_argument("--checkpoint", type=Path, action=_AppendCheckpoint, default=SHIPPED_CHECKPOINT,
                       help="model checkpoint folder (default: the shipped v2-2step); repeat it to score several "
                            "checkpoints side by side with the static world in one report")
@@ -72,25 +87,22 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     held.add_argument("--steps", type=whole(1),
                       help="sampler steps of every checkpoint (default: each checkpoint preset's own, e.g. 2 for a "
                            "distilled student beside 10 for its teacher)")
-    held.add_argument("--text-guidance", type=number(0, above=True, hint=" (1: no guidance)"), metavar="SCALE",
-                      help="text guidance scale of the sampler (default: each checkpoint preset's; 1 = no guidance)")
+    if full:
+        held.add_argument("--text-guidance", type=number(0, above=True, hint=" (1: no guidance)"), metavar="SCALE",
+                          help="text guidance scale of the sampler (default: each checkpoint preset's; 1 = no guidance)")
     held.add_argument("--sample-seed", type=seed(), nargs="+", default=[0], metavar="SEED",
                       help="diffusion noise seed (default 0); several (e.g. 0 1 2) predict every episode once per "
                            "seed and pool the scores: one noise draw decides much of an instruction's outcome, so "
                            "compare checkpoints on several")
-    held.add_argument("--start-from-truth", type=float, metavar="SIGMA",
-                      help="a diagnostic, not a way to use a model: every checkpoint's sampler starts from the "
-                           "episode's true future (through its codec) noised to its first noise level <= SIGMA, with "
-                           "the scene's noise, and runs only the steps from there: how much of a right future the "
-                           "network keeps (0 < SIGMA <= 1; 1 = from pure noise). Needs one-clip episodes at the "
-                           "model's resolution")
     held.add_argument("--max-per-task", type=whole(1), metavar="N",
                       help="episodes per task at most, a counterfactual group kept whole (default: all)")
-    # "default 4" is model/predict.py's DEFAULT_SCENE_BATCH, written out so that --help needs no torch
-    # (tests/test_cli_eval_args.py compares the two).
-    held.add_argument("--batch-size", type=whole(1), metavar="N",
-                      help="scenes predicted together in one network call (default 4; more needs more memory); each "
-                           "scene gets the noise it gets alone, so results do not depend on it beyond float rounding")
+    if full:
+        # "default 4" is model/predict.py's DEFAULT_SCENE_BATCH, written out so that --help needs no torch
+        # (tests/test_cli_eval_args.py compares the two).
+        held.add_argument("--batch-size", type=whole(1), metavar="N",
+                          help="scenes predicted together in one network call (default 4; more needs more memory); "
+                               "each scene gets the noise it gets alone, so results do not depend on it beyond float "
+                               "rounding")
     add_precision_argument(held)
     parser.add_argument("--overwrite", action="store_true",
                         help="replace a --json file / write into an --out folder that this command did not write")
