@@ -215,3 +215,26 @@ def config_from_args(cls, args, names: Iterable[str], *, recipe: dict | None = N
     overrides.update({n: getattr(args, n) for n in names if getattr(args, n, None) is not None})
     overrides.update(fixed)
     return with_overrides(base if base is not None else cls(), overrides)
+
+
+def add_moved_to_set(parser, cls, moved: Iterable[tuple]) -> None:
+    """Old flags whose options are ``--set`` fields of ``cls`` now: each ``(old, field)``,
+    ``(old, field, type)`` or ``(old, field, None, switch_value)`` keeps working for one release."""
+    for old, name, *rest in moved:
+        kind = rest[0] if rest else None
+        if len(rest) > 1:
+            add_deprecated(parser, old, use=f"--set {name}={str(rest[1]).lower()}", set_field=name,
+                           config_class=cls, switch=rest[1])
+        else:
+            add_deprecated(parser, old, use=f"--set {name}=VALUE", set_field=name, config_class=cls,
+                           **({"type": kind} if kind is not None else {}))
+
+
+def dataclass_from_args(cls, args, **given):
+    """``cls`` from the namespace's attributes of the same names (absent ones keep their defaults),
+    ``given`` values, then the ``--set`` overrides."""
+    from tesseract4d.configs import with_overrides
+
+    values = {f.name: getattr(args, f.name) for f in dataclasses.fields(cls) if f.init and hasattr(args, f.name)}
+    values.update(given)
+    return with_overrides(cls(**values), getattr(args, SET_DEST, None) or {})

@@ -28,6 +28,8 @@ from pathlib import Path
 
 from datagen.tabletop import ENV_ID as TABLETOP_ID
 from tesseract4d.cli.argument_types import seed, whole
+from tesseract4d.cli.config_args import add_moved_to_set, add_set_option, dataclass_from_args
+from tesseract4d.configs import knob
 from tesseract4d.dataset_format import HELDOUT_SEED_START
 from tesseract4d.errors import UserError
 from tesseract4d.model.checkpoint import SHIPPED_CHECKPOINT
@@ -50,13 +52,14 @@ class DemoConfig:
     contrast: bool = True  # False: one future only
     checkpoint: Path = SHIPPED_CHECKPOINT
     out: Path = Path("demo_out")
-    num_frames: int | None = None  # None: one clip of the checkpoint's preset
+    num_frames: int | None = knob(None, "frames to predict (none: one clip, the checkpoint preset's length)")
     steps: int | None = None  # None: the checkpoint preset's
-    draws: int | None = None  # noise draws per future, the best kept; None: the checkpoint preset's
+    draws: int | None = knob(None, "noise draws per future, the one whose objects keep their colours best kept "
+                                   "(none: the checkpoint preset's; 1 = a single draw)")
     sample_seed: int = 0
-    camera: str | None = None  # None: the checkpoint's camera preset
-    host: str = "127.0.0.1"
-    port: int = 8080
+    camera: str | None = knob(None, "camera preset to render the first frame from (none: the checkpoint's)")
+    host: str = knob("127.0.0.1", "viewer host (0.0.0.0 serves every address)")
+    port: int = knob(8080, "viewer port")
     headless: bool = False
     precision: str = "auto"
     overwrite: bool = False
@@ -86,30 +89,22 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-contrast", action="store_true", help="predict one future only (the main instruction)")
     parser.add_argument("--checkpoint", type=Path, default=d.checkpoint, help="model checkpoint folder (default: the shipped v2-2step, tesseract4d/checkpoints/v2-2step; tesseract4d/checkpoints/v2 is its 10-step teacher)")
     parser.add_argument("--out", type=Path, default=d.out, help="output folder (default %(default)s)")
-    parser.add_argument("--num-frames", type=whole(1), help="frames to predict (default: one clip, the checkpoint preset's length)")
     parser.add_argument("--steps", type=whole(1), help="sampler steps (default: the checkpoint preset's)")
-    parser.add_argument("--draws", type=whole(1, hint=" (1: a single draw)"), metavar="N",
-                        help="noise draws per future; each keeps the one whose objects keep their colours best "
-                             "(default: the checkpoint preset's; 1 = a single draw)")
     parser.add_argument("--sample-seed", type=seed(), default=d.sample_seed,
                         help="diffusion noise seed, shared by both futures (default %(default)s)")
-    parser.add_argument("--camera", help="camera preset to render the first frame from (default: the checkpoint's)")
-    parser.add_argument("--host", default=d.host, help="viewer host (default %(default)s)")
-    parser.add_argument("--port", type=whole(0, 65535), default=d.port, help="viewer port (default %(default)s)")
     parser.add_argument("--headless", action="store_true", help="write the outputs and exit without serving the viewer")
     add_precision_argument(parser)
     parser.add_argument("--overwrite", action="store_true",
                         help="write into a folder holding other files (only the demo's own files are replaced)")
+    add_set_option(parser, DemoConfig)
+    add_moved_to_set(parser, DemoConfig, [
+        ("--num-frames", "num_frames", whole(1)), ("--draws", "draws", whole(1, hint=" (1: a single draw)")),
+        ("--camera", "camera"), ("--host", "host"), ("--port", "port", whole(0, 65535)),
+    ])
 
 
 def run(args: argparse.Namespace) -> int:
-    cfg = DemoConfig(
-        task=args.task, seed=args.seed, instruction=args.instruction, skill=args.skill,
-        contrast_instruction=args.contrast_instruction, contrast_skill=args.contrast_skill, contrast=not args.no_contrast,
-        checkpoint=args.checkpoint, out=args.out, num_frames=args.num_frames, steps=args.steps,
-        draws=args.draws, sample_seed=args.sample_seed, camera=args.camera, host=args.host, port=args.port, headless=args.headless,
-        precision=args.precision, overwrite=args.overwrite,
-    )
+    cfg = dataclass_from_args(DemoConfig, args, contrast=not args.no_contrast)
     outputs = run_demo(cfg)
     instruction = outputs["instruction"].read_text().strip()
     print(f"instruction: {instruction}")

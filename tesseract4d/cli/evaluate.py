@@ -38,9 +38,33 @@ import json
 import sys
 from pathlib import Path
 
+from dataclasses import dataclass
+
 from tesseract4d.cli.argument_types import number, seed, whole
+from tesseract4d.configs import knob
 from tesseract4d.dataset_format import HELDOUT_SEED_START
 from tesseract4d.model.checkpoint import SHIPPED_CHECKPOINT
+
+
+@dataclass
+class EvaluateOptions:
+    """The options of `evaluate` set with ``--set NAME=VALUE``."""
+
+    max_depth: float | None = knob(None, "evaluation range in metres: depth, normal and Chamfer metrics count only "
+                                         "pixels whose true depth is at most this (none: all pixels; held-out "
+                                         "evaluation: the checkpoint's depth range)")
+    # "default 4" is model/predict.py's DEFAULT_SCENE_BATCH, written out so that --help needs no torch
+    # (tests/test_cli_eval_args.py compares the two).
+    batch_size: int | None = knob(None, "held-out: scenes predicted together in one network call (default 4; more "
+                                        "needs more memory); each scene gets the noise it gets alone")
+    text_guidance: float | None = knob(None, "held-out: text guidance scale of the sampler (none: each checkpoint "
+                                             "preset's; 1 = no guidance)")
+
+
+def _options(args: argparse.Namespace) -> EvaluateOptions:
+    values = {k: getattr(args, k) for k in ("max_depth", "batch_size", "text_guidance")}
+    values.update(getattr(args, "set_overrides", None) or {})
+    return EvaluateOptions(**values)
 
 
 class _AppendCheckpoint(argparse.Action):
@@ -52,13 +76,18 @@ class _AppendCheckpoint(argparse.Action):
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from tesseract4d.cli.config_args import add_deprecated
+    from tesseract4d.cli.config_args import add_deprecated, add_moved_to_set, add_set_option
 
     parser.add_argument("pred", nargs="?", help="reconstruction folder, or a predicted episode (.h5 / folder / DIR/ENV_ID/SEED)")
     parser.add_argument("--gt", help="ground-truth episode (.h5 / folder / DIR/ENV_ID/SEED)")
     parser.add_argument("--json", type=Path, metavar="REPORT", help="also write the report as JSON")
     parser.add_argument("--no-per-frame", action="store_true", help="print only the means")
     add_heldout_arguments(parser, full=True)
+    add_set_option(parser, EvaluateOptions)
+    add_moved_to_set(parser, EvaluateOptions, [
+        ("--max-depth", "max_depth", number(0, above=True)), ("--batch-size", "batch_size", whole(1)),
+        ("--text-guidance", "text_guidance", number(0, above=True, hint=" (1: no guidance)")),
+    ])
     add_deprecated(parser, "--start-from-truth", use="`tesseract4d research from-truth --sigma SIGMA`",
                    dest="start_from_truth", type=float, metavar="SIGMA")
     parser.set_defaults(start_from_truth=None)
@@ -71,12 +100,9 @@ def add_heldout_arguments(parser: argparse.ArgumentParser, full: bool = False) -
 
     if full:
         parser.add_argument("--camera", help="camera to compare (default: the ground truth's first)")
-        parser.add_argument("--max-depth", type=number(0, above=True), metavar="M",
-                            help="evaluation range in metres: depth, normal and Chamfer metrics count only pixels whose "
-                                 "true depth is at most M (default: all pixels; held-out evaluation: the checkpoint's "
-                                 "depth range)")
     else:
-        parser.set_defaults(camera=None, max_depth=None, batch_size=None, text_guidance=None)
+        parser.set_defaults(camera=None)
+    parser.set_defaults(max_depth=None, batch_size=None, text_guidance=None)
     held = parser.add_argument_group("held-out evaluation of a model" + (" (instead of PRED --gt)" if full else ""))
     held.add_argument("--checkpoint", type=Path, action=_AppendCheckpoint, default=SHIPPED_CHECKPOINT,
                       help="model checkpoint folder (default: the shipped v2-2step); repeat it to score several "
@@ -87,22 +113,12 @@ def add_heldout_arguments(parser: argparse.ArgumentParser, full: bool = False) -
     held.add_argument("--steps", type=whole(1),
                       help="sampler steps of every checkpoint (default: each checkpoint preset's own, e.g. 2 for a "
                            "distilled student beside 10 for its teacher)")
-    if full:
-        held.add_argument("--text-guidance", type=number(0, above=True, hint=" (1: no guidance)"), metavar="SCALE",
-                          help="text guidance scale of the sampler (default: each checkpoint preset's; 1 = no guidance)")
     held.add_argument("--sample-seed", type=seed(), nargs="+", default=[0], metavar="SEED",
                       help="diffusion noise seed (default 0); several (e.g. 0 1 2) predict every episode once per "
                            "seed and pool the scores: one noise draw decides much of an instruction's outcome, so "
                            "compare checkpoints on several")
     held.add_argument("--max-per-task", type=whole(1), metavar="N",
                       help="episodes per task at most, a counterfactual group kept whole (default: all)")
-    if full:
-        # "default 4" is model/predict.py's DEFAULT_SCENE_BATCH, written out so that --help needs no torch
-        # (tests/test_cli_eval_args.py compares the two).
-        held.add_argument("--batch-size", type=whole(1), metavar="N",
-                          help="scenes predicted together in one network call (default 4; more needs more memory); "
-                               "each scene gets the noise it gets alone, so results do not depend on it beyond float "
-                               "rounding")
     add_precision_argument(held)
     parser.add_argument("--overwrite", action="store_true",
                         help="replace a --json file / write into an --out folder that this command did not write")
@@ -154,10 +170,11 @@ def run_heldout(args: argparse.Namespace) -> int:
     output = None if args.out is None else OutputDir(args.out, "evaluate", inputs=[*checkpoints, args.heldout],
                                                      overwrite=args.overwrite)
     seeds = args.sample_seed[0] if len(args.sample_seed) == 1 else args.sample_seed
+    options = _options(args)
     cfg = HeldoutConfig(checkpoint=checkpoints[0] if len(checkpoints) == 1 else checkpoints, data=args.heldout, out=None,
                         camera=args.camera, num_steps=args.steps, sample_seed=seeds, max_episodes=args.max_per_task,
-                        max_depth_m=args.max_depth, precision=args.precision, batch_size=args.batch_size,
-                        text_guidance=args.text_guidance, start_from_truth=args.start_from_truth)
+                        max_depth_m=options.max_depth, precision=args.precision, batch_size=options.batch_size,
+                        text_guidance=options.text_guidance, start_from_truth=args.start_from_truth)
     report = evaluate_heldout(cfg)
     if args.out is not None:
         report["config"]["out"] = str(args.out)  # written through a stage of its own, not by evaluate_heldout
@@ -194,7 +211,7 @@ def run(args: argparse.Namespace) -> int:
     mismatch = scene_mismatch(pred, gt)
     if mismatch:
         print(mismatch, file=sys.stderr)
-    report = evaluate_episode(pred, gt, camera=args.camera, max_depth_m=args.max_depth)
+    report = evaluate_episode(pred, gt, camera=args.camera, max_depth_m=_options(args).max_depth)
     report.update({"pred": str(args.pred), "gt": str(gt_path)})
     if report["pred_frames"] != report["gt_frames"]:
         print(f"note: prediction has {report['pred_frames']} frames, ground truth {report['gt_frames']}; "
