@@ -65,7 +65,7 @@ class DatagenConfig:
     max_attempts: int | None = knob(None, "seeds tried per task at most (none: 4 * episodes + 4)")
     workers: int = 1
     ray_address: str | None = None
-    previews: bool = True
+    previews: bool = knob(True, "write MP4 previews of every episode")
     instructions_per_scene: int = 1  # K futures per initial state (skill mode)
     skills: list[str] | None = None  # skill specs (datagen/skills.py); None = all that apply
 

@@ -142,11 +142,15 @@ def parse_field_value(cls, name: str, text: str) -> Any:
     members, optional = _members(annotation)
     if optional and text.strip().lower() in _NONE_WORDS:
         return None
+    choices = next(f for f in dataclasses.fields(cls) if f.name == name).metadata.get("choices")
     for member in members:
         try:
-            return _parse_one(text, member)
+            value = _parse_one(text, member)
         except (TypeError, ValueError):
             continue
+        if choices is not None and value not in choices:
+            raise UserError(f"--set {name}={text}: choose one of {', '.join(map(str, choices))}")
+        return value
     raise UserError(f"--set {name}={text}: expected {type_name(annotation)}")
 
 

@@ -219,15 +219,19 @@ def config_from_args(cls, args, names: Iterable[str], *, recipe: dict | None = N
 
 def add_moved_to_set(parser, cls, moved: Iterable[tuple]) -> None:
     """Old flags whose options are ``--set`` fields of ``cls`` now: each ``(old, field)``,
-    ``(old, field, type)`` or ``(old, field, None, switch_value)`` keeps working for one release."""
+    ``(old, field, type)``, ``(old, field, {argparse keywords})`` or ``(old, field, None, switch_value)``
+    keeps working for one release."""
     for old, name, *rest in moved:
         kind = rest[0] if rest else None
         if len(rest) > 1:
             add_deprecated(parser, old, use=f"--set {name}={str(rest[1]).lower()}", set_field=name,
                            config_class=cls, switch=rest[1])
         else:
-            add_deprecated(parser, old, use=f"--set {name}=VALUE", set_field=name, config_class=cls,
-                           **({"type": kind} if kind is not None else {}))
+            extra = kind if isinstance(kind, dict) else {"type": kind} if kind is not None else {}
+            add_deprecated(parser, old, use=f"--set {name}=VALUE", set_field=name, config_class=cls, **extra)
+
+
+PRECISION_MOVED = ("--precision", "precision", {"choices": ("auto", "fp32", "bf16")})
 
 
 def dataclass_from_args(cls, args, **given):

@@ -62,7 +62,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--skills", default=None,
                         help="comma-separated skill variants the groups draw from, each optionally pinned to an object "
                              f"as VARIANT@OBJECT (default: all that apply): {', '.join(VARIANTS)}")
-    parser.add_argument("--no-previews", action="store_true", help="do not write MP4 previews")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
     add_set_option(parser, DatagenConfig)
     # Options now set as `--set NAME=VALUE`; the old flags keep working for one release.
@@ -70,8 +69,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                             ("--max-attempts", "max_attempts", int), ("--camera-jitter", "camera_jitter_m", float)):
         add_deprecated(parser, old, use=f"--set {name}=VALUE", set_field=name, config_class=DatagenConfig, type=kind)
     for old, name in (("--randomize-lighting", "randomize_lighting"), ("--randomize-colors", "randomize_colors"),
-                      ("--goal-marker", "goal_marker")):
-        add_deprecated(parser, old, use=f"--set {name}=true", set_field=name, config_class=DatagenConfig, switch=True)
+                      ("--goal-marker", "goal_marker"), ("--no-previews", "previews")):
+        value = name != "previews"
+        add_deprecated(parser, old, use=f"--set {name}={str(value).lower()}", set_field=name,
+                       config_class=DatagenConfig, switch=value)
 
 
 def config_from_args(args: argparse.Namespace) -> DatagenConfig:
@@ -85,7 +86,7 @@ def config_from_args(args: argparse.Namespace) -> DatagenConfig:
     cfg = DatagenConfig(
         tasks=parse_task_list(args.tasks), episodes=args.episodes, out=args.out, sim=sim,
         seed_start=args.seed_start, workers=args.workers,
-        ray_address=args.ray_address, previews=not args.no_previews,
+        ray_address=args.ray_address,
         instructions_per_scene=args.instructions_per_scene, skills=_skills(args.skills, args.tasks),
     )
     return with_overrides(cfg, args.set_overrides)

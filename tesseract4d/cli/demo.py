@@ -28,10 +28,11 @@ from pathlib import Path
 
 from datagen.tabletop import ENV_ID as TABLETOP_ID
 from tesseract4d.cli.argument_types import seed, whole
-from tesseract4d.cli.config_args import add_moved_to_set, add_set_option, dataclass_from_args
+from tesseract4d.cli.config_args import PRECISION_MOVED, add_moved_to_set, add_set_option, dataclass_from_args
 from tesseract4d.configs import knob
 from tesseract4d.dataset_format import HELDOUT_SEED_START
 from tesseract4d.errors import UserError
+from tesseract4d.precision import precision_field
 from tesseract4d.model.checkpoint import SHIPPED_CHECKPOINT
 
 # The skills whose futures the demo contrasts by default (datagen.skills.VARIANTS).
@@ -61,13 +62,11 @@ class DemoConfig:
     host: str = knob("127.0.0.1", "viewer host (0.0.0.0 serves every address)")
     port: int = knob(8080, "viewer port")
     headless: bool = False
-    precision: str = "auto"
+    precision: str = precision_field()
     overwrite: bool = False
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from tesseract4d.precision import add_precision_argument
-
     d = DemoConfig()
     parser.add_argument("--task", default=d.task,
                         help="scene: the project's tabletop or a ManiSkill task id such as PickCube-v1 (default %(default)s)")
@@ -93,13 +92,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--sample-seed", type=seed(), default=d.sample_seed,
                         help="diffusion noise seed, shared by both futures (default %(default)s)")
     parser.add_argument("--headless", action="store_true", help="write the outputs and exit without serving the viewer")
-    add_precision_argument(parser)
     parser.add_argument("--overwrite", action="store_true",
                         help="write into a folder holding other files (only the demo's own files are replaced)")
     add_set_option(parser, DemoConfig)
     add_moved_to_set(parser, DemoConfig, [
         ("--num-frames", "num_frames", whole(1)), ("--draws", "draws", whole(1, hint=" (1: a single draw)")),
-        ("--camera", "camera"), ("--host", "host"), ("--port", "port", whole(0, 65535)),
+        ("--camera", "camera"), ("--host", "host"), ("--port", "port", whole(0, 65535)), PRECISION_MOVED,
     ])
 
 

@@ -42,6 +42,7 @@ from dataclasses import dataclass
 
 from tesseract4d.cli.argument_types import number, seed, whole
 from tesseract4d.configs import knob
+from tesseract4d.precision import precision_field
 from tesseract4d.dataset_format import HELDOUT_SEED_START
 from tesseract4d.model.checkpoint import SHIPPED_CHECKPOINT
 
@@ -59,10 +60,11 @@ class EvaluateOptions:
                                         "needs more memory); each scene gets the noise it gets alone")
     text_guidance: float | None = knob(None, "held-out: text guidance scale of the sampler (none: each checkpoint "
                                              "preset's; 1 = no guidance)")
+    precision: str = precision_field()
 
 
 def _options(args: argparse.Namespace) -> EvaluateOptions:
-    values = {k: getattr(args, k) for k in ("max_depth", "batch_size", "text_guidance")}
+    values = {k: getattr(args, k) for k in ("max_depth", "batch_size", "text_guidance", "precision")}
     values.update(getattr(args, "set_overrides", None) or {})
     return EvaluateOptions(**values)
 
@@ -76,7 +78,7 @@ class _AppendCheckpoint(argparse.Action):
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from tesseract4d.cli.config_args import add_deprecated, add_moved_to_set, add_set_option
+    from tesseract4d.cli.config_args import PRECISION_MOVED, add_deprecated, add_moved_to_set, add_set_option
 
     parser.add_argument("pred", nargs="?", help="reconstruction folder, or a predicted episode (.h5 / folder / DIR/ENV_ID/SEED)")
     parser.add_argument("--gt", help="ground-truth episode (.h5 / folder / DIR/ENV_ID/SEED)")
@@ -86,7 +88,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_set_option(parser, EvaluateOptions)
     add_moved_to_set(parser, EvaluateOptions, [
         ("--max-depth", "max_depth", number(0, above=True)), ("--batch-size", "batch_size", whole(1)),
-        ("--text-guidance", "text_guidance", number(0, above=True, hint=" (1: no guidance)")),
+        ("--text-guidance", "text_guidance", number(0, above=True, hint=" (1: no guidance)")), PRECISION_MOVED,
     ])
     add_deprecated(parser, "--start-from-truth", use="`tesseract4d research from-truth --sigma SIGMA`",
                    dest="start_from_truth", type=float, metavar="SIGMA")
@@ -96,8 +98,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def add_heldout_arguments(parser: argparse.ArgumentParser, full: bool = False) -> None:
     """The options of held-out evaluation (``full``: also camera, depth range, batch size and text
     guidance, which `research from-truth` leaves at their defaults)."""
-    from tesseract4d.precision import add_precision_argument
-
     if full:
         parser.add_argument("--camera", help="camera to compare (default: the ground truth's first)")
     else:
@@ -117,9 +117,12 @@ def add_heldout_arguments(parser: argparse.ArgumentParser, full: bool = False) -
                       help="diffusion noise seed (default 0); several (e.g. 0 1 2) predict every episode once per "
                            "seed and pool the scores: one noise draw decides much of an instruction's outcome, so "
                            "compare checkpoints on several")
-    held.add_argument("--max-per-task", type=whole(1), metavar="N",
-                      help="episodes per task at most, a counterfactual group kept whole (default: all)")
-    add_precision_argument(held)
+    if full:
+        held.add_argument("--max-per-task", type=whole(1), metavar="N",
+                          help="episodes per task at most, a counterfactual group kept whole (default: all)")
+    else:
+        parser.set_defaults(max_per_task=None)
+    parser.set_defaults(precision="auto")
     parser.add_argument("--overwrite", action="store_true",
                         help="replace a --json file / write into an --out folder that this command did not write")
 
@@ -173,7 +176,7 @@ def run_heldout(args: argparse.Namespace) -> int:
     options = _options(args)
     cfg = HeldoutConfig(checkpoint=checkpoints[0] if len(checkpoints) == 1 else checkpoints, data=args.heldout, out=None,
                         camera=args.camera, num_steps=args.steps, sample_seed=seeds, max_episodes=args.max_per_task,
-                        max_depth_m=options.max_depth, precision=args.precision, batch_size=options.batch_size,
+                        max_depth_m=options.max_depth, precision=options.precision, batch_size=options.batch_size,
                         text_guidance=options.text_guidance, start_from_truth=args.start_from_truth)
     report = evaluate_heldout(cfg)
     if args.out is not None:

@@ -30,10 +30,11 @@ from pathlib import Path
 import numpy as np
 
 from tesseract4d.cli.argument_types import number, seed, whole
-from tesseract4d.cli.config_args import add_moved_to_set, add_set_option, dataclass_from_args
+from tesseract4d.cli.config_args import PRECISION_MOVED, add_moved_to_set, add_set_option, dataclass_from_args
 from tesseract4d.configs import knob
 from tesseract4d.dataset_format import HELDOUT_SEED_START
 from tesseract4d.errors import UserError
+from tesseract4d.precision import precision_field
 from tesseract4d.model.checkpoint import SHIPPED_CHECKPOINT
 
 
@@ -55,16 +56,14 @@ class PredictConfig:
     draws: int | None = knob(None, "noise draws per sample, the one whose objects keep their colours best kept; N "
                                    "times the sampling (none: the checkpoint preset's; 1 = a single draw)")
     sample_seed: int = 0
-    num_samples: int = 1
+    num_samples: int = knob(1, "samples to draw in one batch")
     text_guidance: float | None = None
     image_guidance: float | None = knob(None, "first-frame guidance scale (none: the checkpoint preset's; 1 = none)")
     device: str = knob("cpu", "torch device")
-    precision: str = "auto"
+    precision: str = precision_field()
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from tesseract4d.precision import add_precision_argument
-
     d = PredictConfig()
     parser.add_argument("--checkpoint", type=Path, default=d.checkpoint,
                         help="inference checkpoint folder (RUN/final or `checkpoint export` output; default: the shipped v2-2step; tesseract4d/checkpoints/v2 is its 10-step teacher)")
@@ -80,16 +79,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", type=Path, default=d.out, help="output folder (default %(default)s)")
     parser.add_argument("--steps", type=whole(1), help="sampler steps (default: the checkpoint preset's)")
     parser.add_argument("--sample-seed", type=seed(), default=d.sample_seed, help="noise seed (default %(default)s)")
-    parser.add_argument("--num-samples", type=whole(1), default=d.num_samples, help="samples to draw in one batch (default %(default)s)")
     parser.add_argument("--text-guidance", type=number(0, above=True, hint=" (1: no guidance)"), help="text guidance scale (default: the checkpoint preset's)")
-    add_precision_argument(parser)
     parser.add_argument("--overwrite", action="store_true",
                         help="write into a folder holding other files (only this command's files are replaced)")
     add_set_option(parser, PredictConfig)
     add_moved_to_set(parser, PredictConfig, [
         ("--num-frames", "num_frames", whole(1)), ("--draws", "draws", whole(1, hint=" (1: a single draw)")),
         ("--image-guidance", "image_guidance", number(0, above=True, hint=" (1: no guidance)")),
-        ("--device", "device"),
+        ("--device", "device"), ("--num-samples", "num_samples", whole(1)), PRECISION_MOVED,
     ])
 
 

@@ -18,7 +18,7 @@ from pathlib import Path
 
 from reconstruction.reconstruct import ReconConfig
 from tesseract4d.cli.argument_types import number, whole
-from tesseract4d.cli.config_args import add_deprecated, add_set_option
+from tesseract4d.cli.config_args import add_deprecated, add_moved_to_set, add_set_option
 from tesseract4d.configs import with_overrides
 
 
@@ -29,8 +29,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--overwrite", action="store_true",
                         help="write into a folder holding other files (only this command's files are replaced)")
     parser.add_argument("--camera", help="camera of the episode to reconstruct (default: the first)")
-    parser.add_argument("--no-refine", action="store_true", help="plain back-projection of the input depth")
-    parser.add_argument("--no-mesh", action="store_true", help="skip the background mesh")
     parser.add_argument("--no-ply", action="store_true", help="write only manifest.json + recon4d.npz")
     parser.add_argument("--quiet", action="store_true", help="print nothing but errors")
     add_set_option(parser, ReconConfig)
@@ -45,11 +43,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         ("--flow-threshold", "flow_threshold_px", number(0, above=True, hint=" pixels")),
     ):
         add_deprecated(parser, old, use=f"--set {name}=VALUE", set_field=name, config_class=ReconConfig, type=kind)
+    add_moved_to_set(parser, ReconConfig, [("--no-refine", "refine", None, False), ("--no-mesh", "mesh", None, False)])
 
 
 def config_from_args(args: argparse.Namespace) -> ReconConfig:
-    base = ReconConfig(refine=not args.no_refine, mesh=not args.no_mesh)
-    return with_overrides(base, args.set_overrides)
+    return with_overrides(ReconConfig(), args.set_overrides)
 
 
 def run(args: argparse.Namespace) -> int:

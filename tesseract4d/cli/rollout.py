@@ -21,12 +21,10 @@ from __future__ import annotations
 import argparse
 
 from tesseract4d.cli.argument_types import seed, whole
-from tesseract4d.cli.config_args import add_deprecated, add_set_option
+from tesseract4d.cli.config_args import PRECISION_MOVED, add_deprecated, add_moved_to_set, add_set_option
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from tesseract4d.precision import add_precision_argument
-
     from datagen.generate import MAX_IMAGE_SIDE
     from tesseract4d.model.checkpoint import SHIPPED_CHECKPOINT
     from tesseract4d.policy.loop import LoopConfig
@@ -50,8 +48,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="simulator steps per episode before it counts as failed (default %(default)s)")
     parser.add_argument("--steps", type=whole(1),
                         help="sampler steps per prediction (default: the checkpoint's, 2 for v2-2step, 10 for v2)")
-    parser.add_argument("--videos", type=whole(0), default=d.videos, help="MP4s per arm and task (default %(default)s)")
-    add_precision_argument(parser)
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
     add_set_option(parser, RolloutConfig)
     # Old spellings, kept for one release.
@@ -68,6 +64,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                    config_class=RolloutConfig, type=_square(MAX_IMAGE_SIDE))
     add_deprecated(parser, "--instruction-split", use="--set instruction_split=NAME", set_field="instruction_split",
                    config_class=RolloutConfig, choices=["train", "heldout"])
+    add_moved_to_set(parser, RolloutConfig, [("--videos", "videos", whole(0)), PRECISION_MOVED])
     add_deprecated(parser, "--viewer-episodes", use="--set viewer_episodes=N", set_field="viewer_episodes",
                    config_class=RolloutConfig, type=whole(0))
 
@@ -93,8 +90,7 @@ def run(args: argparse.Namespace) -> int:
     loop = LoopConfig(max_steps=args.max_sim_steps, sample_steps=args.steps, resolution=None)
     cfg = RolloutConfig(tasks=[t.strip() for t in args.tasks.split(",") if t.strip()], seed_start=args.seed_start,
                         episodes=args.episodes, arms=[a.strip() for a in args.arms.split(",") if a.strip()],
-                        idm=args.idm, bc=args.bc, checkpoint=args.checkpoint, out=args.out, videos=args.videos,
-                        loop=loop, precision=args.precision)
+                        idm=args.idm, bc=args.bc, checkpoint=args.checkpoint, out=args.out, loop=loop)
     cfg = with_overrides(cfg, args.set_overrides)
     report = run_rollouts(cfg, progress=not args.quiet)
     print(open(f"{args.out}/report.md").read())

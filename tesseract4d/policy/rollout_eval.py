@@ -27,8 +27,10 @@ from pathlib import Path
 import numpy as np
 
 from tesseract4d import dataset_format as df
+from tesseract4d.configs import knob
 from tesseract4d.errors import UserError
 from tesseract4d.intervals import wilson_interval
+from tesseract4d.precision import precision_field
 from tesseract4d.policy.loop import EpisodeResult, LoopConfig, Trace, observation_episode
 
 DEFAULT_ARMS = ("motion_planner", "oracle_future", "world_model", "behavior_cloning")
@@ -46,10 +48,10 @@ class RolloutConfig:
     bc: str | None = None
     checkpoint: str | None = None
     out: str = ""
-    videos: int = 2  # MP4s per arm and task (first seeds)
-    viewer_episodes: int = 1  # viewer folders per future arm and task (first seeds)
+    videos: int = knob(2, "MP4s per arm and task (first seeds)")
+    viewer_episodes: int = knob(1, "episodes per future arm and task written for the viewer (first seeds)")
     loop: LoopConfig = field(default_factory=LoopConfig)
-    precision: str = "auto"  # auto|fp32|bf16 for the world model (tesseract4d/precision.py)
+    precision: str = precision_field()  # of the world model
 
 
 def summarize(rows: list[dict], arms: list[str], tasks: list[str]) -> dict:
