@@ -129,7 +129,7 @@ def run_demo(cfg: DemoConfig) -> dict[str, Path]:
 
     _check_config(cfg)
     if not Path(cfg.checkpoint).is_dir():
-        raise UserError(f"checkpoint {cfg.checkpoint} not found; pass --checkpoint DIR (a folder written by `tesseract4d train --export`).")
+        raise UserError(f"checkpoint {cfg.checkpoint} not found; pass --checkpoint DIR (a folder written by `tesseract4d checkpoint export`).")
     final = Path(cfg.out)
     with OutputDir(final, "demo", inputs=[cfg.checkpoint], overwrite=cfg.overwrite) as stage:
         written = _run_demo_stages(cfg, stage)

@@ -10,7 +10,7 @@ tesseract4d_config.json. An autoencoder whose encoder differs is refused.
 Example:
   tesseract4d train-autoencoder --init tesseract4d/checkpoints/v2/autoencoder --decoder-only \\
       --data data/v2_tabletop_240 data/ae128 --heldout data/heldout_groups128 --out runs/dec_ft
-  tesseract4d swap-decoder --checkpoint tesseract4d/checkpoints/v2 --autoencoder runs/dec_ft/autoencoder \\
+  tesseract4d checkpoint swap-decoder --checkpoint tesseract4d/checkpoints/v2 --autoencoder runs/dec_ft/autoencoder \\
       --to runs/v2_dec_ft --half
   tesseract4d evaluate --heldout data/heldout_groups128 --checkpoint tesseract4d/checkpoints/v2 \\
       --checkpoint runs/v2_dec_ft --out outputs/eval_dec_ft
