@@ -57,7 +57,7 @@ class DemoConfig:
     steps: int | None = None  # None: the checkpoint preset's
     draws: int | None = knob(None, "noise draws per future, the one whose objects keep their colours best kept "
                                    "(none: the checkpoint preset's; 1 = a single draw)")
-    sample_seed: int = 0
+    sample_seed: int = knob(0, "noise seed of the predictions")
     camera: str | None = knob(None, "camera preset to render the first frame from (none: the checkpoint's)")
     host: str = knob("127.0.0.1", "viewer host (0.0.0.0 serves every address)")
     port: int = knob(8080, "viewer port")
@@ -89,8 +89,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--checkpoint", type=Path, default=d.checkpoint, help="model checkpoint folder (default: the shipped v2-2step, tesseract4d/checkpoints/v2-2step; tesseract4d/checkpoints/v2 is its 10-step teacher)")
     parser.add_argument("--out", type=Path, default=d.out, help="output folder (default %(default)s)")
     parser.add_argument("--steps", type=whole(1), help="sampler steps (default: the checkpoint preset's)")
-    parser.add_argument("--sample-seed", type=seed(), default=d.sample_seed,
-                        help="diffusion noise seed, shared by both futures (default %(default)s)")
     parser.add_argument("--headless", action="store_true", help="write the outputs and exit without serving the viewer")
     parser.add_argument("--overwrite", action="store_true",
                         help="write into a folder holding other files (only the demo's own files are replaced)")
@@ -98,6 +96,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_moved_to_set(parser, DemoConfig, [
         ("--num-frames", "num_frames", whole(1)), ("--draws", "draws", whole(1, hint=" (1: a single draw)")),
         ("--camera", "camera"), ("--host", "host"), ("--port", "port", whole(0, 65535)), PRECISION_MOVED,
+        ("--sample-seed", "sample_seed", seed()),
     ])
 
 

@@ -61,10 +61,11 @@ class EvaluateOptions:
     text_guidance: float | None = knob(None, "held-out: text guidance scale of the sampler (none: each checkpoint "
                                              "preset's; 1 = no guidance)")
     precision: str = precision_field()
+    per_frame: bool = knob(True, "print every frame's metrics, not only the means")
 
 
 def _options(args: argparse.Namespace) -> EvaluateOptions:
-    values = {k: getattr(args, k) for k in ("max_depth", "batch_size", "text_guidance", "precision")}
+    values = {k: getattr(args, k) for k in ("max_depth", "batch_size", "text_guidance", "precision") if hasattr(args, k)}
     values.update(getattr(args, "set_overrides", None) or {})
     return EvaluateOptions(**values)
 
@@ -83,12 +84,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("pred", nargs="?", help="reconstruction folder, or a predicted episode (.h5 / folder / DIR/ENV_ID/SEED)")
     parser.add_argument("--gt", help="ground-truth episode (.h5 / folder / DIR/ENV_ID/SEED)")
     parser.add_argument("--json", type=Path, metavar="REPORT", help="also write the report as JSON")
-    parser.add_argument("--no-per-frame", action="store_true", help="print only the means")
     add_heldout_arguments(parser, full=True)
     add_set_option(parser, EvaluateOptions)
     add_moved_to_set(parser, EvaluateOptions, [
         ("--max-depth", "max_depth", number(0, above=True)), ("--batch-size", "batch_size", whole(1)),
         ("--text-guidance", "text_guidance", number(0, above=True, hint=" (1: no guidance)")), PRECISION_MOVED,
+        ("--no-per-frame", "per_frame", None, False),
     ])
     add_deprecated(parser, "--start-from-truth", use="`tesseract4d research from-truth --sigma SIGMA`",
                    dest="start_from_truth", type=float, metavar="SIGMA")
@@ -110,9 +111,12 @@ def add_heldout_arguments(parser: argparse.ArgumentParser, full: bool = False) -
     held.add_argument("--heldout", type=Path,
                       help=f"held-out dataset folder (datagen --seed-start {HELDOUT_SEED_START} --instruction-split heldout)")
     held.add_argument("--out", type=Path, help="folder for report.json and report.md")
-    held.add_argument("--steps", type=whole(1),
-                      help="sampler steps of every checkpoint (default: each checkpoint preset's own, e.g. 2 for a "
-                           "distilled student beside 10 for its teacher)")
+    if full:
+        held.add_argument("--steps", type=whole(1),
+                          help="sampler steps of every checkpoint (default: each checkpoint preset's own, e.g. 2 for a "
+                               "distilled student beside 10 for its teacher)")
+    else:
+        parser.set_defaults(steps=None)
     held.add_argument("--sample-seed", type=seed(), nargs="+", default=[0], metavar="SEED",
                       help="diffusion noise seed (default 0); several (e.g. 0 1 2) predict every episode once per "
                            "seed and pool the scores: one noise draw decides much of an instruction's outcome, so "
@@ -219,7 +223,7 @@ def run(args: argparse.Namespace) -> int:
     if report["pred_frames"] != report["gt_frames"]:
         print(f"note: prediction has {report['pred_frames']} frames, ground truth {report['gt_frames']}; "
               f"evaluated the first {report['num_frames']}")
-    print(format_report(report, per_frame=not args.no_per_frame))
+    print(format_report(report, per_frame=_options(args).per_frame))
     if output is not None:
         with output as tmp:
             tmp.write_text(json.dumps(json_safe(report), indent=2))

@@ -16,7 +16,7 @@ import argparse
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     from tesseract4d.cli import evaluate
 
-    parser.add_argument("--sigma", type=float, required=True, dest="start_from_truth",
+    parser.add_argument("--sigma", type=float, required=True, dest="start_from_truth", metavar="SIGMA",
                         help="start every sampler at its first noise level <= SIGMA from the true future")
     evaluate.add_heldout_arguments(parser)
     parser.set_defaults(pred=None)

@@ -34,8 +34,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", required=True, help="output folder (report, videos, viewer folders)")
     parser.add_argument("--tasks", default=",".join(d.tasks), help="comma-separated task ids (default %(default)s)")
     parser.add_argument("--episodes", type=whole(1), default=d.episodes, help="held-out seeds per task and arm (default %(default)s)")
-    parser.add_argument("--seed-start", type=seed(), default=d.seed_start,
-                        help="first held-out seed (default %(default)s; never a training seed)")
     parser.add_argument("--arms", default=",".join(d.arms),
                         help=f"comma-separated arms from {', '.join(ARMS)} (default: %(default)s; static_world feeds "
                              f"the IDM the current frame repeated, the control for what the predicted frames add)")
@@ -64,7 +62,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                    config_class=RolloutConfig, type=_square(MAX_IMAGE_SIDE))
     add_deprecated(parser, "--instruction-split", use="--set instruction_split=NAME", set_field="instruction_split",
                    config_class=RolloutConfig, choices=["train", "heldout"])
-    add_moved_to_set(parser, RolloutConfig, [("--videos", "videos", whole(0)), PRECISION_MOVED])
+    add_moved_to_set(parser, RolloutConfig, [("--videos", "videos", whole(0)), PRECISION_MOVED,
+                                             ("--seed-start", "seed_start", seed())])
     add_deprecated(parser, "--viewer-episodes", use="--set viewer_episodes=N", set_field="viewer_episodes",
                    config_class=RolloutConfig, type=whole(0))
 
@@ -88,7 +87,7 @@ def run(args: argparse.Namespace) -> int:
 
     # resolution None: the world model's with the world_model arm, else the IDM's (unless --set resolution=H,W)
     loop = LoopConfig(max_steps=args.max_sim_steps, sample_steps=args.steps, resolution=None)
-    cfg = RolloutConfig(tasks=[t.strip() for t in args.tasks.split(",") if t.strip()], seed_start=args.seed_start,
+    cfg = RolloutConfig(tasks=[t.strip() for t in args.tasks.split(",") if t.strip()],
                         episodes=args.episodes, arms=[a.strip() for a in args.arms.split(",") if a.strip()],
                         idm=args.idm, bc=args.bc, checkpoint=args.checkpoint, out=args.out, loop=loop)
     cfg = with_overrides(cfg, args.set_overrides)

@@ -41,7 +41,7 @@ VIDEO_SCALE = 4
 @dataclass
 class RolloutConfig:
     tasks: list[str] = field(default_factory=lambda: ["PushCube-v1", "PullCube-v1", "PickCube-v1", "StackCube-v1"])
-    seed_start: int = 100000
+    seed_start: int = knob(100000, "first held-out seed (never a training seed)")
     episodes: int = 5  # per task and arm
     arms: list[str] = field(default_factory=lambda: list(DEFAULT_ARMS))
     idm: str | None = None
