@@ -114,7 +114,9 @@ def _parse_one(text: str, annotation) -> Any:
         pairs = [item.split("=", 1) for item in text.split(",") if item.strip()]
         if any(len(p) != 2 for p in pairs):
             raise ValueError
-        return {_parse_one(k.strip(), key_type): _parse_one(v.strip(), value_type) for k, v in pairs}
+        # float values as written, nan included: the config's validate() names the bad entry
+        parse_value = float if value_type is float else (lambda t: _parse_one(t, value_type))
+        return {_parse_one(k.strip(), key_type): parse_value(v.strip()) for k, v in pairs}
     if annotation is bool:
         if text.lower() in _TRUE_WORDS:
             return True
@@ -156,8 +158,8 @@ def parse_field_value(cls, name: str, text: str) -> Any:
 
 def settable_fields(cls) -> dict[str, tuple[type, dataclasses.Field, tuple[str, ...]]]:
     """Every field reachable by name, as (owning dataclass, field, path): ``cls``'s own and those of its
-    dataclass-valued fields (a nested name is reachable as ``inner.name`` and, when no other field
-    has it, as ``name``)."""
+    dataclass-valued fields (a nested name is reachable as ``inner.name`` and, unless ``cls`` itself or
+    an earlier nested dataclass has the name, as ``name``)."""
     out: dict[str, tuple[type, dataclasses.Field, tuple[str, ...]]] = {}
     nested: dict[str, tuple[type, dataclasses.Field, tuple[str, ...]]] = {}
     types_ = field_types(cls)
@@ -171,11 +173,10 @@ def settable_fields(cls) -> dict[str, tuple[type, dataclasses.Field, tuple[str, 
                     nested[f"{f.name}.{g.name}"] = (inner, g, (f.name, g.name))
         else:
             out[f.name] = (cls, f, (f.name,))
-    shorts = [d.split(".", 1)[1] for d in nested]
     for dotted, entry in nested.items():
         out[dotted] = entry
         short = dotted.split(".", 1)[1]
-        if short not in out and shorts.count(short) == 1:
+        if short not in out:  # the first nested dataclass that has the name owns its short form
             out[short] = entry
     return out
 

@@ -64,7 +64,8 @@ DISTILL: dict[str, dict] = {
     "v2-2step": {
         "student_steps": 2,
         "num_pairs": 720,
-        "group_pairs": True,
+        "groups": True,
+        "group_batches": True,
         "counterfactual_swap": 0.5,
         "rephrase": 0.5,
         "max_steps": 1800,

@@ -43,12 +43,13 @@ def warn_deprecated(old: str, new: str) -> None:
 # --------------------------------------------------------------------------- flags from fields
 
 
-def _flag_type(cls, name: str, annotation) -> Callable[[str], Any]:
+def _flag_type(cls, name: str, annotation=None) -> Callable[[str], Any]:
+    """argparse type of field ``name``: its annotation's parse, refusals in argparse's words."""
     def parse(text: str):
         try:
             return parse_field_value(cls, name, text)
         except UserError as e:
-            raise argparse.ArgumentTypeError(str(e).split(": ", 1)[-1]) from None
+            raise argparse.ArgumentTypeError(f"{str(e).split(': ', 1)[-1]}, got {text!r}") from None
 
     parse.__name__ = "value"
     return parse
@@ -83,11 +84,14 @@ def add_field_flags(parser, cls, names: Iterable[str], *, types: dict[str, Calla
         kwargs: dict[str, Any] = {"dest": name, "default": None}
         if members == [bool]:
             kwargs.update(action="store_const", const=not bool(default))
+            help_ = f.metadata.get("flag_help", help_).replace("%", "%%")
         else:
-            help_ += _default_text(default)
+            if f.metadata.get("show_default", True):
+                help_ += _default_text(default)
             origin = typing.get_origin(members[0])
-            if origin is list and name not in types:
-                (inner,) = typing.get_args(members[0]) or (str,)
+            lists = [m for m in members if typing.get_origin(m) is list]
+            if lists and name not in types:
+                (inner,) = typing.get_args(lists[0]) or (str,)
                 kwargs.update(nargs="+", type=inner if inner in (Path, str, int, float) else str)
             elif origin is typing.Literal:
                 kwargs.update(choices=list(typing.get_args(members[0])))
@@ -228,6 +232,9 @@ def add_moved_to_set(parser, cls, moved: Iterable[tuple]) -> None:
                            config_class=cls, switch=rest[1])
         else:
             extra = kind if isinstance(kind, dict) else {"type": kind} if kind is not None else {}
+            if "type" not in extra and "choices" not in extra:
+                owner, f, _ = settable_fields(cls)[name]
+                extra["type"] = _flag_type(owner, f.name)
             add_deprecated(parser, old, use=f"--set {name}=VALUE", set_field=name, config_class=cls, **extra)
 
 
@@ -242,3 +249,22 @@ def dataclass_from_args(cls, args, **given):
     values = {f.name: getattr(args, f.name) for f in dataclasses.fields(cls) if f.init and hasattr(args, f.name)}
     values.update(given)
     return with_overrides(cls(**values), getattr(args, SET_DEST, None) or {})
+
+
+def add_trainer_options(parser, cls, names: Iterable[str], recipes: dict[str, dict], *,
+                        types: dict[str, Callable] | None = None, flags: dict[str, str] | None = None,
+                        required: Iterable[str] = (), loop: Iterable[str] = ("max_steps", "max_minutes", "resume",
+                                                                             "progress", "ckpt_every")) -> list[str]:
+    """The flags every trainer shares (``--recipe``, ``--recipe-from``, ``--max-steps``, ``--max-minutes``,
+    ``--resume``, ``--quiet``, ``--ckpt-every``, ``--set``) after its own ``names``, all derived from
+    ``cls``; returns the field names that are flags (for :func:`config_from_args`)."""
+    from tesseract4d.model.lr_schedule import max_steps_argument
+
+    fields = [*names, *loop]
+    # max_minutes as a plain float, as before: the config's validate() names a non-finite budget
+    add_field_flags(parser, cls, fields, types={"max_steps": max_steps_argument, "max_minutes": float, **(types or {})},
+                    flags={"progress": "--quiet", **(flags or {})}, required=required)
+    add_recipe_options(parser, recipes)
+    add_set_option(parser, cls)
+    add_deprecated(parser, "--no-progress", use="--quiet", dest="progress", switch=False)
+    return fields

@@ -46,16 +46,16 @@ import torch
 import torch.nn.functional as F
 
 from tesseract4d import dataset_format as df
-from tesseract4d.configs import config_dict, folder_list
+from tesseract4d.configs import config_dict, folder_list, knob
 from tesseract4d.errors import UserError
 from tesseract4d.outputs import files_as_created
-from tesseract4d.precision import announce, resolve_precision
+from tesseract4d.precision import announce, precision_field, resolve_precision
 from tesseract4d.segments import robot_object_mask
 from tesseract4d.stopping import StopSignals
 from tesseract4d.model.autoencoder import (
     FIDELITY_FILE, AutoencoderConfig, RGBDNAutoencoder, get_autoencoder_preset, load_autoencoder, save_autoencoder,
 )
-from tesseract4d.model.lr_schedule import AUTO, UNFITTED_MAX_STEPS, StepBudget, check_max_steps, lr_at, resumed_max_steps
+from tesseract4d.model.lr_schedule import AUTO, MAX_STEPS_HELP, UNFITTED_MAX_STEPS, StepBudget, check_max_steps, lr_at, resumed_max_steps
 from tesseract4d.model.model_space import ModelSpace, channel_slices
 
 CONFIG_FILE = "ae_train_config.json"
@@ -70,40 +70,46 @@ LATENT_STATS_FRAMES = 256
 class AutoencoderTrainConfig:
     """Options of `tesseract4d train-autoencoder`."""
 
-    data: Path | list[Path] | None = None  # one dataset folder or several (trained as one set)
-    heldout: Path | None = None
-    out: Path = Path("runs/autoencoder")
-    init: Path | None = None  # start from this exported autoencoder (fine-tuning) instead of random weights
-    decoder_only: bool = False  # with init: train only the decoder (encoder and latent statistics frozen)
+    data: Path | list[Path] | None = knob(None, "training dataset folder(s) (tesseract4d datagen), trained as one set",
+                                          metavar="DIR")
+    heldout: Path | None = knob(None, "held-out dataset folder for the fidelity gate (recommended; e.g. seeds >= "
+                                      "100000)", metavar="DIR")
+    out: Path = knob(Path("runs/autoencoder"), "run folder (new, or an existing one with --resume)", metavar="RUN",
+                     show_default=False)
+    init: Path | None = knob(None, "start from this exported autoencoder (RUN/autoencoder) instead of random weights: "
+                                   "fine-tune it on new scenes", metavar="DIR")
+    decoder_only: bool = knob(False, "with init: train only the decoder; the encoder and latent statistics stay "
+                                     "exactly as they are, so a latent model trained on them keeps working")
     decoder_layers_per_block: int | None = None  # a lighter decoder than the preset's (None: the preset's)
-    frame_stride: int = 1  # train on every k-th frame of each episode
-    preset: str = "ae-f8c32"
-    camera: str | None = None
-    max_steps: int | str = 20000  # also the length of the cosine decay; "auto": fitted to max_minutes (lr_schedule)
-    max_minutes: float | None = None  # stop (with a checkpoint) after this much time in this invocation
-    batch_size: int = 8
-    lr: float = 4e-4
-    warmup_steps: int = 300
-    min_lr_ratio: float = 0.1
-    weight_decay: float = 0.0
-    ema_decay: float = 0.999
-    grad_clip: float = 1.0
-    rgb_weight: float = 1.0
-    depth_weight: float = 3.0
-    normal_weight: float = 2.0
-    grad_weight: float = 1.0
+    frame_stride: int = knob(1, "train on every k-th frame of each episode (less memory)")
+    preset: str = knob("ae-f8c32", "autoencoder architecture (tesseract4d/model/autoencoder.py)")
+    camera: str | None = knob(None, "camera of the dataset to train on (none: its first)")
+    max_steps: int | str = knob(20000, MAX_STEPS_HELP, metavar="N|auto")
+    max_minutes: float | None = knob(None, "stop with a checkpoint after this many minutes of this invocation",
+                                     metavar="M")
+    batch_size: int = knob(8, "frames per step")
+    lr: float = knob(4e-4, "peak learning rate")
+    warmup_steps: int = knob(300, "linear warm-up steps")
+    min_lr_ratio: float = knob(0.1, "the cosine decay ends at this share of the peak learning rate")
+    weight_decay: float = knob(0.0, "AdamW weight decay")
+    ema_decay: float = knob(0.999, "EMA decay of the exported weights")
+    grad_clip: float = knob(1.0, "gradient norm clip")
+    rgb_weight: float = knob(1.0, "loss weight of RGB")
+    depth_weight: float = knob(3.0, "loss weight of depth")
+    normal_weight: float = knob(2.0, "loss weight of normals")
+    grad_weight: float = knob(1.0, "loss weight of depth and normal gradients")
     rgb_grad_weight: float = 0.0  # gradient-difference loss on colour: an L1 reconstruction blurs edges
-    object_weight: float = 5.0
-    edge_weight: float = 2.0
-    kl_weight: float = 1e-4
-    precision: str = "auto"
-    ckpt_minutes: float = 10.0
-    keep_checkpoints: int = 2
-    heldout_frames: int = 96
-    seed: int = 0
-    resume: bool = False
-    progress: bool = True
-    max_steps_fit: dict | None = None  # set by the trainer when --max-steps auto fitted the schedule
+    object_weight: float = knob(5.0, "loss weight of robot/object pixels relative to scenery")
+    edge_weight: float = knob(2.0, "loss weight of pixels at depth edges")
+    kl_weight: float = knob(1e-4, "weight of the KL term per latent element")
+    precision: str = precision_field()
+    ckpt_minutes: float = knob(10.0, "minutes between checkpoints (each with the fidelity gate)")
+    keep_checkpoints: int = knob(2, "checkpoints kept in the run folder (the newest)")
+    heldout_frames: int = knob(96, "held-out frames in the fidelity gate")
+    seed: int = knob(0, "training seed")
+    resume: bool = knob(False, "continue the latest checkpoint in --out exactly")
+    progress: bool = knob(True, "progress bars (--quiet: none)", flag_help="no progress bar")
+    max_steps_fit: dict | None = knob(None, "set by the trainer when --max-steps auto fitted the schedule")
 
     @property
     def data_folders(self) -> list[Path]:

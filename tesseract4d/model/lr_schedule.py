@@ -48,6 +48,11 @@ def max_steps_argument(text: str) -> int | str:
         raise argparse.ArgumentTypeError(f"expected a whole number of steps or 'auto', got {text!r}") from None
 
 
+MAX_STEPS_HELP = (f"optimiser steps; the cosine learning-rate decay ends here. 'auto' (with --max-minutes M) times "
+                  f"the first {PROBE_SKIP_STEPS + PROBE_TIMED_STEPS} steps and sets it so that the decay ends when "
+                  f"the M minutes do; the number is saved with the run, and --resume goes on along it")
+
+
 def add_max_steps_argument(parser: argparse.ArgumentParser, default: int, what: str = "training steps") -> None:
     """``--max-steps N|auto`` of the training commands, with its help."""
     parser.add_argument("--max-steps", type=max_steps_argument, default=default, metavar="N|auto",

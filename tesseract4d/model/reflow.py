@@ -40,10 +40,13 @@ from typing import Callable
 import numpy as np
 import torch
 
+from tesseract4d.configs import knob
 from tesseract4d.errors import UserError
 from tesseract4d.outputs import files_as_created
 from tesseract4d.model.checkpoint import GUIDE_DIR, weights_digest
+from tesseract4d.model.lr_schedule import MAX_STEPS_HELP
 from tesseract4d.model.trainer import TrainConfig, Trainer
+from tesseract4d.precision import precision_field
 
 MANIFEST = "reflow_pairs.json"
 SHARD_PREFIX = "pairs-"
@@ -52,19 +55,21 @@ FOLLOWING = "following.json"  # which pairs' teacher clips follow their instruct
 
 @dataclass
 class PairsConfig:
-    teacher: Path  # inference checkpoint folder
-    data: Path | list[Path]  # dataset folder(s) the first frames and instructions come from
-    out: Path  # pairs folder
-    num_pairs: int = 512
-    shard_size: int = 32
-    batch_size: int = 4
-    teacher_steps: int | None = None  # None = the teacher preset's
-    text_guidance: float | None = None  # None = the teacher preset's
-    image_guidance: float | None = None
-    seed: int = 0
-    camera: str | None = None
-    precision: str = "auto"
-    groups: bool = False  # whole counterfactual groups per draw, one noise per group
+    teacher: Path = knob(help="inference checkpoint folder of the teacher", metavar="CKPT")
+    data: Path | list[Path] = knob(help="dataset folder(s) the pairs' first frames and instructions come from",
+                                   metavar="DIR")
+    out: Path = knob(help="pairs folder (written, or resumed, from --data)", metavar="PAIRS")
+    num_pairs: int = knob(512, "teacher clips to sample")
+    shard_size: int = knob(32, "pairs per shard file")
+    batch_size: int = knob(4, "teacher clips per sampler call")
+    teacher_steps: int | None = knob(None, "the teacher's sampler steps (none: its preset's)")
+    text_guidance: float | None = knob(None, "the teacher's text guidance scale (none: its preset's; 1 = none)")
+    image_guidance: float | None = knob(None, "the teacher's first-frame guidance scale (none: its preset's)")
+    seed: int = knob(0, "seed of the pairs' noise")
+    camera: str | None = knob(None, "camera of --data (none: the teacher's)")
+    precision: str = precision_field()
+    groups: bool = knob(False, "draw the pairs as whole counterfactual groups of --data (one scene under several "
+                               "instructions), a group's pairs sharing one noise")
     # Noises the teacher samples each pair from; the pair keeps the one whose clip keeps the first frame's
     # objects best (draw_choice.py; a group keeps the draw best for its pairs together, so they share it).
     teacher_draws: int = 1
@@ -448,11 +453,11 @@ class ReflowConfig(TrainConfig):
     """Options of the student's training (`tesseract4d distill`). ``data`` is the pairs folder;
     the preset, model space, text encoder and initial weights are the teacher's."""
 
-    teacher: Path | None = None  # the teacher's inference checkpoint folder
-    student_steps: int = 2  # the student's sampler steps (its preset's num_steps)
-    max_steps: int = 1000
-    val_every: int = 100
-    val_clips: int = 4
+    teacher: Path | None = knob(None, "the inference checkpoint to distil (e.g. RUN/final)", metavar="CKPT")
+    student_steps: int = knob(2, "the student's sampler steps, one network pass each")
+    max_steps: int | str = knob(1000, MAX_STEPS_HELP, metavar="N|auto")
+    val_every: int = knob(100, "PSNR of the student against the teacher every K steps (0 = never)")
+    val_clips: int = knob(4, "pairs per validation")
     keep_following: bool = False  # train only on the pairs FOLLOWING keeps (scored by `distill --keep-following`)
     balance_tasks: bool = False  # with keep_following: draw the kept pairs so each task keeps its share of the pairs
 

@@ -36,12 +36,12 @@ from typing import Callable
 import numpy as np
 import torch
 
-from tesseract4d.configs import config_dict, folder_list
+from tesseract4d.configs import config_dict, folder_list, knob
 from tesseract4d.errors import UserError
 from tesseract4d.outputs import files_as_created
-from tesseract4d.precision import announce, resolve_precision
+from tesseract4d.precision import announce, precision_field, resolve_precision
 from tesseract4d.psnr import rgb_psnr
-from tesseract4d.model.lr_schedule import AUTO, UNFITTED_MAX_STEPS, StepBudget, check_max_steps, lr_at, resumed_max_steps
+from tesseract4d.model.lr_schedule import AUTO, MAX_STEPS_HELP, UNFITTED_MAX_STEPS, StepBudget, check_max_steps, lr_at, resumed_max_steps
 from tesseract4d.model.model_space import MODALITIES, ModelSpace
 from tesseract4d.model.checkpoint import (
     INFERENCE_CONFIG_FILE, MODEL_CONFIG_FILE, SCHEDULER_CONFIG_FILE, SCHEDULER_DIR, TRANSFORMER_DIR, WEIGHTS_FILE,
@@ -60,55 +60,67 @@ VALIDATION_STEPS = 10
 class TrainConfig:
     """Options of `tesseract4d train`; unset (None) training values take the preset's defaults."""
 
-    data: Path | list[Path] | None = None  # one dataset folder or several (trained as one set)
-    out: Path = Path("runs/tiny")
-    preset: str = "latent-128"
-    pretrained: Path | None = None
+    data: Path | list[Path] | None = knob(None, "dataset folder(s) written by `tesseract4d datagen`; several folders "
+                                                "(same resolution and camera) train as one set", metavar="DIR")
+    out: Path = knob(Path("runs/tiny"), "run folder (checkpoints, logs, validation videos, final/)", metavar="RUN",
+                     show_default=False)
+    preset: str = knob("latent-128", "model preset: latent-128, tiny or cogvideox-5b (tesseract4d/model/presets.py)")
+    pretrained: Path | None = knob(None, "local CogVideoX-5B-I2V folder (cogvideox-5b preset)")
     # Also the length of the cosine decay; "auto" fits it to max_minutes from the first steps' rate
     # (tesseract4d.model.lr_schedule.StepBudget), the fit recorded in max_steps_fit.
-    max_steps: int | str = 5000
-    max_minutes: float | None = None  # stop (with a checkpoint) after this much time in this invocation
-    # Stop (with a checkpoint) at this step while the learning-rate schedule still ends at max_steps:
-    # a run cut short of its schedule, reproducible in one command (--resume goes on from there).
-    stop_at_step: int | None = None
-    batch_size: int | None = None
-    lr: float | None = None
-    warmup_steps: int | None = None
-    min_lr_ratio: float = 0.1
-    weight_decay: float = 0.01
-    ema_decay: float | None = None
-    grad_clip: float | None = None
-    text_dropout: float | None = None
-    image_dropout: float | None = None
-    loss_weights: dict[str, float] = field(default_factory=lambda: {m: 1.0 for m in MODALITIES})
-    precision: str = "auto"  # auto|fp32|bf16, resolved by tesseract4d.precision
-    resume: bool = False
-    val_every: int = 500
-    val_clips: int = 2
-    ckpt_every: int = 500
-    keep_checkpoints: int = 2
-    seed: int = 0
-    camera: str | None = None
-    progress: bool = True
-    # Latent presets: the RGB-D-N autoencoder folder (RUN/autoencoder of `tesseract4d train-autoencoder`).
-    autoencoder: Path | None = None
-    # An inference checkpoint whose transformer weights start a new run (a fine-tune: fresh optimiser
-    # and learning-rate schedule); a latent preset then defaults to the checkpoint's own autoencoder.
-    init: Path | None = None
+    max_steps: int | str = knob(5000, MAX_STEPS_HELP, metavar="N|auto")
+    max_minutes: float | None = knob(None, "stop with a checkpoint after this many minutes of this invocation",
+                                     metavar="M")
+    # A run cut short of its schedule, reproducible in one command (--resume goes on from there).
+    stop_at_step: int | None = knob(None, "stop with a checkpoint at this step; the learning-rate schedule still ends "
+                                          "at max_steps")
+    batch_size: int | None = knob(None, "clips per step (none: the preset's)")
+    lr: float | None = knob(None, "peak learning rate (none: the preset's)")
+    warmup_steps: int | None = knob(None, "linear warm-up steps (none: the preset's)")
+    min_lr_ratio: float = knob(0.1, "the cosine decay ends at this share of the peak learning rate")
+    weight_decay: float = knob(0.01, "AdamW weight decay")
+    ema_decay: float | None = knob(None, "EMA decay of the exported weights (none: the preset's)")
+    grad_clip: float | None = knob(None, "gradient norm clip (none: the preset's)")
+    text_dropout: float | None = knob(None, "share of steps without text, for guidance (none: the preset's)")
+    image_dropout: float | None = knob(None, "share of steps without the first frame, for guidance (none: the preset's)")
+    loss_weights: dict[str, float] = knob(help="per-modality loss weights, e.g. rgb=1,depth=1,normal=1",
+                                          default_factory=lambda: {m: 1.0 for m in MODALITIES})
+    precision: str = precision_field()
+    resume: bool = knob(False, "continue from the latest intact checkpoint in --out")
+    val_every: int = knob(500, "validation videos every K steps (0 = never)")
+    val_clips: int = knob(2, "clips per validation")
+    ckpt_every: int = knob(500, "checkpoint every K optimiser steps (0 = only at the end)", metavar="K")
+    keep_checkpoints: int = knob(2, "checkpoints kept in the run folder (the newest)")
+    seed: int = knob(0, "training seed")
+    camera: str | None = knob(None, "camera of the dataset to train on (none: its first)")
+    progress: bool = knob(True, "progress bars (--quiet: none)", flag_help="no progress bar")
+    autoencoder: Path | None = knob(None, "RGB-D-N autoencoder folder of a latent preset (RUN/autoencoder of "
+                                          "`tesseract4d train-autoencoder`); the data is encoded once into "
+                                          "DATA/latent_cache/", metavar="DIR")
+    init: Path | None = knob(None, "start from this inference checkpoint's transformer weights (e.g. "
+                                   "tesseract4d/checkpoints/v2) with a fresh optimiser and schedule; a latent preset "
+                                   "then uses its autoencoder unless --autoencoder names one with the same encoder",
+                             metavar="CKPT")
     # Recipe levers (model/recipe.py): each a switch whose effect benchmarks/ablate_latent.py measures.
-    condition_noise: float = 0.0  # max std of Gaussian noise on the conditioning first frame (per sample U(0, max))
-    moving_weight: float = 1.0  # loss weight of moving cells (differ from the first frame) relative to static ones
-    object_weight: float = 1.0  # loss weight of robot/object cells (latent presets: from the cached segmentation)
-    scene_object_weight: float = 1.0  # added loss weight of the scene's objects' cells (not the robot; latent presets)
+    condition_noise: float = knob(0.0, "max std of noise on the conditioning first frame in training (U(0, max) per "
+                                        "clip)")
+    moving_weight: float = knob(1.0, "loss weight of moving cells (differ from the first frame)")
+    object_weight: float = knob(1.0, "loss weight of robot/object cells (latent presets: from the cached "
+                                     "segmentation)")
+    scene_object_weight: float = knob(1.0, "added loss weight of the scene's objects' cells (not the robot; latent "
+                                           "presets; 1 = off)")
     prediction: str = "x0"  # network target: "x0" (clean clip, first frame + correction) or "velocity"
     time_shift: float = 1.0  # diffusion times t = s u / (1 + (s - 1) u), u ~ U(0, 1); > 1 trains more at high noise
     time_logit_normal: float = 0.0  # > 0: u logit-normal with this std instead of uniform (trains most at middle noise)
-    group_batches: bool = False  # batches of whole counterfactual groups sharing one noise and one diffusion time
+    group_batches: bool = knob(False, "batches of whole counterfactual groups (`datagen --instructions-per-scene`) "
+                                      "sharing one noise and one diffusion time")
     difference_weight: float = 1.0  # with group_batches: loss weight of cells where a group's futures differ
-    counterfactual_swap: float = 0.0  # with group_batches: probability of showing a clip a sibling's noisy sample
-    rephrase: float = 0.0  # probability of training a clip under another training wording of its instruction
-    text_noise: float = 0.0  # max std of noise on the instruction's token embeddings, relative to each token's RMS
-    max_steps_fit: dict | None = None  # set by the trainer when --max-steps auto fitted the schedule
+    counterfactual_swap: float = knob(0.0, "with group_batches: probability that a clip at noise >= 0.3 is shown a "
+                                           "sibling's noisy sample and must still predict its own future")
+    rephrase: float = knob(0.0, "probability of training a clip under another training wording of its instruction")
+    text_noise: float = knob(0.0, "max std of noise on the instruction's token embeddings, relative to each token's "
+                                  "size (0 = off)")
+    max_steps_fit: dict | None = knob(None, "set by the trainer when --max-steps auto fitted the schedule")
 
     def resolved(self, preset: ModelPreset) -> "TrainConfig":
         out = dataclasses.replace(self)
