@@ -46,7 +46,7 @@ def bench_autoencoder_codec(ae_dir: Path, bf16: bool, repeats: int) -> dict:
         enc = median_seconds(lambda: codec.encode(x), repeats)
         dec = median_seconds(lambda: codec.decode(z), repeats)
     return {"encode_s": enc, "decode_s": dec, "peak_mb": _peak_rss_mb(),
-            "decoder": f"{cfg.decoder_layers + 1}-resnet decoder blocks"}
+            "decoder": f"{cfg.layers_per_block + 1}-resnet decoder blocks"}
 
 
 def bench_autoencoder_training(data: Path, preset: str, bf16: bool, steps: int) -> dict:

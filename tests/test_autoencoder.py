@@ -237,30 +237,17 @@ def test_loss_weights_robot_and_object_pixels_and_edges():
     assert inside.any()
 
 
-def test_colour_gradient_loss_charges_a_blurred_edge_not_an_even_colour_error():
-    from tesseract4d.model.autoencoder_trainer import AutoencoderTrainConfig, reconstruction_loss
+def test_an_autoencoder_config_with_the_removed_decoder_depth_reads_only_at_its_no_op_value():
+    """Autoencoders saved before the lighter decoder was removed record ``decoder_layers_per_block``:
+    null (or the encoder's depth) reads as before, a lighter one is refused with the fix."""
+    from tesseract4d.errors import UserError
+    from tesseract4d.model.autoencoder import AutoencoderConfig, get_autoencoder_preset
 
-    s = channel_slices()
-    target = torch.zeros(1, 7, 16, 16)
-    target[:, s["normal"].stop - 1] = 1.0  # unit normals: the normal terms are 0 everywhere
-    target[:, s["rgb"], :, 8:] = 1.0  # a vertical colour edge between columns 7 and 8
-    blurred = target.clone()
-    blurred[:, s["rgb"], :, 7:9] = torch.tensor([0.25, 0.75]).view(1, 1, 1, 2)  # the edge in place, softened
-    offset = target.clone()
-    offset[:, s["rgb"]] += 0.5 / 16  # the same mean L1 error, spread evenly: no edge lost
-    mask, kl = torch.zeros(1, 16, 16, dtype=torch.bool), torch.zeros(1)
-    plain, with_grad = AutoencoderTrainConfig(edge_weight=0.0), AutoencoderTrainConfig(edge_weight=0.0, rgb_grad_weight=4.0)
-    assert AutoencoderTrainConfig().rgb_grad_weight == 0.0  # off unless asked for: existing recipes unchanged
-    for cfg in (plain, with_grad):
-        assert float(reconstruction_loss(target, target, mask, kl, cfg)[0]) == pytest.approx(0.0, abs=1e-7)
-    _, p_blur = reconstruction_loss(blurred, target, mask, kl, with_grad)
-    _, p_offset = reconstruction_loss(offset, target, mask, kl, with_grad)
-    assert p_blur["rgb"] == pytest.approx(p_offset["rgb"])  # L1 rates them alike ...
-    assert p_offset["rgb_grad"] == pytest.approx(0.0, abs=1e-7)  # ... the new term charges only the blur
-    assert p_blur["rgb_grad"] > 0.01
-    total_plain, _ = reconstruction_loss(blurred, target, mask, kl, plain)
-    total_grad, _ = reconstruction_loss(blurred, target, mask, kl, with_grad)
-    assert float(total_grad - total_plain) == pytest.approx(4.0 * p_blur["rgb_grad"], rel=1e-5)
+    saved = get_autoencoder_preset("ae-test").to_dict()
+    for no_op in (None, saved["layers_per_block"]):
+        assert AutoencoderConfig.from_dict({**saved, "decoder_layers_per_block": no_op}) == AutoencoderConfig.from_dict(saved)
+    with pytest.raises(UserError, match="decoder of 0 layers per block"):
+        AutoencoderConfig.from_dict({**saved, "decoder_layers_per_block": 0})
 
 
 def test_gate_measures_edge_sharpness_of_the_round_trip(tmp_path):

@@ -100,20 +100,20 @@ def test_version_1_without_a_scheduler_samples_with_the_training_sampler(v2_copy
 
 
 def test_a_checkpoint_can_share_the_autoencoder_of_the_one_beside_it(tmp_path):
-    """share_autoencoder: a copy of the student without its own autoencoder, beside v2 whose identical one
-    it reads (the config names ../v2/autoencoder), samples exactly as the self-contained student; copies
-    written elsewhere (set-sampler, swap-decoder) carry the autoencoder again; a shared checkpoint moved
-    away from its sibling, a --to elsewhere and a sibling that shares itself are refused with the fix."""
-    from tesseract4d.model.latent_checkpoint import AUTOENCODER_DIR, replace_decoder, share_autoencoder
+    """The shipped student reads v2's autoencoder (its config names ../v2/autoencoder) and samples exactly
+    as a self-contained copy of it; copies written elsewhere (set-sampler, swap-decoder) carry the
+    autoencoder again; a shared checkpoint moved away from its sibling is refused with the fix."""
+    from tesseract4d.model.latent_checkpoint import AUTOENCODER_DIR, checkpoint_autoencoder, replace_decoder
     from tesseract4d.model.predict import load_pipeline
 
     pair = tmp_path / "pair"
     v2 = shutil.copytree(V2_CHECKPOINT, pair / "v2")
-    own = ck.write_sampler_copy(SHIPPED_CHECKPOINT, tmp_path / "own", {"num_steps": 2})  # self-contained
+    shared = shutil.copytree(SHIPPED_CHECKPOINT, pair / SHIPPED_CHECKPOINT.name)
+    entry = ck.read_inference_config(shared)["autoencoder"]
+    assert entry["dir"] == "../v2/autoencoder" and not (shared / AUTOENCODER_DIR).exists()
+    assert checkpoint_autoencoder(SHIPPED_CHECKPOINT, entry).resolve() == (V2_CHECKPOINT / AUTOENCODER_DIR).resolve()
+    own = ck.write_sampler_copy(shared, tmp_path / "own", {"num_steps": 2})  # self-contained
     assert (own / AUTOENCODER_DIR / "model.safetensors").is_file()
-    shared = share_autoencoder(own, v2, pair / "student")
-    assert not (shared / AUTOENCODER_DIR).exists() and (shared / ck.TRANSFORMER_DIR / ck.WEIGHTS_FILE).is_file()
-    assert ck.read_inference_config(shared)["autoencoder"]["dir"] == "../v2/autoencoder"
     first = torch.rand(1, 7, 128, 128, generator=torch.Generator().manual_seed(0)) * 2 - 1
 
     def sample(folder):
@@ -121,40 +121,59 @@ def test_a_checkpoint_can_share_the_autoencoder_of_the_one_beside_it(tmp_path):
                                                        generator=torch.Generator().manual_seed(1))
 
     assert torch.equal(sample(shared), sample(own))
-    elsewhere = ck.write_sampler_copy(shared, tmp_path / "elsewhere", {"num_steps": 2})
     swapped = replace_decoder(shared, v2 / AUTOENCODER_DIR, tmp_path / "swapped")
-    for copy in (elsewhere, swapped):
+    for copy in (own, swapped):
         entry = ck.read_inference_config(copy)["autoencoder"]
         assert entry["dir"] == AUTOENCODER_DIR and "shared_with" not in entry
         assert (copy / AUTOENCODER_DIR / "model.safetensors").read_bytes() == (v2 / AUTOENCODER_DIR /
                                                                                "model.safetensors").read_bytes()
-    assert torch.equal(sample(elsewhere), sample(own))
     lonely = shutil.copytree(shared, tmp_path / "lonely")
     with pytest.raises(UserError, match="side by side"):
         load_pipeline(lonely)
-    with pytest.raises(UserError, match="same folder as"):
-        share_autoencoder(own, v2, tmp_path / "away")
-    with pytest.raises(UserError, match="shares another"):
-        share_autoencoder(own, shared, pair / "chain")
-    assert not (tmp_path / "away").exists() and not (pair / "chain").exists()
 
 
-def test_v2_ships_an_8_bit_guide_that_autoguidance_turns_on(tmp_path):
-    """v2 carries an autoguidance guide in 8 bits (README "Autoguidance") but samples without it by
-    default (and does not load it); `set-sampler --autoguidance W` needs no --guide to turn it on. The default student reads
-    v2's autoencoder instead of storing a second copy."""
-    from tesseract4d import cli
-    from tesseract4d.model.latent_checkpoint import checkpoint_autoencoder
+def test_shipped_checkpoints_record_no_removed_option():
+    """v2 no longer carries autoguidance's guide network; neither shipped config names an option this
+    version removed (docs/research/removed_features.md)."""
+    from tesseract4d.model.presets import REMOVED_FIELDS
+    from tesseract4d.model.recipe import REMOVED_LEVERS
+
+    assert not (V2_CHECKPOINT / ck.REMOVED_GUIDE_DIR).exists()
+    for checkpoint in (V2_CHECKPOINT, SHIPPED_CHECKPOINT):
+        cfg = ck.read_inference_config(checkpoint)
+        assert "guide" not in cfg and not set(REMOVED_FIELDS) & set(cfg["preset"])
+        assert not set(REMOVED_LEVERS) & set(cfg["recipe"])
+        assert "decoder_layers_per_block" not in cfg["autoencoder"]["config"]
+
+
+def test_a_checkpoint_recording_removed_options_at_their_no_op_values_loads_and_samples_as_before(v2_copy, tmp_path):
+    """A checkpoint written before the removals records autoguidance 0 (and its interval), an unused guide
+    folder, prediction x0, time shift 1, difference weight 1 and a null decoder depth: it loads and
+    samples bit for bit as the shipped one; set-sampler's copy of it leaves the guide folder and the
+    removed settings out. Any other value of a removed option is refused with a message that names it."""
     from tesseract4d.model.predict import load_pipeline
 
-    cfg = ck.read_inference_config(V2_CHECKPOINT)
-    assert preset_from_dict(cfg["preset"]).autoguidance == 0.0
-    assert cfg["guide"]["bits"] == 8 and cfg["guide"]["blended"]["weight"] == 0.75
-    assert ck.read_weights(V2_CHECKPOINT / ck.GUIDE_DIR / ck.WEIGHTS_FILE)[1]  # stored in 8 bits
-    student = ck.read_inference_config(SHIPPED_CHECKPOINT)["autoencoder"]
-    assert checkpoint_autoencoder(SHIPPED_CHECKPOINT, student).resolve() == (V2_CHECKPOINT / "autoencoder").resolve()
-    assert cli.main(["set-sampler", "--checkpoint", str(V2_CHECKPOINT), "--autoguidance", "1",
-                     "--to", str(tmp_path / "v2_ag")]) == 0
-    pipe = load_pipeline(tmp_path / "v2_ag")
-    assert pipe.preset.autoguidance == 1.0 and pipe.guide_transformer is not None
-    assert load_pipeline(V2_CHECKPOINT).guide_transformer is None  # carried unused: not loaded
+    cfg = ck.read_inference_config(v2_copy)
+    old = {**cfg, "preset": {**cfg["preset"], "autoguidance": 0.0, "autoguidance_min_sigma": 0.5},
+           "recipe": {**cfg["recipe"], "prediction": "x0", "time_shift": 1.0, "difference_weight": 1.0},
+           "autoencoder": {**cfg["autoencoder"],
+                           "config": {**cfg["autoencoder"]["config"], "decoder_layers_per_block": None}},
+           "guide": {"source": "an old guide", "bits": 8}}
+    (v2_copy / ck.INFERENCE_CONFIG_FILE).write_text(json.dumps(old))
+    shutil.copytree(v2_copy / ck.TRANSFORMER_DIR, v2_copy / ck.REMOVED_GUIDE_DIR)  # an unused guide, as v2 had
+    first = torch.rand(1, 7, 128, 128, generator=torch.Generator().manual_seed(0)) * 2 - 1
+
+    def sample(folder):
+        return load_pipeline(folder, precision="fp32")(first, ["push the purple cube to the left"], num_inference_steps=2,
+                                                       generator=torch.Generator().manual_seed(1))
+
+    assert torch.equal(sample(v2_copy), sample(V2_CHECKPOINT))
+    copy = ck.write_sampler_copy(v2_copy, tmp_path / "copy", {"draws": 1})
+    written = ck.read_inference_config(copy)
+    assert not (copy / ck.REMOVED_GUIDE_DIR).exists() and "guide" not in written
+    assert "autoguidance" not in written["preset"] and "autoguidance_min_sigma" not in written["preset"]
+    for changes, match in ((dict(preset={**old["preset"], "autoguidance": 1.0}), "autoguidance 1.0"),
+                           (dict(recipe={**old["recipe"], "prediction": "velocity"}), "predicts 'velocity'")):
+        _edit_config(v2_copy, **{**old, **changes})
+        with pytest.raises(UserError, match=match):
+            load_pipeline(v2_copy)

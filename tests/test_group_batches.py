@@ -12,8 +12,8 @@ import torch
 
 from tesseract4d.dataset_format import group_of_episode_id
 from tesseract4d.model.clips import draw_group_batch, group_units
-from tesseract4d.model.recipe import (DISAGREE_SHARE, SWAP_MIN_T, cell_weights, difference_cells, share_within_groups,
-                                      swap_sources)
+from tesseract4d.model.recipe import (DISAGREE_SHARE, SWAP_MIN_T, cell_weights, disagreement_mask,
+                                      share_within_groups, swap_sources)
 
 IDS = ["Tab-v1/seed_000000_k0", "Tab-v1/seed_000000_k1", "Tab-v1/seed_000000_k2", "Tab-v1/seed_000000_k3",
        "Push-v1/seed_000004", "Tab-v1/seed_000002_k0", "Tab-v1/seed_000002_k1"]
@@ -67,33 +67,18 @@ def test_shared_noise_and_times_follow_the_leaders():
     assert share_within_groups(noise, None) is noise
 
 
-def test_difference_cells_mark_where_a_groups_futures_differ():
-    x0 = torch.zeros(5, 4, 2, 10, 10)
+def test_the_disagreement_mask_marks_where_a_groups_futures_differ():
+    x0 = torch.zeros(4, 4, 2, 10, 10)
     x0[0, 2:, :, 3:5, 3:5] = 1.0  # group (0, 1): clip 0 moves a patch that clip 1 keeps still
     x0[2:4] = torch.randn(2, 4, 2, 10, 10)  # group (2, 3): random futures
-    x0[4, 1:] = 5.0  # clip 4 alone: moves everywhere, but has no sibling to differ from
-    cells = difference_cells(x0, [0, 0, 2, 2, 4])
-    assert cells.shape == (5, 4, 1, 10, 10)
-    assert torch.equal(cells[0], cells[1])  # one mask per group
-    assert cells[0, 2:, 0, 3:5, 3:5].all() and cells[0].sum() == 2 * 4  # exactly the differing cells
-    assert cells[2].mean().item() == pytest.approx(DISAGREE_SHARE, abs=0.01)
-    assert cells[4].sum() == 0
-
-
-def test_difference_weight_adds_to_the_moving_and_object_weights():
-    cfg = SimpleNamespace(moving_weight=1.0, object_weight=1.0, scene_object_weight=1.0, difference_weight=4.0)
-    x0 = torch.zeros(2, 4, 2, 10, 10)
-    x0[0, 2:, :, 3:5, 3:5] = 1.0
-    w = cell_weights(x0, None, cfg, [0, 0])
-    assert w[1, 3, 0, 4, 4] == 4.0 and w[1, 3, 0, 0, 0] == 1.0
-    assert cell_weights(x0, None, cfg, None) is None  # no groups: the difference weight cannot apply
-    cfg.moving_weight = 2.0
-    w = cell_weights(x0, None, cfg, [0, 0])
-    assert w[0, 3, 0, 4, 4] == 2.0 + 3.0 and w[1, 3, 0, 4, 4] == 4.0  # clip 1 keeps still there
+    still = disagreement_mask(x0[:2])
+    assert still.shape == (1, 4, 1, 10, 10)
+    assert still[0, 2:, 0, 3:5, 3:5].all() and still.sum() == 2 * 4  # exactly the differing cells
+    assert disagreement_mask(x0[2:4]).mean().item() == pytest.approx(DISAGREE_SHARE, abs=0.01)
 
 
 def test_scene_object_weight_adds_to_the_robot_and_object_weight_on_the_objects_alone():
-    cfg = SimpleNamespace(moving_weight=1.0, object_weight=2.0, scene_object_weight=8.0, difference_weight=1.0)
+    cfg = SimpleNamespace(moving_weight=1.0, object_weight=2.0, scene_object_weight=8.0)
     x0 = torch.zeros(1, 3, 2, 6, 6)  # a still clip: no moving cells
     objects = torch.zeros(1, 3, 2, 6, 6)
     objects[:, :, 0, 0, :3] = 1.0  # the robot: three cells

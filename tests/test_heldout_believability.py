@@ -292,12 +292,8 @@ def test_a_guidance_interval_is_sampled_and_reported(two_checkpoints, tmp_path):
                                  "interval": {"num_steps": steps, "text_guidance": 2.0, "guidance_min_sigma": 0.5}}
     assert report["summary"]["guided"]["rgb_psnr_db"] != report["summary"]["interval"]["rgb_psnr_db"]
     assert "interval 10 steps, text guidance 2 at noise ≥ 0.5".replace("10", str(steps)) in format_markdown(report)
-    # An autoguidance interval is named after the scale it limits.
     from tesseract4d.evaluation.heldout import describe_sampler
 
-    assert describe_sampler({"num_steps": 10, "text_guidance": 1.5, "guidance_min_sigma": 0.2, "autoguidance": 1.0,
-                             "autoguidance_min_sigma": 0.5}) == ("10 steps, text guidance 1.5 at noise ≥ 0.2, "
-                                                                 "autoguidance 1 at noise ≥ 0.5")
     assert describe_sampler({"num_steps": 2, "text_guidance": 1.0, "static_tolerance": 0.2}) == (
         "2 steps, text guidance 1, first frame kept where still (tolerance 0.2)")
     assert describe_sampler({"num_steps": 2, "text_guidance": 1.0, "draws": 4}) == (

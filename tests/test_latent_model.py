@@ -172,64 +172,32 @@ def test_half_export_is_half_the_size_and_samples_like_the_float32_export(tmp_pa
     assert cli.main(["train", "--half", "--out", str(tmp_path / "x"), "--data", str(data)]) == 2
 
 
-def test_velocity_prediction_trains_and_samples(tmp_path):
-    from tesseract4d.model.predict import load_pipeline
-    from tesseract4d.model.trainer import Trainer
-
-    data = write_segmented_dataset(tmp_path / "data", episodes=1)
-    final = Trainer(_config(data, tmp_path / "run", _autoencoder(tmp_path / "ae"), prediction="velocity")).train()
-    pipe = load_pipeline(final)
-    assert pipe.prediction == "velocity"
-    out = pipe(torch.zeros(1, 7, 32, 32), ["x"], generator=torch.Generator().manual_seed(0))
-    assert torch.isfinite(out).all()
-
-
-def test_time_shift_draws_uniform_times_at_one_and_more_high_noise_above_it():
-    """--time-shift 1 draws exactly torch.rand's times (the old recipe's stream); a shift of 3 maps each
-    draw u monotonically to 3u / (1 + 2u) in [0, 1], so half the steps land above t = 0.75."""
-    from tesseract4d.model.recipe import sample_times
-
-    n = 20000
-    u = torch.rand(n, generator=torch.Generator().manual_seed(7))
-    assert torch.equal(sample_times(n, 1.0, torch.Generator().manual_seed(7)), u)
-    t = sample_times(n, 3.0, torch.Generator().manual_seed(7))
-    assert torch.allclose(t, 3 * u / (1 + 2 * u))
-    assert float(t.min()) >= 0.0 and float(t.max()) <= 1.0
-    assert (t[torch.argsort(u)].diff() >= -1e-6).all()  # order kept (to float rounding): a monotone map
-    # P(t > 0.75) = P(u > 0.5) = 0.5 at shift 3, against 0.25 uniform
-    assert abs(float((t > 0.75).float().mean()) - 0.5) < 0.02
-
-
 def test_time_logit_normal_draws_most_times_at_middle_noise():
     """--time-logit-normal m: t = sigmoid(m n), n ~ N(0, 1), drawn from the generator's normal stream
     (the uniform draw is untouched at 0): symmetric about t = 0.5, about 68 % of the draws between
-    sigmoid(-m) and sigmoid(m) (0.27-0.73 at m = 1; uniform: 46 %), and a shift maps them as it maps
-    uniform draws."""
+    sigmoid(-m) and sigmoid(m) (0.27-0.73 at m = 1; uniform: 46 %); at 0 the draw is torch.rand's."""
     from tesseract4d.model.recipe import sample_times
 
     n = 20000
     z = torch.randn(n, generator=torch.Generator().manual_seed(7))
-    t = sample_times(n, 1.0, torch.Generator().manual_seed(7), logit_normal=1.0)
+    t = sample_times(n, torch.Generator().manual_seed(7), logit_normal=1.0)
     assert torch.allclose(t, torch.sigmoid(z))
     assert float(t.min()) > 0.0 and float(t.max()) < 1.0
     assert abs(float(t.median()) - 0.5) < 0.02
     inner = float(((t > torch.sigmoid(torch.tensor(-1.0))) & (t < torch.sigmoid(torch.tensor(1.0)))).float().mean())
     assert abs(inner - 0.6827) < 0.02
-    shifted = sample_times(n, 3.0, torch.Generator().manual_seed(7), logit_normal=1.0)
-    assert torch.allclose(shifted, 3 * t / (1 + 2 * t))
-    assert torch.equal(sample_times(n, 1.0, torch.Generator().manual_seed(7), logit_normal=0.0),
+    assert torch.equal(sample_times(n, torch.Generator().manual_seed(7), logit_normal=0.0),
                        torch.rand(n, generator=torch.Generator().manual_seed(7)))
 
 
-def test_time_shift_trains_and_is_recorded(tmp_path):
+def test_time_logit_normal_trains_and_is_recorded(tmp_path):
     from tesseract4d.model.predict import load_pipeline
     from tesseract4d.model.trainer import Trainer
 
     data = write_segmented_dataset(tmp_path / "data", episodes=1)
-    final = Trainer(_config(data, tmp_path / "run", _autoencoder(tmp_path / "ae"), time_shift=3.0,
-                            time_logit_normal=1.0)).train()
+    final = Trainer(_config(data, tmp_path / "run", _autoencoder(tmp_path / "ae"), time_logit_normal=1.0)).train()
     recipe = load_pipeline(final).config["recipe"]
-    assert recipe["time_shift"] == 3.0 and recipe["time_logit_normal"] == 1.0
+    assert recipe["time_logit_normal"] == 1.0
     for bad in (-1.0, float("nan")):
         with pytest.raises(UserError, match="--time-logit-normal"):
             Trainer(_config(data, tmp_path / "run2", _autoencoder(tmp_path / "ae"), time_logit_normal=bad))
@@ -270,19 +238,22 @@ def test_group_batches_share_noise_and_time_per_scene_and_are_recorded(tmp_path,
 
     data = write_grouped_dataset(tmp_path / "data", scenes=2, singles=1)
     ae = _autoencoder(tmp_path / "ae")
-    trainer = Trainer(_config(data, tmp_path / "run", ae, batch_size=4, group_batches=True, difference_weight=3.0,
-                              counterfactual_swap=1.0))
+    trainer = Trainer(_config(data, tmp_path / "run", ae, batch_size=4, group_batches=True, counterfactual_swap=1.0))
     seen = []
     original = trainer.denoising_loss
 
-    def record(x0, first, text, t, noise, objects=None, *, leaders=None, shown=None):
-        seen.append((x0, t, noise, leaders, shown))
-        return original(x0, first, text, t, noise, objects, leaders=leaders, shown=shown)
+    def record(x0, first, text, t, noise, objects=None, *, shown=None):
+        seen.append((x0, t, noise, shown))
+        return original(x0, first, text, t, noise, objects, shown=shown)
 
+    groups = []
+    sample_group_batch = trainer.data.sample_group_batch
+    monkeypatch.setattr(trainer.data, "sample_group_batch",
+                        lambda *a, **k: (lambda out: groups.append(out[-1]) or out)(sample_group_batch(*a, **k)))
     monkeypatch.setattr(trainer, "denoising_loss", record)
     for step in range(6):
         trainer.compute_loss(step)
-    for x0, t, noise, leaders, shown in seen:
+    for (x0, t, noise, shown), leaders in zip(seen, groups, strict=True):
         for k, leader in enumerate(leaders):
             assert torch.equal(noise[k], noise[leader]) and t[k] == t[leader]
             assert torch.equal(x0[k, 0], x0[leader, 0])  # one scene: the same first frame
@@ -292,10 +263,10 @@ def test_group_batches_share_noise_and_time_per_scene_and_are_recorded(tmp_path,
     assert any(j != k for *_, shown in seen for k, j in enumerate(shown))
     final = trainer.train()
     recipe = load_pipeline(final).config["recipe"]
-    assert recipe["group_batches"] is True and recipe["difference_weight"] == 3.0 and recipe["counterfactual_swap"] == 1.0
+    assert recipe["group_batches"] is True and recipe["counterfactual_swap"] == 1.0
 
     with pytest.raises(UserError, match="--group-batches"):
-        Trainer(_config(data, tmp_path / "run2", ae, difference_weight=3.0))
+        Trainer(_config(data, tmp_path / "run2", ae, counterfactual_swap=0.5))
     with pytest.raises(UserError, match="--counterfactual-swap"):
         Trainer(_config(data, tmp_path / "run3", ae, group_batches=True, counterfactual_swap=1.5))
     plain = write_segmented_dataset(tmp_path / "plain", episodes=2)
@@ -314,11 +285,6 @@ def test_bad_inputs_are_user_errors(tmp_path):
     data = write_segmented_dataset(tmp_path / "data", episodes=1)
     with pytest.raises(UserError, match="--autoencoder"):
         Trainer(_config(data, tmp_path / "run2", None))
-    with pytest.raises(UserError, match="--prediction"):
-        Trainer(_config(data, tmp_path / "run3", ae, prediction="eps"))
-    for shift in (0.0, float("nan")):
-        with pytest.raises(UserError, match="--time-shift"):
-            Trainer(_config(data, tmp_path / "run4", ae, time_shift=shift))
     for weight in (0.0, float("inf")):
         with pytest.raises(UserError, match="--scene-object-weight"):
             Trainer(_config(data, tmp_path / "run5", ae, scene_object_weight=weight))
@@ -328,7 +294,7 @@ def test_bad_inputs_are_user_errors(tmp_path):
 def test_init_fine_tunes_a_checkpoint_in_its_own_latent_space(tmp_path):
     """`train --init CKPT`: the new run starts from the checkpoint's transformer weights (float16 ones
     too) with its own schedule, uses the autoencoder inside the checkpoint, names what it started from,
-    and refuses another preset, another target, or an autoencoder with other latents."""
+    and refuses another preset, a velocity target, or an autoencoder with other latents."""
     from safetensors.torch import load_file
 
     from tesseract4d import cli
@@ -365,8 +331,12 @@ def test_init_fine_tunes_a_checkpoint_in_its_own_latent_space(tmp_path):
         Trainer(_config(data, tmp_path / "first", other, max_steps=4, resume=True))
     assert Trainer(_config(data, tmp_path / "first", ae, max_steps=4, resume=True)).step == 3
 
-    with pytest.raises(UserError, match="--prediction x0"):
-        Trainer(_config(data, tmp_path / "r1", None, init=ckpt, prediction="velocity"))
+    velocity = shutil.copytree(ckpt, tmp_path / "velocity")  # as written before the velocity target was removed
+    config = json.loads((velocity / "tesseract4d_config.json").read_text())
+    config["recipe"]["prediction"] = "velocity"
+    (velocity / "tesseract4d_config.json").write_text(json.dumps(config))
+    with pytest.raises(UserError, match="predicts 'velocity'"):
+        Trainer(_config(data, tmp_path / "r1", None, init=velocity))
     with pytest.raises(UserError, match="makes other latents"):
         Trainer(_config(data, tmp_path / "r2", _autoencoder(tmp_path / "other", seed=7), init=ckpt))
     with pytest.raises(UserError, match="--preset micro-latent"):
@@ -378,7 +348,7 @@ def test_init_fine_tunes_a_checkpoint_in_its_own_latent_space(tmp_path):
 
 def test_a_latent_teacher_distils_into_a_few_step_student_that_carries_its_autoencoder(tmp_path):
     """`distill` of a latent checkpoint: the student trains in the teacher's latent space with the
-    autoencoder copied inside the teacher (hash-checked), keeps the teacher's target, sees clean first
+    autoencoder copied inside the teacher (hash-checked), sees clean first
     frames, exports with that autoencoder, and follows the guided multi-step teacher in 2 unguided steps
     more closely than the teacher's own 2 steps."""
     from tesseract4d import cli
@@ -388,8 +358,7 @@ def test_a_latent_teacher_distils_into_a_few_step_student_that_carries_its_autoe
 
     data = write_segmented_dataset(tmp_path / "data", episodes=2)
     ae = _autoencoder(tmp_path / "ae", data=data)
-    teacher = Trainer(_config(data, tmp_path / "teacher", ae, max_steps=60, prediction="velocity",
-                              condition_noise=0.1)).train()
+    teacher = Trainer(_config(data, tmp_path / "teacher", ae, max_steps=60, condition_noise=0.1)).train()
     pairs = generate_pairs(PairsConfig(teacher=teacher, data=data, out=tmp_path / "pairs", num_pairs=16, shard_size=8,
                                        batch_size=8, teacher_steps=8, text_guidance=2.0), progress=False)
     run = tmp_path / "student"
@@ -399,7 +368,7 @@ def test_a_latent_teacher_distils_into_a_few_step_student_that_carries_its_autoe
     student = load_pipeline(run / "final")
     teacher_cfg = json.loads((teacher / "tesseract4d_config.json").read_text())
     assert student.config["autoencoder"]["hash"] == teacher_cfg["autoencoder"]["hash"]
-    assert student.prediction == "velocity" and student.config["recipe"]["condition_noise"] == 0.0
+    assert student.config["recipe"]["condition_noise"] == 0.0
     assert (student.preset.num_steps, student.preset.text_guidance) == (2, 1.0)
 
     teacher_pipe, p = load_pipeline(teacher), ReflowPairs(pairs)
@@ -495,49 +464,6 @@ def test_swap_decoder_names_a_corrupt_autoencoder(tmp_path, capsys, damage):
     rc = cli.main(["encode-latents", "--data", str(data), "--autoencoder", str(bad), "--cache", str(tmp_path / "cache")])
     assert rc == 2 and f"autoencoder weights {weights} are corrupt or truncated" in capsys.readouterr().err
     assert not (tmp_path / "cache").exists()
-
-
-def test_a_lighter_decoder_starts_from_the_init_and_swaps_into_the_checkpoint(tmp_path):
-    """--decoder-layers-per-block 0 on a 1-layer init: the encoder and the kept resnets are the init's,
-    the second resnet of each up block is dropped, the result swaps in (same latents) and decodes;
-    adding layers, or resuming with another depth, is refused."""
-    from tesseract4d import cli
-    from tesseract4d.model.autoencoder import load_autoencoder
-    from tesseract4d.model.autoencoder_trainer import AutoencoderTrainConfig, AutoencoderTrainer
-    from tesseract4d.model.predict import load_pipeline
-    from tesseract4d.model.trainer import Trainer
-
-    data = write_segmented_dataset(tmp_path / "data", episodes=2)
-    final = Trainer(_config(data, tmp_path / "run", _autoencoder(tmp_path / "ae", data=data))).train()
-    init = load_autoencoder(final / "autoencoder")
-    cfg = dict(data=data, preset="ae-test", init=final / "autoencoder", decoder_only=True, precision="fp32",
-               max_steps=2, batch_size=2, warmup_steps=1, lr=1e-2, progress=False)
-    trainer = AutoencoderTrainer(AutoencoderTrainConfig(out=tmp_path / "light", decoder_layers_per_block=0, **cfg))
-    light, full = trainer.model.state_dict(), init.state_dict()
-    assert all(len(block.resnets) == 1 for block in trainer.model.vae.decoder.up_blocks)
-    assert all(torch.equal(v.cpu(), full[k]) for k, v in light.items())  # every kept weight is the init's
-    dropped = set(full) - set(light)
-    assert dropped and all(".up_blocks." in k and ".resnets.1." in k for k in dropped)
-    trainer.train()
-
-    swapped = tmp_path / "swapped"
-    assert cli.main(["swap-decoder", "--checkpoint", str(final), "--autoencoder", str(tmp_path / "light" / "autoencoder"),
-                     "--to", str(swapped)]) == 0
-    first = torch.rand(1, 7, 32, 32) * 2 - 1
-    a, b = load_pipeline(final, precision="fp32"), load_pipeline(swapped, precision="fp32")
-    assert b.codec.autoencoder.config.decoder_layers == 0
-    kw = dict(num_inference_steps=2, output_type="latent")
-    za = a(first, ["push"], generator=torch.Generator().manual_seed(1), **kw)
-    zb = b(first, ["push"], generator=torch.Generator().manual_seed(1), **kw)
-    assert torch.equal(za, zb)
-    clip = b(first, ["push"], num_inference_steps=2, generator=torch.Generator().manual_seed(1))
-    assert clip.shape == (1, 8, 7, 32, 32) and torch.isfinite(clip).all()
-
-    with pytest.raises(UserError, match="not add them"):
-        AutoencoderTrainer(AutoencoderTrainConfig(out=tmp_path / "deeper", decoder_layers_per_block=2, **cfg))
-    with pytest.raises(UserError, match="decoder-layers-per-block 0"):
-        AutoencoderTrainer(AutoencoderTrainConfig(out=tmp_path / "light", resume=True, **cfg))
-    assert not (tmp_path / "deeper").exists()
 
 
 def test_heldout_evaluation_scores_the_autoencoder_ceiling_once_per_autoencoder(tmp_path):

@@ -8,7 +8,6 @@ import json
 import shutil
 from pathlib import Path
 
-import numpy as np
 import pytest
 import torch
 from model_fixtures import MICRO
@@ -272,14 +271,20 @@ def test_distill_with_counterfactual_swap(teacher, tmp_path, monkeypatch):
 
     ckpt, data = teacher
     groups = write_grouped_dataset(tmp_path / "groups", scenes=3)
-    seen = []
-    original = ReflowTrainer.denoising_loss
+    seen, batches = [], []
+    original, draw = ReflowTrainer.denoising_loss, ReflowPairs.sample_group_batch
 
-    def spy(self, x0, first, text, t, noise, objects=None, *, leaders=None, shown=None):
-        seen.append((t.clone(), list(leaders), list(shown) if shown is not None else None))
-        return original(self, x0, first, text, t, noise, objects, leaders=leaders, shown=shown)
+    def spy(self, x0, first, text, t, noise, objects=None, *, shown=None):
+        seen.append((t.clone(), batches[-1], list(shown) if shown is not None else None))
+        return original(self, x0, first, text, t, noise, objects, shown=shown)
+
+    def spy_batch(self, *args, **kwargs):
+        out = draw(self, *args, **kwargs)
+        batches.append(list(out[-1]))  # each pair's group leader (its batch position)
+        return out
 
     monkeypatch.setattr(ReflowTrainer, "denoising_loss", spy)
+    monkeypatch.setattr(ReflowPairs, "sample_group_batch", spy_batch)
     argv = ["distill", "--teacher", str(ckpt), "--data", str(groups), "--pairs", str(tmp_path / "p"), "--group-pairs",
             "--num-pairs", "8", "--teacher-steps", "2", "--out", str(tmp_path / "run"), "--batch-size", "4",
             "--max-steps", "12", "--val-every", "0", "--ckpt-every", "0", "--no-progress", "--counterfactual-swap", "1",
@@ -309,81 +314,22 @@ def test_distill_with_counterfactual_swap(teacher, tmp_path, monkeypatch):
     assert not (tmp_path / "r2").exists()
 
 
-def test_pairs_of_an_autoguided_teacher_are_its_own(teacher, tmp_path):
-    """A teacher with autoguidance samples its pairs with its guide: they differ from the plain
-    teacher's, the manifest names the guide, and pairs of the plain teacher are refused for it."""
-    from tesseract4d.model.checkpoint import GUIDE_DIR, write_sampler_copy
+def test_pairs_made_with_a_removed_teacher_option_are_refused(teacher, tmp_path):
+    """Pairs folders written before autoguidance and teacher draws were removed record them: at their
+    no-op values (autoguidance 0, one draw) they resume and are reused as before; pairs an autoguided
+    teacher or several draws made are refused, naming the setting."""
+    from tesseract4d.model.reflow import MANIFEST, check_pairs_of_teacher
 
     ckpt, data = teacher
-    guide = Trainer(TrainConfig(data=data, out=tmp_path / "guide_run", preset=MICRO.name, max_steps=5, batch_size=4,
-                                val_every=0, ckpt_every=0, progress=False, seed=1)).train()
-    guided = write_sampler_copy(ckpt, tmp_path / "guided", {"autoguidance": 1.0}, guide=guide)
-    plain = ReflowPairs(generate_pairs(_pairs_cfg(ckpt, data, tmp_path / "plain", 2), progress=False))
-    auto = ReflowPairs(generate_pairs(_pairs_cfg(guided, data, tmp_path / "auto", 2), progress=False))
-    assert torch.equal(plain.noise, auto.noise) and not torch.allclose(plain.x0, auto.x0)
-    assert auto.manifest["autoguidance"] == 1.0 and plain.manifest["guide_digest"] is None
-    assert auto.manifest["guide_digest"] == weights_digest(guided, subfolder=GUIDE_DIR) == weights_digest(guide)
-    with pytest.raises(UserError, match="autoguidance"):
-        generate_pairs(_pairs_cfg(guided, data, tmp_path / "plain", 2), progress=False)
-    # Its student samples alone: no guide, one pass per step.
-    from tesseract4d.model.predict import load_pipeline
-    from tesseract4d.model.reflow import student_preset
-
-    assert student_preset(load_pipeline(guided).preset, STUDENT_STEPS).autoguidance == 0.0
-
-
-def test_teacher_draws_keep_the_clips_that_keep_their_objects(teacher):
-    """--teacher-draws N: each pair keeps the teacher draw whose clip keeps the first frame's objects
-    (found by their colour) best, a counterfactual group the draw best for its pairs together, so that
-    they still share one noise; the kept noise is the one its clip was sampled from."""
-    from tesseract4d.model.predict import load_pipeline
-    from tesseract4d.model.reflow import _best_draws
-
-    ckpt, _ = teacher
-    pipe = load_pipeline(ckpt, precision="fp32")
-    ms, T = pipe.model_space, MICRO.num_frames
-    plane = np.broadcast_to(np.linspace(60, 120, 32, dtype=np.uint8)[:, None, None], (32, 32, 3)).copy()
-    cube = plane.copy()
-    cube[12:17, 20:25] = (210, 40, 40)
-    depth, normal = np.ones((32, 32), np.float32), np.broadcast_to(np.float32([0, 0, -1]), (32, 32, 3)).copy()
-
-    def clip(kept: bool):  # (T, 7, H, W): the cube in every frame, or gone after frame 0
-        frames = np.stack([cube] + [cube if kept else plane] * (T - 1))
-        return ms.encode(frames, np.stack([depth] * T), np.stack([normal] * T))
-
-    first = torch.stack([ms.encode(cube[None], depth[None], normal[None])[0]] * 3)  # pairs 0 and 1 a group, 2 alone
-    leaders = [0, 0, 2]
-    noise0 = torch.randn(3, T, 7, 32, 32)
-    x0_draw0 = torch.stack([clip(False), clip(True), clip(True)])  # the group's mean 0.5, pair 2 keeps it
-    x0_draw1 = torch.stack([clip(True), clip(True), clip(False)])  # the group's mean 1
-    sampled = []
-
-    def sample(noise, generator):
-        sampled.append(noise)
-        return x0_draw1
-
-    noise, x0, chosen = _best_draws(pipe, first, noise0, x0_draw0, leaders, 2, 7, sample)
-    assert chosen["count"] == 2 and chosen["kept"] == [1, 1, 0]
-    assert chosen["objects_kept"][0] == [0.0, 1.0, 1.0] and chosen["objects_kept"][1] == [1.0, 1.0, 0.0]
-    draw1_noise = sampled[0]
-    assert torch.equal(draw1_noise[0], draw1_noise[1]) and not torch.equal(draw1_noise[0], noise0[0])
-    assert torch.equal(noise[0], draw1_noise[0]) and torch.equal(noise[1], draw1_noise[1]) and torch.equal(noise[2], noise0[2])
-    assert torch.equal(x0[0], x0_draw1[0]) and torch.equal(x0[2], x0_draw0[2])
-
-
-def test_teacher_draws_without_objects_are_the_single_draw_pairs(teacher, tmp_path):
-    """First frames in which nothing stands out by its colour (the synthetic square fills too much of
-    the 32² image to be taken for an object) keep draw 0: the pairs of a single draw, recorded as such;
-    a folder of single-draw pairs is not resumed with more draws."""
-    ckpt, data = teacher
-    one = ReflowPairs(generate_pairs(_pairs_cfg(ckpt, data, tmp_path / "one", 2), progress=False))
-    two = ReflowPairs(generate_pairs(dataclasses.replace(_pairs_cfg(ckpt, data, tmp_path / "two", 2), teacher_draws=2),
-                                     progress=False))
-    assert torch.equal(one.noise, two.noise) and torch.equal(one.x0, two.x0)
-    assert two.manifest["teacher_draws"] == 2
-    record = json.loads(next((tmp_path / "two").glob("pairs-*.json")).read_text())
-    assert record["draws"]["count"] == 2 and record["draws"]["kept"] == [0, 0]
-    with pytest.raises(UserError, match="teacher_draws"):
-        generate_pairs(dataclasses.replace(_pairs_cfg(ckpt, data, tmp_path / "one", 4), teacher_draws=2), progress=False)
-    with pytest.raises(UserError, match="--teacher-draws must be at least 1"):
-        generate_pairs(dataclasses.replace(_pairs_cfg(ckpt, data, tmp_path / "three", 2), teacher_draws=0), progress=False)
+    folder = generate_pairs(_pairs_cfg(ckpt, data, tmp_path / "pairs", 2), progress=False)
+    manifest = json.loads((folder / MANIFEST).read_text())
+    old = {**manifest, "autoguidance": 0.0, "autoguidance_min_sigma": 0.0, "guide_digest": None, "teacher_draws": 1}
+    (folder / MANIFEST).write_text(json.dumps(old))
+    check_pairs_of_teacher(folder, ckpt)
+    assert len(ReflowPairs(generate_pairs(_pairs_cfg(ckpt, data, folder, 4), progress=False))) == 4
+    for key, value in (("autoguidance", 1.0), ("teacher_draws", 2)):
+        (folder / MANIFEST).write_text(json.dumps({**old, key: value}))
+        with pytest.raises(UserError, match=key):
+            check_pairs_of_teacher(folder, ckpt)
+        with pytest.raises(UserError, match=key):
+            generate_pairs(_pairs_cfg(ckpt, data, folder, 6), progress=False)

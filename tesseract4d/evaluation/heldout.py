@@ -365,10 +365,6 @@ def sampler_settings(cfg: HeldoutConfig, pipeline) -> dict:
                 "text_guidance": float(p.text_guidance if cfg.text_guidance is None else cfg.text_guidance)}
     if p.guidance_min_sigma > 0:  # a guidance interval (named only where there is one)
         settings["guidance_min_sigma"] = float(p.guidance_min_sigma)
-    if p.autoguidance > 0:  # named only where the checkpoint has it
-        settings["autoguidance"] = float(p.autoguidance)
-        if p.autoguidance_min_sigma > 0:
-            settings["autoguidance_min_sigma"] = float(p.autoguidance_min_sigma)
     if p.static_tolerance > 0:
         settings["static_tolerance"] = float(p.static_tolerance)
     if p.draws > 1 and cfg.start_from_truth is None:  # named only where there is a choice (the diagnostic has none)
@@ -382,8 +378,6 @@ def describe_sampler(settings: dict) -> str:
     """"10 steps, text guidance 1.5 at noise ≥ 0.2": one checkpoint's entry of a report's ``sampler``."""
     text = f"{settings['num_steps']} steps, text guidance {settings['text_guidance']:g}"
     text += f" at noise ≥ {settings['guidance_min_sigma']:g}" if settings.get("guidance_min_sigma") else ""
-    text += f", autoguidance {settings['autoguidance']:g}" if settings.get("autoguidance") else ""
-    text += f" at noise ≥ {settings['autoguidance_min_sigma']:g}" if settings.get("autoguidance_min_sigma") else ""
     text += f", first frame kept where still (tolerance {settings['static_tolerance']:g})" if settings.get(
         "static_tolerance") else ""
     text += f", the best of {settings['draws']} noise draws" if settings.get("draws") else ""

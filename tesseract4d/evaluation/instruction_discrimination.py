@@ -26,7 +26,7 @@ from __future__ import annotations
 import torch
 
 # The cells where the group's true futures differ most (the share DISAGREE_SHARE of its latent cells):
-# one definition for this measure and for training (``train --difference-weight``, model/recipe.py).
+# defined beside the training recipe (model/recipe.py).
 from tesseract4d.model.recipe import DISAGREE_SHARE, disagreement_mask  # noqa: F401
 
 # The noise level at which words_over_sample shows an episode another future's noisy sample: the

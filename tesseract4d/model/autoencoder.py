@@ -39,7 +39,10 @@ WEIGHTS_FILE = "model.safetensors"
 # The weights that make the latents, and the config fields the latents do not depend on: a decoder-only
 # fine-tune (`train-autoencoder --decoder-only`) changes neither, so its latents are the init's, bit for bit.
 ENCODER_PREFIXES = ("vae.encoder.", "vae.quant_conv.")
-DECODER_FIELDS = ("name", "decoder_layers_per_block")
+DECODER_FIELDS = ("name",)
+# A config field of older autoencoders that this version no longer has: a lighter decoder than the
+# encoder (docs/research/removed_features.md). Saved as null it meant the same depth, and reads as before.
+REMOVED_DECODER_DEPTH = "decoder_layers_per_block"
 FIDELITY_FILE = "fidelity.json"
 FORMAT = "tesseract4d-autoencoder"
 
@@ -52,9 +55,6 @@ class AutoencoderConfig:
     stem: int = 2  # pixel-unshuffle factor in front of the KL autoencoder
     block_out_channels: tuple[int, ...] = (32, 64, 128)  # one 2x downsample between consecutive blocks
     layers_per_block: int = 1
-    # The decoder's own depth (None: layers_per_block); a decoder-only fine-tune may make it lighter,
-    # since the latents do not depend on it (an up block has decoder_layers_per_block + 1 resnets).
-    decoder_layers_per_block: int | None = None
     latent_channels: int = 16
     norm_num_groups: int = 32
     mid_attention: bool = False  # self-attention in the bottleneck (costly on a CPU)
@@ -70,10 +70,6 @@ class AutoencoderConfig:
         return self.stem * 2 ** (len(self.block_out_channels) - 1)
 
     @property
-    def decoder_layers(self) -> int:
-        return self.layers_per_block if self.decoder_layers_per_block is None else self.decoder_layers_per_block
-
-    @property
     def latent_shape(self) -> tuple[int, int, int]:
         """(channels, height, width) of one frame's latent."""
         f = self.spatial_compression
@@ -86,6 +82,11 @@ class AutoencoderConfig:
 
     @classmethod
     def from_dict(cls, d: dict) -> "AutoencoderConfig":
+        lighter = d.get(REMOVED_DECODER_DEPTH)
+        if lighter is not None and lighter != d.get("layers_per_block", cls.layers_per_block):
+            raise UserError(f"autoencoder {d.get('name')!r} has a decoder of {lighter} layers per block (encoder: "
+                            f"{d.get('layers_per_block')}); this tesseract4d builds decoders as deep as their encoder: "
+                            f"use an older tesseract4d for it, or train one with `tesseract4d train-autoencoder`")
         known = {f.name for f in dataclasses.fields(cls)}
         d = {k: v for k, v in d.items() if k in known}
         d["block_out_channels"] = tuple(d["block_out_channels"])
@@ -148,14 +149,6 @@ class RGBDNAutoencoder(torch.nn.Module):
             latent_channels=config.latent_channels, norm_num_groups=config.norm_num_groups,
             sample_size=config.height // config.stem, mid_block_add_attention=config.mid_attention,
         )
-        if config.decoder_layers != config.layers_per_block:
-            from diffusers.models.autoencoders.vae import Decoder
-
-            self.vae.decoder = Decoder(  # as AutoencoderKL builds it, with the decoder's own depth
-                in_channels=config.latent_channels, out_channels=channels, up_block_types=("UpDecoderBlock2D",) * n,
-                block_out_channels=tuple(config.block_out_channels), layers_per_block=config.decoder_layers,
-                norm_num_groups=config.norm_num_groups, act_fn="silu", mid_block_add_attention=config.mid_attention,
-            )
         self.vae.decoder.conv_out.__class__ = _Fp32Conv2d  # a subclass: deep copies (EMA) keep it
         # The decoder runs channels-first at the latent resolution and channels-last from its first
         # upsampling on: oneDNN's convolutions skip layout reorders on channels-last activations

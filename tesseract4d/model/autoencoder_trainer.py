@@ -9,7 +9,6 @@ survive compression:
   + depth_weight  * |depth_hat - depth|            (model space, i.e. metric over a fixed range)
   + normal_weight * (|n_hat - n| + (1 - cos(n_hat / |n_hat|, n)))
   + grad_weight   * (|grad depth_hat - grad depth| + |grad n_hat - grad n|)   (finite differences)
-  + rgb_grad_weight * |grad rgb_hat - grad rgb|   (off by default: sharper colour edges)
   + kl_weight     * KL(posterior || N(0, I)) per latent element
 
 Everything random in a step (frames, posterior sample) comes from a generator seeded by
@@ -34,7 +33,6 @@ from __future__ import annotations
 
 import json
 import os
-import re
 import shutil
 import time
 from dataclasses import dataclass, field
@@ -80,7 +78,6 @@ class AutoencoderTrainConfig:
                                    "fine-tune it on new scenes", metavar="DIR")
     decoder_only: bool = knob(False, "with init: train only the decoder; the encoder and latent statistics stay "
                                      "exactly as they are, so a latent model trained on them keeps working")
-    decoder_layers_per_block: int | None = None  # a lighter decoder than the preset's (None: the preset's)
     frame_stride: int = knob(1, "train on every k-th frame of each episode (less memory)")
     preset: str = knob("ae-f8c32", "autoencoder architecture (tesseract4d/model/autoencoder.py)")
     camera: str | None = knob(None, "camera of the dataset to train on (none: its first)")
@@ -98,7 +95,6 @@ class AutoencoderTrainConfig:
     depth_weight: float = knob(3.0, "loss weight of depth")
     normal_weight: float = knob(2.0, "loss weight of normals")
     grad_weight: float = knob(1.0, "loss weight of depth and normal gradients")
-    rgb_grad_weight: float = 0.0  # gradient-difference loss on colour: an L1 reconstruction blurs edges
     object_weight: float = knob(5.0, "loss weight of robot/object pixels relative to scenery")
     edge_weight: float = knob(2.0, "loss weight of pixels at depth edges")
     kl_weight: float = knob(1e-4, "weight of the KL term per latent element")
@@ -231,18 +227,13 @@ def reconstruction_loss(pred: torch.Tensor, target: torch.Tensor, mask: torch.Te
     cos = F.cosine_similarity(n_hat, n, dim=1, eps=1e-6)[:, None]  # (n, 1, H, W)
     parts["normal"] = _wmean((n_hat - n).abs(), w) + _wmean(1.0 - cos, w)
     parts["grad"] = _gradient_error([(pred[:, s[k]], target[:, s[k]]) for k in ("depth", "normal")], w)
-    parts["rgb_grad"] = _gradient_error([(pred[:, s["rgb"]], target[:, s["rgb"]])], w)
     parts["kl"] = kl.mean()
     total = (cfg.rgb_weight * parts["rgb"] + cfg.depth_weight * parts["depth"] + cfg.normal_weight * parts["normal"]
-             + cfg.grad_weight * parts["grad"] + cfg.rgb_grad_weight * parts["rgb_grad"] + cfg.kl_weight * parts["kl"])
+             + cfg.grad_weight * parts["grad"] + cfg.kl_weight * parts["kl"])
     return total, {k: float(v.detach()) for k, v in parts.items()}
 
 
 # --------------------------------------------------------------------------- trainer
-
-
-# Decoder weights a lighter decoder (fewer layers per up block) leaves out of its init.
-_DROPPABLE = re.compile(r"vae\.decoder\.up_blocks\.\d+\.resnets\.\d+\.")
 
 
 def list_checkpoints(run: Path) -> list[Path]:
@@ -287,7 +278,6 @@ class AutoencoderTrainer:
         from tesseract4d.model.trainer import EMA
 
         ae_cfg: AutoencoderConfig = get_autoencoder_preset(cfg.preset)
-        ae_cfg.decoder_layers_per_block = cfg.decoder_layers_per_block
         torch.manual_seed(cfg.seed)
         self.model = RGBDNAutoencoder(ae_cfg)
         if cfg.init is not None and (cfg.decoder_only or not cfg.resume):
@@ -323,14 +313,12 @@ class AutoencoderTrainer:
             raise UserError(f"--init {folder} is a {saved.height}x{saved.width} autoencoder with latents "
                             f"{tuple(saved.latent_shape)}, not preset {self.cfg.preset!r} "
                             f"({mine.height}x{mine.width}, {tuple(mine.latent_shape)}); pass the matching --preset")
-        if mine.decoder_layers > saved.decoder_layers:
-            raise UserError(f"--init {folder} has a decoder of {saved.decoder_layers} layers per block; a fine-tune "
-                            f"can keep or drop layers, not add them (--decoder-layers-per-block {mine.decoder_layers})")
         state = {k: v.float() for k, v in load_file(str(Path(folder) / WEIGHTS_FILE)).items()}
-        # A lighter decoder keeps the init's first resnets of each up block; the others are residual
-        # (output = input + correction), so dropping them leaves a decoder that already roughly works.
-        own = self.model.state_dict().keys()
-        self.model.load_state_dict({k: v for k, v in state.items() if k in own or not _DROPPABLE.match(k)})
+        try:
+            self.model.load_state_dict(state)
+        except RuntimeError as e:
+            raise UserError(f"--init {folder} does not fit preset {self.cfg.preset!r} ({str(e).splitlines()[0]}); "
+                            f"pass the preset it was trained with") from e
         if self.cfg.decoder_only:
             if saved.latent_mean is None or saved.latent_std is None:
                 raise UserError(f"--init {folder} has no latent statistics; export it with `tesseract4d train-autoencoder` first")
@@ -354,11 +342,9 @@ class AutoencoderTrainer:
             if saved.get("preset") != self.cfg.preset:
                 raise UserError(f"--resume: {self.out} trains preset {saved.get('preset')!r}, not {self.cfg.preset!r}; "
                                 f"pass --preset {saved.get('preset')}")
-            layers = saved.get("decoder_layers_per_block")
-            if layers != self.cfg.decoder_layers_per_block:
-                fix = "leave out --decoder-layers-per-block" if layers is None else f"pass --decoder-layers-per-block {layers}"
-                raise UserError(f"--resume: {self.out} trains a decoder with decoder_layers_per_block={layers}, "
-                                f"not {self.cfg.decoder_layers_per_block}; {fix}")
+            if saved.get("decoder_layers_per_block") is not None or saved.get("rgb_grad_weight", 0.0) != 0.0:
+                raise UserError(f"--resume: {self.out} trains with a lighter decoder or an RGB gradient loss, which "
+                                f"this tesseract4d no longer has; resume it with an older version, or start a new --out")
         elif self.out.exists() and any(self.out.iterdir()):
             raise UserError(f"{self.out} is not empty; continue it with --resume or choose a new --out")
 

@@ -5,10 +5,6 @@
     CKPT/transformer/config.json        TRANSFORMER_DIR: the RGBDNTransformer, diffusers format
     CKPT/transformer/diffusion_pytorch_model.safetensors     WEIGHTS_FILE (EMA weights)
     CKPT/scheduler/scheduler_config.json                     SCHEDULER_DIR: the sampler's settings
-    CKPT/guide_transformer/...          GUIDE_DIR (optional): a weaker network of the same latent space
-                                        that autoguidance steers away from (``set-sampler --guide``);
-                                        its weights may be stored in 8 bits (``--guide-bits 8``,
-                                        QUANTIZED_METADATA), loaded back as float32
 
 Versions: 1 had no scheduler folder (it sampled with ``pipeline.make_scheduler()``'s settings, which are
 what it was trained for); 2 saves the scheduler with the weights. A checkpoint of another format or
@@ -29,7 +25,9 @@ READABLE_VERSIONS = (1, 2)
 INFERENCE_CONFIG_FILE = "tesseract4d_config.json"
 TRANSFORMER_DIR = "transformer"
 SCHEDULER_DIR = "scheduler"
-GUIDE_DIR = "guide_transformer"
+# Where checkpoints written before autoguidance was removed kept its guide network: never loaded, and
+# left out of the copies `set-sampler` writes.
+REMOVED_GUIDE_DIR = "guide_transformer"
 WEIGHTS_FILE = "diffusion_pytorch_model.safetensors"  # diffusers' name for safetensors weights
 MODEL_CONFIG_FILE = "config.json"  # diffusers' name for a model's config
 SCHEDULER_CONFIG_FILE = "scheduler_config.json"  # diffusers' name for a scheduler's config
@@ -70,61 +68,13 @@ def weights_to_half(weights: Path) -> None:
     save_file(tensors, str(weights), metadata=metadata)
 
 
-# Safetensors metadata of weights stored in 8 bits: every float matrix as int8 with one float16 scale
-# per output row (the tensor NAME + QUANTIZED_SCALE_SUFFIX); vectors (biases, norms) kept as they are.
-QUANTIZED_METADATA = {"tesseract4d_weights": "int8-per-output-channel"}
-QUANTIZED_SCALE_SUFFIX = ".int8_scale"
-
-
-def weights_to_int8(weights: Path) -> None:
-    """Rewrite a safetensors file with each float tensor of ≥ 2 dimensions as int8 (symmetric, one
-    scale per output row, ``round(w / scale)`` in [-127, 127]): half the bytes of float16."""
-    import torch
-    from safetensors.torch import load_file, save_file
-
-    out = {}
-    for name, w in load_file(str(weights)).items():
-        if w.is_floating_point() and w.ndim >= 2:
-            rows = w.float().reshape(w.shape[0], -1)
-            scale = (rows.abs().amax(dim=1) / 127.0).clamp_min(1e-12).half()
-            out[name] = (rows / scale.float()[:, None]).round().clamp(-127, 127).to(torch.int8).reshape(w.shape)
-            out[name + QUANTIZED_SCALE_SUFFIX] = scale
-        else:
-            out[name] = w
-    save_file(out, str(weights), metadata=QUANTIZED_METADATA)
-
-
-def _in_8_bits(metadata: dict | None) -> bool:
-    """Whether a safetensors file's metadata says ``weights_to_int8`` wrote it."""
-    return (metadata or {}).items() >= QUANTIZED_METADATA.items()
-
-
-def read_weights(weights: Path) -> tuple[dict, bool]:
-    """A safetensors file's tensors, floats as float32 (8-bit ones dequantized), and whether it was
-    stored in 8 bits."""
-    from safetensors import safe_open
-
-    with safe_open(str(weights), "pt") as f:
-        quantized = _in_8_bits(f.metadata())
-        tensors = {k: f.get_tensor(k) for k in f.keys()}
-    out = {}
-    for name, v in tensors.items():
-        if name.endswith(QUANTIZED_SCALE_SUFFIX):
-            continue
-        scale = tensors.get(name + QUANTIZED_SCALE_SUFFIX) if quantized else None
-        if scale is not None:
-            v = (v.float().reshape(v.shape[0], -1) * scale.float()[:, None]).reshape(v.shape)
-        out[name] = v.float() if v.is_floating_point() else v
-    return out, quantized
-
-
-def weights_digest(checkpoint: str | os.PathLike, subfolder: str = TRANSFORMER_DIR) -> str:
+def weights_digest(checkpoint: str | os.PathLike) -> str:
     """SHA-256 (first 16 hex digits) of a checkpoint's transformer weights: what a run started from
-    (``train --init``) or distilled (reflow pairs) names it by. ``subfolder`` GUIDE_DIR: its guide's."""
+    (``train --init``) or distilled (reflow pairs) names it by."""
     import hashlib
 
     h = hashlib.sha256()
-    with open(Path(checkpoint) / subfolder / WEIGHTS_FILE, "rb") as f:
+    with open(Path(checkpoint) / TRANSFORMER_DIR / WEIGHTS_FILE, "rb") as f:
         for block in iter(lambda: f.read(1 << 20), b""):
             h.update(block)
     return h.hexdigest()[:16]
@@ -174,15 +124,12 @@ def load_scheduler(checkpoint: str | os.PathLike, config: dict):
     return FlowMatchEulerDiscreteScheduler.from_pretrained(folder)
 
 
-def load_transformer(checkpoint: str | os.PathLike, preset, modality_channels: dict[str, int],
-                     subfolder: str = TRANSFORMER_DIR):
+def load_transformer(checkpoint: str | os.PathLike, preset, modality_channels: dict[str, int]):
     """The checkpoint's RGBDNTransformer (``from_pretrained``), checked against the preset and the
-    codec's ``modality_channels`` first, so a mismatch says which setting differs. ``subfolder``
-    GUIDE_DIR loads the autoguidance network instead; it may be smaller than the preset's backbone
-    (its channels and text width must still fit)."""
+    codec's ``modality_channels`` first, so a mismatch says which setting differs."""
     from tesseract4d.model.rgbdn_transformer import RGBDNTransformer
 
-    folder = Path(checkpoint) / subfolder
+    folder = Path(checkpoint) / TRANSFORMER_DIR
     try:
         saved = json.loads((folder / MODEL_CONFIG_FILE).read_text())
     except (OSError, ValueError) as e:
@@ -196,10 +143,8 @@ def load_transformer(checkpoint: str | os.PathLike, preset, modality_channels: d
         raise UserError(f"{folder} has modality channels {saved.get('modality_channels')} but preset "
                         f"{preset.name!r} needs {expected_channels}; the weights belong to another preset")
     if preset.backbone:
-        shape_only = subfolder == GUIDE_DIR  # a guide may have other layers, heads or widths
         mismatch = {k: (saved.get("backbone_config", {}).get(k), v) for k, v in preset.backbone.items()
-                    if saved.get("backbone_config", {}).get(k) != v
-                    and (not shape_only or k in GUIDE_MUST_MATCH)}
+                    if saved.get("backbone_config", {}).get(k) != v}
         if mismatch:
             raise UserError(f"{folder} does not match preset {preset.name!r}: "
                             + ", ".join(f"{k} is {a}, preset has {b}" for k, (a, b) in mismatch.items()))
@@ -208,29 +153,20 @@ def load_transformer(checkpoint: str | os.PathLike, preset, modality_channels: d
     try:  # the header lists every tensor's byte range: a truncated or garbled file fails here
         with safe_open(str(folder / WEIGHTS_FILE), "pt") as weights:
             weights.keys()
-            in_8_bits = _in_8_bits(weights.metadata())
     except (SafetensorError, OSError) as e:
         raise UserError(f"{folder / WEIGHTS_FILE} is corrupt or truncated ({e}); re-export the checkpoint") from e
     try:
-        if in_8_bits:  # `set-sampler --guide-bits 8`: not diffusers' layout, so built from the config
-            model = RGBDNTransformer.from_config(RGBDNTransformer.load_config(folder)).float()
-            model.load_state_dict(read_weights(folder / WEIGHTS_FILE)[0], strict=True)
-        else:
-            model = RGBDNTransformer.from_pretrained(folder).float()  # weights may be stored in float16
+        model = RGBDNTransformer.from_pretrained(folder).float()  # weights may be stored in float16
     except (RuntimeError, ValueError, OSError, TypeError) as e:
         raise UserError(f"{folder}: weights do not match the config of preset {preset.name!r} "
                         f"({str(e).splitlines()[0]} ...); re-export the checkpoint") from e
     return model.eval()
 
 
-# What a guide network must share with the checkpoint's backbone to see the same tokens and text.
-GUIDE_MUST_MATCH = ("patch_size", "patch_size_t", "text_embed_dim", "max_text_seq_length", "sample_width",
-                    "sample_height", "sample_frames")
 # The preset fields that only say how a checkpoint samples (the weights do not depend on them).
-SAMPLER_FIELDS = ("num_steps", "text_guidance", "image_guidance", "guidance_min_sigma", "autoguidance",
-                  "autoguidance_min_sigma", "static_tolerance", "draws")
+SAMPLER_FIELDS = ("num_steps", "text_guidance", "image_guidance", "guidance_min_sigma", "static_tolerance", "draws")
 # The preset fields of a noise-level interval (0: every step).
-_INTERVAL_FIELDS = ("guidance_min_sigma", "autoguidance_min_sigma")
+_INTERVAL_FIELDS = ("guidance_min_sigma",)
 
 
 def check_sampler_settings(settings: dict) -> None:
@@ -238,8 +174,7 @@ def check_sampler_settings(settings: dict) -> None:
     import math
 
     flags = {"num_steps": "--steps", "text_guidance": "--text-guidance", "image_guidance": "--image-guidance",
-             "guidance_min_sigma": "--guidance-min-sigma", "autoguidance": "--autoguidance",
-             "autoguidance_min_sigma": "--autoguidance-min-sigma", "static_tolerance": "--static-tolerance",
+             "guidance_min_sigma": "--guidance-min-sigma", "static_tolerance": "--static-tolerance",
              "draws": "--draws"}
     for name, value in settings.items():
         if name not in SAMPLER_FIELDS:
@@ -248,41 +183,12 @@ def check_sampler_settings(settings: dict) -> None:
             if int(value) != value or value < 1:
                 what = "steps" if name == "num_steps" else "noise draws (1: a single draw)"
                 raise UserError(f"{flags[name]} must be a whole number of {what} ≥ 1, got {value}")
-        elif name in ("autoguidance", "static_tolerance"):
+        elif name == "static_tolerance":
             if not math.isfinite(value) or value < 0:
                 raise UserError(f"{flags[name]} must be a finite number ≥ 0 (0: off), got {value}")
         elif not math.isfinite(value) or value < 0 or (name not in _INTERVAL_FIELDS and value == 0):
             what = "≥ 0 (0: guidance at every step)" if name in _INTERVAL_FIELDS else "> 0 (1: no guidance)"
             raise UserError(f"{flags[name]} must be a finite number {what}, got {value}")
-
-
-def _latent_lineage(config: dict) -> str | None:
-    """The autoencoder a checkpoint's transformer was trained with (its latent space), by hash."""
-    entry = config.get("autoencoder")
-    return None if entry is None else entry.get("trained_with_hash", entry["hash"])
-
-
-def check_guide(checkpoint: Path, config: dict, guide: Path) -> dict:
-    """The guide checkpoint's inference config, after checking that its network sees the same inputs
-    as ``checkpoint``'s: the same latent space (trained with the same autoencoder, or one whose
-    encoder is bit for bit the same), resolution, frames and text encoder."""
-    guide_config = read_inference_config(guide)
-    for key in ("resolution", "num_frames", "text_encoder"):
-        if guide_config.get(key) != config.get(key):
-            raise UserError(f"--guide {guide} has {key} {guide_config.get(key)}, {checkpoint} has {config.get(key)}; "
-                            f"a guide must be a checkpoint of the same data and text encoder")
-    if ("autoencoder" in guide_config) != ("autoencoder" in config):
-        raise UserError(f"--guide {guide} and {checkpoint} are not both latent checkpoints")
-    if "autoencoder" in config and _latent_lineage(guide_config) != _latent_lineage(config):
-        from tesseract4d.model.autoencoder import load_autoencoder
-        from tesseract4d.model.latent_checkpoint import checkpoint_autoencoder, encoder_differences
-
-        diff = encoder_differences(load_autoencoder(checkpoint_autoencoder(checkpoint, config["autoencoder"])),
-                                   load_autoencoder(checkpoint_autoencoder(guide, guide_config["autoencoder"])))
-        if diff:
-            raise UserError(f"--guide {guide} works in another latent space than {checkpoint} ({'; '.join(diff[:2])}); "
-                            f"take a checkpoint trained with the same autoencoder, e.g. an earlier one of its own run")
-    return guide_config
 
 
 def copy_checkpoint_files(checkpoint: Path, folder: Path, skip: tuple[str, ...] = ()) -> None:
@@ -298,55 +204,30 @@ def copy_checkpoint_files(checkpoint: Path, folder: Path, skip: tuple[str, ...] 
 
 
 def write_sampler_copy(checkpoint: str | os.PathLike, to: str | os.PathLike, settings: dict,
-                       overwrite: bool = False, guide: str | os.PathLike | None = None,
-                       guide_bits: int = 16) -> Path:
+                       overwrite: bool = False) -> Path:
     """Write a copy of ``checkpoint`` into ``to`` (a new folder; the checkpoint is never changed) whose
     preset samples with ``settings`` (SAMPLER_FIELDS: steps, guidance scales, guidance interval,
-    autoguidance, static compositing, noise draws), the weights byte for byte the same. ``guide``: a checkpoint whose transformer the
-    copy carries as its autoguidance network (GUIDE_DIR), byte for byte, or with ``guide_bits`` 8 its
-    matrices rounded to 8 bits per output row (half the bytes; a guide is a weaker network, and such a
-    guide samples nearly as its float16 original on the held-out screen, README "Autoguidance"). The
-    previous settings and the source are recorded in INFERENCE_CONFIG_FILE under ``sampler_changed``;
-    a model card is not copied (it describes the source)."""
-    import shutil
-
+    static compositing, noise draws), the weights byte for byte the same. The previous settings and
+    the source are recorded in INFERENCE_CONFIG_FILE under ``sampler_changed``; a model card is not
+    copied (it describes the source)."""
     from tesseract4d.model.latent_checkpoint import own_autoencoder
-    from tesseract4d.model.presets import preset_from_dict
+    from tesseract4d.model.presets import preset_from_dict, without_removed_fields
     from tesseract4d.outputs import OutputDir
 
-    if not settings and guide is None:
+    if not settings:
         raise UserError("nothing to change: give --steps, --text-guidance, --image-guidance, --guidance-min-sigma, "
-                        "--autoguidance, --static-tolerance, --draws or --guide")
+                        "--static-tolerance or --draws")
     check_sampler_settings(settings)
-    if guide_bits not in (8, 16):
-        raise UserError(f"--guide-bits must be 16 (the guide's weights as they are) or 8, got {guide_bits}")
-    if guide_bits != 16 and guide is None:
-        raise UserError("--guide-bits applies to the guide that --guide CKPT adds; give --guide too")
     checkpoint = Path(checkpoint)
     config = read_inference_config(checkpoint)
-    preset = dict(config["preset"])
+    preset = without_removed_fields(config["preset"])
     saved = preset_from_dict(preset)  # settings an older checkpoint lacks read as their defaults
     previous = {name: getattr(saved, name) for name in settings}
-    guide_config = None if guide is None else check_guide(checkpoint, config, Path(guide))
-    if settings.get("autoguidance", saved.autoguidance) > 0 and guide is None and not (checkpoint / GUIDE_DIR).is_dir():
-        raise UserError(f"autoguidance needs a weaker network of the same latent space: add --guide CKPT (e.g. an "
-                        f"earlier checkpoint of {checkpoint}'s training run)")
-    inputs = [checkpoint] + ([Path(guide)] if guide is not None else [])
-    with OutputDir(to, "set-sampler", inputs=inputs, overwrite=overwrite, flag="--to") as tmp:
-        # The guide folder, where a new guide replaces it, is written below.
-        copy_checkpoint_files(checkpoint, tmp, skip=(MODEL_CARD_FILE,) + ((GUIDE_DIR,) if guide is not None else ()))
+    with OutputDir(to, "set-sampler", inputs=[checkpoint], overwrite=overwrite, flag="--to") as tmp:
+        copy_checkpoint_files(checkpoint, tmp, skip=(MODEL_CARD_FILE, REMOVED_GUIDE_DIR))
         preset.update(settings)
         change = {"source": str(checkpoint), "previous": previous, "new": dict(settings)}
-        out = {**config, "preset": preset}
-        if guide is not None:
-            shutil.copytree(Path(guide) / TRANSFORMER_DIR, tmp / GUIDE_DIR)
-            if guide_bits == 8:
-                weights_to_int8(tmp / GUIDE_DIR / WEIGHTS_FILE)
-            out["guide"] = {"source": str(guide), "digest": weights_digest(guide), "bits": guide_bits,
-                            "training": guide_config.get("training")}
-            if "blended" in guide_config:  # a guide made by scripts/blend_checkpoints.py: its recipe
-                out["guide"]["blended"] = guide_config["blended"]
-            change["guide"] = str(guide)
+        out = {**{k: v for k, v in config.items() if k != "guide"}, "preset": preset}
         out["sampler_changed"] = list(config.get("sampler_changed", [])) + [change]
         out = own_autoencoder(checkpoint, out, tmp)  # a copy elsewhere carries the autoencoder it shares
         (tmp / INFERENCE_CONFIG_FILE).write_text(json.dumps(out, indent=2))

@@ -4,8 +4,8 @@ The exported folder holds a copy of the autoencoder (``CKPT/autoencoder/``) and 
 ``tesseract4d_config.json``; loading refuses a checkpoint whose autoencoder is missing or differs.
 A decoder fine-tuned on the same latents can replace the checkpoint's (``replace_decoder``).
 
-Two checkpoints side by side that carry the same autoencoder may store it once
-(``share_autoencoder``): the second's config then names its sibling's folder (``dir``:
+Two checkpoints side by side that carry the same autoencoder may store it once, as the shipped
+``v2-2step`` reads ``v2``'s: the second's config then names its sibling's folder (``dir``:
 ``../SIBLING/autoencoder``), and a copy written elsewhere (``set-sampler --to``, ``swap-decoder``)
 takes its own copy of it again (``own_autoencoder``).
 """
@@ -83,37 +83,6 @@ def own_autoencoder(checkpoint: Path, config: dict, folder: Path) -> dict:
 def _own_entry(entry: dict) -> dict:
     """An autoencoder entry naming the checkpoint's own copy (AUTOENCODER_DIR), not a sibling's."""
     return {**{k: v for k, v in entry.items() if k != "shared_with"}, "dir": AUTOENCODER_DIR}
-
-
-def share_autoencoder(checkpoint: str | os.PathLike, sibling: str | os.PathLike, to: str | os.PathLike,
-                      overwrite: bool = False) -> Path:
-    """Write a copy of the latent ``checkpoint`` into ``to`` that stores no autoencoder of its own and
-    reads ``sibling``'s instead: ``sibling`` must sit in the same folder as ``to`` and carry, in its
-    own ``autoencoder/``, the very autoencoder the checkpoint carries (the same hash). The copy's
-    config names ``../SIBLING/autoencoder``; every other file is copied as it is, the model card too."""
-    from tesseract4d.model.checkpoint import INFERENCE_CONFIG_FILE, copy_checkpoint_files, read_inference_config
-    from tesseract4d.outputs import OutputDir
-
-    checkpoint, sibling, to = Path(checkpoint), Path(sibling), Path(to)
-    config, theirs = read_inference_config(checkpoint), read_inference_config(sibling)
-    entry = config.get("autoencoder")
-    if entry is None or theirs.get("autoencoder") is None:
-        raise UserError(f"{checkpoint} and {sibling} must both be latent checkpoints to share an autoencoder")
-    if shares_autoencoder(theirs["autoencoder"]):
-        raise UserError(f"{sibling} shares another checkpoint's autoencoder itself; share that checkpoint's")
-    checkpoint_autoencoder(checkpoint, entry)  # there, and the one its config records
-    checkpoint_autoencoder(sibling, theirs["autoencoder"])
-    if entry["hash"] != theirs["autoencoder"]["hash"]:
-        raise UserError(f"{checkpoint} carries autoencoder {entry['hash']} but {sibling} carries "
-                        f"{theirs['autoencoder']['hash']}; only the same autoencoder can be stored once")
-    if to.resolve().parent != sibling.resolve().parent:
-        raise UserError(f"--to {to} must sit in the same folder as {sibling} (the copy reads "
-                        f"../{sibling.name}/{AUTOENCODER_DIR}); pass --to {sibling.parent / to.name}")
-    with OutputDir(to, "share-autoencoder", inputs=[checkpoint, sibling], overwrite=overwrite, flag="--to") as tmp:
-        copy_checkpoint_files(checkpoint, tmp, skip=(AUTOENCODER_DIR,))
-        shared = {**entry, "dir": f"../{sibling.name}/{AUTOENCODER_DIR}", "shared_with": sibling.name}
-        (tmp / INFERENCE_CONFIG_FILE).write_text(json.dumps({**config, "autoencoder": shared}, indent=2))
-    return to
 
 
 def encoder_differences(a, b) -> list[str]:

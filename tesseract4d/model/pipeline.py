@@ -8,12 +8,6 @@ Classifier-free guidance on text and first frame (InstructPix2Pix-style, on x0_h
 ``x0 = uncond + s_img (img - uncond) + s_txt (full - img)``, where ``img`` has the first frame but
 no text and ``uncond`` has neither. Passes that a guidance scale of 1 makes unnecessary are skipped.
 
-Autoguidance (Karras et al. 2024, "Guiding a diffusion model with a bad version of itself"): with a
-``guide_transformer`` (a weaker network of the same latent space, e.g. an early checkpoint of the same
-training run) and a scale ``w`` > 0, every step adds ``w (full - guide_full)``, the guide's x0 with the
-same first frame and text: the sample moves away from the errors the weaker network makes more of.
-One more network pass per step, or only at the steps of noise level ≥ ``autoguidance_min_sigma``.
-
 Static compositing (``static_tolerance`` > 0, ``static_composite.py``): where the decoded clip does not
 change from its frame 0, the given first frame's own pixels are put back, so the still part of the
 scene is shown as given instead of as the decoder redraws it.
@@ -60,10 +54,8 @@ class RGBDNPipeline:
     """
 
     def __init__(self, transformer, scheduler, codec, text_encoder, preset: ModelPreset, model_space,
-                 camera_name: str | None = None, bf16: bool = False, config: dict | None = None,
-                 prediction: str | None = None, guide_transformer=None):
+                 camera_name: str | None = None, bf16: bool = False, config: dict | None = None):
         self.transformer = transformer.eval()
-        self.guide_transformer = None if guide_transformer is None else guide_transformer.eval()
         self.scheduler = scheduler
         self.codec = codec
         self.text_encoder = text_encoder
@@ -72,8 +64,6 @@ class RGBDNPipeline:
         self.camera_name = camera_name
         self.bf16 = bf16
         self.config = config or {}  # the checkpoint's tesseract4d_config.json, when loaded from one
-        # What the network predicts (recipe.py): "x0" (first frame + correction) or "velocity".
-        self.prediction = prediction or self.config.get("recipe", {}).get("prediction", "x0")
         self.device = next(transformer.parameters()).device
 
     @property
@@ -87,28 +77,23 @@ class RGBDNPipeline:
     def to(self, device: str | torch.device) -> "RGBDNPipeline":
         self.device = torch.device(device)
         self.transformer.to(self.device)
-        if self.guide_transformer is not None:
-            self.guide_transformer.to(self.device)
         self.codec.to(self.device)
         return self
 
-    def _forward(self, network, x_t, conditions, texts, sigma):
-        """One batched forward of ``network`` over the conditionings stacked along the batch; outputs in
-        the network's target (x0, or a velocity for a velocity-prediction checkpoint)."""
+    def _forward(self, x_t, conditions, texts, sigma):
+        """One batched forward of the transformer over the conditionings stacked along the batch:
+        one x0_hat per conditioning."""
         n = len(conditions)
         with torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=self.bf16):
-            out = network(x_t.repeat(n, 1, 1, 1, 1), torch.cat(conditions), torch.cat(texts),
-                          torch.full((n * x_t.shape[0],), float(sigma), device=self.device)).float()
-        if self.prediction == "velocity":  # each pass's output minus its own first frame is a velocity
-            out = out - torch.cat(conditions)[:, :1]
+            out = self.transformer(x_t.repeat(n, 1, 1, 1, 1), torch.cat(conditions), torch.cat(texts),
+                                   torch.full((n * x_t.shape[0],), float(sigma), device=self.device)).float()
         return out.split(x_t.shape[0])
 
-    def _predict_x0(self, x_t, sigma, cond, null_cond, text, null_text, text_guidance, image_guidance,
-                    autoguidance: float = 0.0):
+    def _predict_x0(self, x_t, sigma, cond, null_cond, text, null_text, text_guidance, image_guidance):
         """Guided x0_hat (b, t', c, h, w) for the current noisy sample."""
         inputs = {"full": (cond, text), "image": (cond, null_text), "none": (null_cond, null_text)}
         passes = [inputs[name] for name in guidance_passes(text_guidance, image_guidance)]
-        preds = self._forward(self.transformer, x_t, [p[0] for p in passes], [p[1] for p in passes], sigma)
+        preds = self._forward(x_t, [p[0] for p in passes], [p[1] for p in passes], sigma)
         if len(preds) == 1:
             guided = preds[0]
         elif len(preds) == 2:
@@ -116,9 +101,6 @@ class RGBDNPipeline:
         else:
             full, img, uncond = preds
             guided = uncond + image_guidance * (img - uncond) + text_guidance * (full - img)
-        if autoguidance:
-            weak = self._forward(self.guide_transformer, x_t, [cond], [text], sigma)[0]
-            guided = guided + autoguidance * (preds[0] - weak)
         return guided
 
     def latent_shape(self, batch: int) -> tuple[int, ...]:
@@ -129,14 +111,12 @@ class RGBDNPipeline:
 
     def _denoise_clip(self, first_frame, text, null_text, num_steps, text_guidance, image_guidance,
                       generator, progress, step_offset, total_steps, latents=None, guidance_min_sigma=0.0,
-                      start=None, autoguidance=0.0, autoguidance_min_sigma=0.0):
+                      start=None):
         """One clip of the preset's length from a (b, 7, H, W) first frame, in the network's space:
         (b, t', c, h, w). ``latents``: the initial noise (default: drawn from ``generator``).
         ``guidance_min_sigma``: steps at a lower noise level run unguided (one pass).
         ``start``: (clean clips (b, t', c, h, w), sigma): begin at the first noise level ``s`` ≤ sigma
-        from ``(1 - s) clean + s noise`` and run only the steps from there.
-        ``autoguidance``: the guide network's scale (0 = none), at the steps of noise level ≥
-        ``autoguidance_min_sigma``."""
+        from ``(1 - s) clean + s noise`` and run only the steps from there."""
         b = first_frame.shape[0]
         nt = self.codec.num_latent_frames(self.preset.num_frames)
         first = self.codec.encode(first_frame[:, None].to(self.device), generator=generator)  # (b, 1, c, h, w)
@@ -164,9 +144,8 @@ class RGBDNPipeline:
                 sigma = float(self.scheduler.sigmas[i])
                 guided = sigma >= guidance_min_sigma
                 pred = self._predict_x0(x, sigma, cond, null_cond, text, null_text,
-                                        text_guidance if guided else 1.0, image_guidance if guided else 1.0,
-                                        autoguidance if sigma >= autoguidance_min_sigma else 0.0)
-                velocity = pred if self.prediction == "velocity" else (x - pred) / sigma
+                                        text_guidance if guided else 1.0, image_guidance if guided else 1.0)
+                velocity = (x - pred) / sigma
                 x = self.scheduler.step(velocity, timestep, x, return_dict=False)[0]
             if progress is not None:
                 progress(step_offset + i + 1, total_steps)
@@ -200,8 +179,6 @@ class RGBDNPipeline:
         text_guidance: float | None = None,
         image_guidance: float | None = None,
         guidance_min_sigma: float | None = None,
-        autoguidance: float | None = None,
-        autoguidance_min_sigma: float | None = None,
         static_tolerance: float | None = None,
         generator: torch.Generator | None = None,
         progress: Callable[[int, int], None] | None = None,
@@ -215,8 +192,6 @@ class RGBDNPipeline:
         num_frames: frames to return (default: one clip); longer rollouts continue autoregressively.
         guidance_min_sigma: guide only the steps at noise levels ≥ it; the steps below run one unguided
         pass (default: the preset's; 0 = every step guided).
-        autoguidance, autoguidance_min_sigma: the guide network's scale and the lowest noise level it runs
-        at (default: the preset's).
         static_tolerance: put the given first frame back where the decoded clip stays within this
         (model-space units) of its frame 0 (static_composite.py; 0 = off; default: the preset's).
         generator: a CPU ``torch.Generator``; the same seed gives the same clips.
@@ -240,9 +215,6 @@ class RGBDNPipeline:
         text_guidance = p.text_guidance if text_guidance is None else float(text_guidance)
         image_guidance = p.image_guidance if image_guidance is None else float(image_guidance)
         guidance_min_sigma = p.guidance_min_sigma if guidance_min_sigma is None else float(guidance_min_sigma)
-        autoguidance = p.autoguidance if autoguidance is None else float(autoguidance)
-        autoguidance_min_sigma = (p.autoguidance_min_sigma if autoguidance_min_sigma is None
-                                  else float(autoguidance_min_sigma))
         static_tolerance = p.static_tolerance if static_tolerance is None else float(static_tolerance)
         b = first_frame.shape[0]
         if first_frame.ndim != 4 or tuple(first_frame.shape[2:]) != self.resolution:
@@ -253,10 +225,6 @@ class RGBDNPipeline:
             raise ValueError("num_frames and num_inference_steps must be >= 1")
         if not static_tolerance >= 0:
             raise ValueError(f"static_tolerance must be >= 0 (0 = off), got {static_tolerance}")
-        if autoguidance and self.guide_transformer is None:
-            raise ValueError(f"autoguidance {autoguidance:g} needs a guide network: load a checkpoint whose sampler "
-                             f"uses one (`tesseract4d set-sampler --autoguidance W [--guide CKPT]`; a guide "
-                             f"it carries unused is not loaded), or pass autoguidance=0")
         if output_type not in ("clip", "latent"):
             raise ValueError(f"output_type must be 'clip' or 'latent', got {output_type!r}")
         if output_type == "latent" and num_frames != p.num_frames:
@@ -272,9 +240,7 @@ class RGBDNPipeline:
         if output_type == "latent":
             return self._denoise_clip(first_frame.float(), text, null_text, num_steps, text_guidance, image_guidance,
                                       generator, progress, 0, num_steps, latents=latents,
-                                      guidance_min_sigma=guidance_min_sigma, start=start,
-                                      autoguidance=autoguidance,
-                                      autoguidance_min_sigma=autoguidance_min_sigma).cpu()
+                                      guidance_min_sigma=guidance_min_sigma, start=start).cpu()
 
         # 3. Sample clip after clip, each conditioned on the last frame so far.
         clip_len = p.num_frames
@@ -287,8 +253,6 @@ class RGBDNPipeline:
                                      generator, progress, k * num_steps, total,
                                      latents=latents if k == 0 else None,
                                      guidance_min_sigma=guidance_min_sigma, start=start,
-                                     autoguidance=autoguidance,
-                                     autoguidance_min_sigma=autoguidance_min_sigma,
                                      static_tolerance=static_tolerance).cpu()
             frames.append(clip if k == 0 else clip[:, 1:])
             current = clip[:, -1]

@@ -34,8 +34,7 @@ from tesseract4d.precision import announce, resolve_precision
 from tesseract4d.resize import episode_at_resolution, resize_factor
 from tesseract4d.model.model_space import ModelSpace
 from tesseract4d.model.draw_choice import check_draws, choose, draw_noise_seed, object_windows
-from tesseract4d.model.checkpoint import (GUIDE_DIR, INFERENCE_CONFIG_FILE, load_scheduler, load_transformer,
-                                          read_inference_config)
+from tesseract4d.model.checkpoint import INFERENCE_CONFIG_FILE, load_scheduler, load_transformer, read_inference_config
 from tesseract4d.model.pipeline import RGBDNPipeline
 from tesseract4d.model.presets import PRESETS, preset_from_dict
 
@@ -58,9 +57,11 @@ def load_pipeline(checkpoint: str | os.PathLike, device: str = "cpu", precision:
     preset, or holds weights that do not match its preset.
     """
     from tesseract4d.model.build import build_codec, build_text_encoder
+    from tesseract4d.model.recipe import check_samples_as_trained
 
     ckpt = Path(checkpoint)
     cfg = read_inference_config(ckpt)
+    check_samples_as_trained(cfg.get("recipe") or {}, ckpt)
     try:
         preset = preset_from_dict(cfg["preset"])
         space = ModelSpace(**cfg["model_space"])
@@ -83,16 +84,8 @@ def load_pipeline(checkpoint: str | os.PathLike, device: str = "cpu", precision:
     if transformer.backbone.config.text_embed_dim != text_encoder.dim:
         raise UserError(f"{ckpt}: the transformer expects {transformer.backbone.config.text_embed_dim}-d text "
                         f"embeddings but the {preset.text_encoder} encoder gives {text_encoder.dim}")
-    guide = None
-    # Autoguidance's weaker network (`set-sampler --guide`), loaded only for a sampler that uses it (the
-    # shipped v2 carries one, off by default).
-    if (ckpt / GUIDE_DIR).is_dir() and preset.autoguidance:
-        guide = load_transformer(ckpt, preset, codec.modality_channels, subfolder=GUIDE_DIR)
-    elif preset.autoguidance:
-        raise UserError(f"{ckpt} samples with autoguidance {preset.autoguidance:g} but has no {GUIDE_DIR}/ folder; "
-                        f"write it again with `tesseract4d set-sampler --guide CKPT`")
     pipe = RGBDNPipeline(transformer, load_scheduler(ckpt, cfg), codec, text_encoder, preset, space,
-                         camera_name=cfg.get("camera_name"), bf16=chosen.bf16, config=cfg, guide_transformer=guide)
+                         camera_name=cfg.get("camera_name"), bf16=chosen.bf16, config=cfg)
     return pipe.to(device)
 
 

@@ -65,13 +65,6 @@ class ModelPreset:
     # Guidance only at noise levels >= this (a guidance interval): lower-noise steps run one unguided
     # pass. 0 = every step guided.
     guidance_min_sigma: float = 0.0
-    # Autoguidance (Karras et al. 2024): every step adds this times (x0 of the network - x0 of a weaker
-    # network of the same latent space, the checkpoint's guide_transformer), both with first frame and
-    # text. 0 = none (one network only).
-    autoguidance: float = 0.0
-    # Autoguidance only at noise levels >= this (its own interval): lower-noise steps run without the
-    # guide's pass. 0 = every step.
-    autoguidance_min_sigma: float = 0.0
     # Static compositing (static_composite.py): where the decoded clip stays within this of its frame 0
     # (model-space units, channels in [-1, 1]), the given first frame's pixels are put back. 0 = off.
     static_tolerance: float = 0.0
@@ -83,9 +76,9 @@ class ModelPreset:
         return dataclasses.asdict(self)
 
 
-def _tiny_backbone(size: int, patch_size: int, patch_size_t: int | None, heads: int = 4, layers: int = 4) -> dict:
+def _tiny_backbone(size: int, patch_size: int, patch_size_t: int | None) -> dict:
     return dict(
-        num_attention_heads=heads, attention_head_dim=64, num_layers=layers, time_embed_dim=256,
+        num_attention_heads=4, attention_head_dim=64, num_layers=4, time_embed_dim=256,
         text_embed_dim=384, max_text_seq_length=32,
         sample_width=size, sample_height=size, sample_frames=16,
         patch_size=patch_size, patch_size_t=patch_size_t, temporal_compression_ratio=1,
@@ -102,11 +95,6 @@ PRESETS: dict[str, ModelPreset] = {
         # patch 1 (a token never spans frames): 16 * 8 * 8 = 1,024 tokens, tiny's width and depth.
         ModelPreset("latent-128", AUTOENCODER, 128, 128, 16, CONDITION_REPEAT, "minilm", 32,
                     backbone=_tiny_backbone(16, 2, 1)),
-        # Depth variants for the equal-wall-time comparison (benchmarks/ablate_latent.py).
-        ModelPreset("latent-128-small", AUTOENCODER, 128, 128, 16, CONDITION_REPEAT, "minilm", 32,
-                    backbone=_tiny_backbone(16, 2, 1, layers=2)),
-        ModelPreset("latent-128-large", AUTOENCODER, 128, 128, 16, CONDITION_REPEAT, "minilm", 32,
-                    backbone=_tiny_backbone(16, 2, 1, layers=8)),
         ModelPreset("cogvideox-5b", LATENT, 480, 720, 49, CONDITION_FIRST, "t5", 226,
                     lr=1e-4, warmup_steps=1000, batch_size=1, ema_decay=0.99, num_steps=50, text_guidance=7.5),
     ]
@@ -119,7 +107,24 @@ def get_preset(name: str) -> ModelPreset:
     return PRESETS[name]
 
 
+# Sampler options of older checkpoints that this version no longer has (autoguidance, removed with its
+# guide network: docs/research/removed_features.md). A saved preset with autoguidance 0 sampled without
+# it and loads as before; any other scale is refused, since it sampled otherwise.
+REMOVED_FIELDS = ("autoguidance", "autoguidance_min_sigma")
+
+
+def without_removed_fields(d: dict) -> dict:
+    """A saved preset dict without the removed options; a UserError when one was in use."""
+    if d.get("autoguidance", 0.0) != 0.0:
+        raise UserError(f"preset {d.get('name')!r} samples with autoguidance {d['autoguidance']}, which this "
+                        f"tesseract4d no longer has (the guide network was removed); use a checkpoint that samples "
+                        f"without it, e.g. one written by `tesseract4d set-sampler --autoguidance 0` in an older "
+                        f"version, or that older version")
+    return {k: v for k, v in d.items() if k not in REMOVED_FIELDS}
+
+
 def preset_from_dict(d: dict) -> ModelPreset:
-    """Rebuild a preset saved in a checkpoint (so a checkpoint keeps working if the registry changes)."""
+    """Rebuild a preset saved in a checkpoint (so a checkpoint keeps working if the registry changes).
+    A UserError when it records a removed option in use (:func:`without_removed_fields`)."""
     known = {f.name for f in dataclasses.fields(ModelPreset)}
-    return ModelPreset(**{k: v for k, v in d.items() if k in known})
+    return ModelPreset(**{k: v for k, v in without_removed_fields(d).items() if k in known})

@@ -14,23 +14,13 @@
   the training clips and, under v2's recipe, 1.9 % of the loss weight (the robot 25 %; weight 10:
   6 %), and v2 turns a moved object into a smear at middle noise (README, "Handed the true future
   part-way").
-- ``prediction``: the network's target. ``x0`` (the clean clip as "first frame + correction") or
-  ``velocity`` (``noise - x0``, the same output read as a velocity after removing the first frame).
-- ``time_shift``: where training draws the diffusion time. ``t = s u / (1 + (s - 1) u)`` with
-  ``u ~ U(0, 1)`` (the resolution shift of SD3 / flow-matching video models): ``s = 1`` is uniform,
-  ``s > 1`` trains more at high noise, where the instruction decides the coarse motion, and less
-  near the clean clip, where the noisy sample already shows it. Sampling is unchanged.
-- ``time_logit_normal``: with a standard deviation ``m > 0``, ``u`` above is drawn logit-normal
-  instead of uniform (``u = sigmoid(m n)``, ``n ~ N(0, 1)``; SD3's sampling of training times), which
-  trains most at middle noise: v2 started from the true future loses moved objects there, at noise
-  0.3-0.8 (README, "Handed the true future part-way"). 0 keeps the uniform draw.
+- ``time_logit_normal``: with a standard deviation ``m > 0``, the diffusion time ``t`` is drawn
+  logit-normal instead of uniform (``t = sigmoid(m n)``, ``n ~ N(0, 1)``; SD3's sampling of training
+  times), which trains most at middle noise: v2 started from the true future loses moved objects
+  there, at noise 0.3-0.8 (README, "Handed the true future part-way"). 0 keeps the uniform draw.
 - ``group_batches``: every batch is made of whole counterfactual groups (one scene under several
   instructions, ``clips.draw_group_batch``) that share one noise and one diffusion time, so within a
   group the only thing that tells the futures apart is the words.
-- ``difference_weight`` (with group batches): the loss of the cells where a group's futures differ
-  most from each other (the top ``DISAGREE_SHARE`` by their spread, the same cells on which
-  ``evaluate --heldout`` judges instruction discrimination) is weighted up: the cells the
-  instruction decides.
 - ``counterfactual_swap`` (with group batches): with this probability, a clip whose diffusion time is
   at least ``SWAP_MIN_T`` is shown the noisy sample of another future of its group (same noise, same
   time) and must still predict its own instruction's future. It trains the network to side with the
@@ -51,6 +41,11 @@
   that nearby wordings read the same.
 - ``text_dropout`` (TrainConfig) and the guidance scales (``tesseract4d predict``) already exist.
 
+The network always predicts the clean clip (``x0``, as "first frame + correction"). Levers that
+were measured and removed (docs/research/removed_features.md): a velocity target, a time shift
+towards high noise, a loss weight on the cells where a group's futures differ. Checkpoints and
+recipes that record them at their no-op values (``REMOVED_LEVERS``) read as before.
+
 Also here: which data a preset trains on (pixels, or a latent cache of an autoencoder).
 """
 
@@ -63,36 +58,55 @@ import torch
 from tesseract4d.errors import UserError
 from tesseract4d.model.presets import AUTOENCODER, ModelPreset
 
-PREDICTIONS = ("x0", "velocity")
 MOVING_TOL = 0.1
 SWAP_MIN_T = 0.3
-DISAGREE_SHARE = 0.10  # the share of a group's cells that --difference-weight weights (where its futures differ most)
+DISAGREE_SHARE = 0.10  # the share of a group's cells where its futures differ most (instruction discrimination)
+# Recipe levers this version no longer has, at the values that made them no-ops: a recorded recipe
+# (a checkpoint's ``recipe``) that holds one at another value was trained or samples otherwise.
+REMOVED_LEVERS = {"prediction": "x0", "time_shift": 1.0, "difference_weight": 1.0}
+
+
+def removed_levers_in_use(recipe: dict) -> dict:
+    """The removed levers a recorded recipe uses (at a value other than their no-op one)."""
+    return {k: recipe[k] for k, no_op in REMOVED_LEVERS.items() if k in recipe and recipe[k] != no_op}
+
+
+def without_removed_levers(recipe: dict, source) -> dict:
+    """A recorded recipe without the removed levers (recorded at their no-op values); a UserError naming
+    ``source`` when it uses one, since this version cannot train it again."""
+    used = removed_levers_in_use(recipe)
+    if used:
+        raise UserError(f"{source} was trained with {', '.join(f'{k} {v!r}' for k, v in used.items())}, which this "
+                        f"tesseract4d no longer has (docs/research/removed_features.md); take its other options "
+                        f"without these")
+    return {k: v for k, v in recipe.items() if k not in REMOVED_LEVERS}
+
+
+def check_samples_as_trained(recipe: dict, source) -> None:
+    """UserError for a checkpoint whose network predicts a velocity (the removed ``prediction
+    velocity``): this sampler reads every output as the clean clip, so it would sample noise."""
+    if recipe.get("prediction", "x0") != "x0":
+        raise UserError(f"{source} predicts {recipe['prediction']!r}; this tesseract4d samples only networks that "
+                        f"predict the clean clip (x0): retrain it, or use an older tesseract4d for it")
 
 
 def check_recipe(cfg, preset: ModelPreset) -> None:
     """UserError for recipe values that cannot work with this preset."""
-    if cfg.prediction not in PREDICTIONS:
-        raise UserError(f"--prediction must be one of {', '.join(PREDICTIONS)}, got {cfg.prediction!r}")
     if cfg.condition_noise < 0 or cfg.moving_weight <= 0 or cfg.object_weight <= 0:
         raise UserError("--condition-noise must be >= 0 and --moving-weight/--object-weight > 0")
     if not (math.isfinite(cfg.scene_object_weight) and cfg.scene_object_weight > 0):
         raise UserError(f"--scene-object-weight must be a finite number > 0 (1 = off), got {cfg.scene_object_weight}")
-    if not (math.isfinite(cfg.time_shift) and cfg.time_shift > 0):
-        raise UserError(f"--time-shift must be a finite number > 0 (1 = uniform diffusion times), got {cfg.time_shift}")
     if not (math.isfinite(cfg.time_logit_normal) and cfg.time_logit_normal >= 0):
         raise UserError(f"--time-logit-normal must be a finite number >= 0 (0 = uniform diffusion times), "
                         f"got {cfg.time_logit_normal}")
-    if not (math.isfinite(cfg.difference_weight) and cfg.difference_weight > 0):
-        raise UserError(f"--difference-weight must be a finite number > 0, got {cfg.difference_weight}")
     if not 0.0 <= cfg.counterfactual_swap <= 1.0:
         raise UserError(f"--counterfactual-swap is a probability in [0, 1], got {cfg.counterfactual_swap}")
     if not (math.isfinite(cfg.text_noise) and cfg.text_noise >= 0):
         raise UserError(f"--text-noise must be a finite number >= 0 (0 = off), got {cfg.text_noise}")
     if not 0.0 <= cfg.rephrase <= 1.0:
         raise UserError(f"--rephrase is a probability in [0, 1], got {cfg.rephrase}")
-    if not cfg.group_batches and (cfg.difference_weight != 1.0 or cfg.counterfactual_swap > 0):
-        raise UserError("--difference-weight and --counterfactual-swap compare the futures of a counterfactual group: "
-                        "add --group-batches")
+    if not cfg.group_batches and cfg.counterfactual_swap > 0:
+        raise UserError("--counterfactual-swap compares the futures of a counterfactual group: add --group-batches")
     if preset.space == AUTOENCODER and cfg.autoencoder is None:
         raise UserError(f"preset {preset.name!r} works in an RGB-D-N autoencoder's latent space: pass --autoencoder DIR "
                         f"(RUN/autoencoder of `tesseract4d train-autoencoder --data DATA --out RUN`)")
@@ -168,16 +182,12 @@ def augment_text(text: torch.Tensor, max_rel_std: float, generator: torch.Genera
     return text + rms * per_sample_noise(text.shape, max_rel_std, generator).to(text.device)
 
 
-def sample_times(b: int, shift: float, generator: torch.Generator, logit_normal: float = 0.0) -> torch.Tensor:
-    """(b,) diffusion times in [0, 1]: ``s u / (1 + (s - 1) u)`` of ``u ~ U(0, 1)``, or of the
-    logit-normal ``u = sigmoid(logit_normal * n)``, ``n ~ N(0, 1)``, when ``logit_normal`` > 0. At
-    ``shift`` 1 and no logit-normal every operation is exact in floating point, so the uniform recipe
-    draws exactly what it always drew."""
+def sample_times(b: int, generator: torch.Generator, logit_normal: float = 0.0) -> torch.Tensor:
+    """(b,) diffusion times in [0, 1]: ``U(0, 1)``, or logit-normal ``sigmoid(logit_normal * n)``,
+    ``n ~ N(0, 1)``, when ``logit_normal`` > 0."""
     if logit_normal > 0:
-        u = torch.sigmoid(logit_normal * torch.randn(b, generator=generator))
-    else:
-        u = torch.rand(b, generator=generator)
-    return shift * u / (1.0 + (shift - 1.0) * u)
+        return torch.sigmoid(logit_normal * torch.randn(b, generator=generator))
+    return torch.rand(b, generator=generator)
 
 
 def share_within_groups(x: torch.Tensor, leaders: list[int] | None) -> torch.Tensor:
@@ -195,27 +205,12 @@ def disagreement_mask(x0: torch.Tensor, share: float = DISAGREE_SHARE) -> torch.
     return ((spread >= threshold) & (spread > 0)).float()
 
 
-def difference_cells(x0: torch.Tensor, leaders: list[int]) -> torch.Tensor:
-    """(b, t, 1, h, w): 1 on the cells where the clean clips of a clip's group differ most
-    (:func:`disagreement_mask`), else 0; 0 for a clip alone in its group."""
-    out = torch.zeros_like(x0[:, :, :1])
-    lead = torch.as_tensor(leaders)
-    for leader in sorted(set(leaders)):
-        members = torch.nonzero(lead == leader).flatten().tolist()
-        if len(members) >= 2:
-            out[members] = disagreement_mask(x0[members]).to(out)
-    return out
-
-
-def cell_weights(x0: torch.Tensor, objects: torch.Tensor | None, cfg,
-                 leaders: list[int] | None = None) -> torch.Tensor | None:
-    """(b, t, 1, h, w) loss weights of clean clips ``x0`` (b, t, c, h, w): moving, robot/object, scene
-    object and (with groups) group-difference cells count more; None when every weight is 1.
+def cell_weights(x0: torch.Tensor, objects: torch.Tensor | None, cfg) -> torch.Tensor | None:
+    """(b, t, 1, h, w) loss weights of clean clips ``x0`` (b, t, c, h, w): moving, robot/object and scene
+    object cells count more; None when every weight is 1.
     ``objects``: (b, t, 2, h, w) shares per cell of the robot and objects (channel 0) and of the scene's
     objects alone (channel 1), as ``LatentClipDataset.objects`` gives them; None without a cache."""
-    difference = cfg.difference_weight if leaders is not None else 1.0
-    if (cfg.moving_weight == 1.0 and cfg.object_weight == 1.0 and cfg.scene_object_weight == 1.0
-            and difference == 1.0):
+    if cfg.moving_weight == 1.0 and cfg.object_weight == 1.0 and cfg.scene_object_weight == 1.0:
         return None
     moving = ((x0 - x0[:, :1]).abs().mean(dim=2, keepdim=True) > MOVING_TOL).float()
     w = 1.0 + (cfg.moving_weight - 1.0) * moving
@@ -223,8 +218,6 @@ def cell_weights(x0: torch.Tensor, objects: torch.Tensor | None, cfg,
         w = w + (cfg.object_weight - 1.0) * objects[:, :, :1].to(w)
     if objects is not None and cfg.scene_object_weight != 1.0:
         w = w + (cfg.scene_object_weight - 1.0) * objects[:, :, 1:2].to(w)
-    if difference != 1.0:
-        w = w + (difference - 1.0) * difference_cells(x0, leaders)
     return w
 
 
@@ -254,14 +247,11 @@ def rephrase(texts: list[str], paraphrases, probability: float, generator: torch
     return out
 
 
-def recipe_loss(out: torch.Tensor, cond: torch.Tensor, x0: torch.Tensor, noise: torch.Tensor,
-                channels: dict[str, slice], weights: torch.Tensor | None, prediction: str) -> dict[str, torch.Tensor]:
+def recipe_loss(out: torch.Tensor, x0: torch.Tensor, channels: dict[str, slice],
+                weights: torch.Tensor | None) -> dict[str, torch.Tensor]:
     """Per-group mean squared error of the network output ``out`` = first frame + correction
-    (b, t, c, h, w) against the target of ``prediction``, weighted per cell."""
-    if prediction == "velocity":
-        err = (out - cond[:, :1] - (noise - x0)) ** 2
-    else:
-        err = (out - x0) ** 2
+    (b, t, c, h, w) against the clean clip ``x0``, weighted per cell."""
+    err = (out - x0) ** 2
     parts = {}
     for name, s in channels.items():
         e = err[:, :, s]

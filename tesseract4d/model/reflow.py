@@ -22,9 +22,7 @@ A pairs folder holds ``pairs-XXXXX.safetensors`` shards (``first`` (n, 7, H, W) 
 position of each pair's group's first pair), a JSON sidecar per shard with its instructions, and
 ``reflow_pairs.json`` (the teacher, its sampler settings and the data). Shards are written whole
 (temporary file, then rename), so an interrupted run resumes at the next shard. The sidecars also name
-each pair's episode and clip start (:func:`pair_sources`), so that ``distill --keep-following`` can judge
-each teacher clip against its episode (``evaluation/pair_following.py``, scores in ``following.json``) and
-the student trains only on the pairs kept.
+each pair's episode and clip start.
 """
 
 from __future__ import annotations
@@ -32,25 +30,22 @@ from __future__ import annotations
 import dataclasses
 import json
 import os
-from collections import Counter
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
-import numpy as np
 import torch
 
 from tesseract4d.configs import knob
 from tesseract4d.errors import UserError
 from tesseract4d.outputs import files_as_created
-from tesseract4d.model.checkpoint import GUIDE_DIR, weights_digest
+from tesseract4d.model.checkpoint import weights_digest
 from tesseract4d.model.lr_schedule import MAX_STEPS_HELP
 from tesseract4d.model.trainer import TrainConfig, Trainer
 from tesseract4d.precision import precision_field
 
 MANIFEST = "reflow_pairs.json"
 SHARD_PREFIX = "pairs-"
-FOLLOWING = "following.json"  # which pairs' teacher clips follow their instruction (distill --keep-following)
 
 
 @dataclass
@@ -70,9 +65,6 @@ class PairsConfig:
     precision: str = precision_field()
     groups: bool = knob(False, "draw the pairs as whole counterfactual groups of --data (one scene under several "
                                "instructions), a group's pairs sharing one noise")
-    # Noises the teacher samples each pair from; the pair keeps the one whose clip keeps the first frame's
-    # objects best (draw_choice.py; a group keeps the draw best for its pairs together, so they share it).
-    teacher_draws: int = 1
 
     def to_dict(self) -> dict:
         from tesseract4d.configs import config_dict
@@ -85,9 +77,9 @@ def _shard_path(out: Path, index: int) -> Path:
 
 
 # What a manifest written before a key existed meant by it: pairs before guidance intervals were
-# guided at every step, pairs before autoguidance had none.
-_MANIFEST_DEFAULTS = {"guidance_min_sigma": 0.0, "autoguidance": 0.0, "autoguidance_min_sigma": 0.0,
-                      "guide_digest": None, "teacher_draws": 1}
+# guided at every step. Also the removed teacher options (autoguidance, teacher draws) at the values
+# that made them no-ops: this version makes pairs only so, and refuses pairs made otherwise.
+_MANIFEST_DEFAULTS = {"guidance_min_sigma": 0.0, "autoguidance": 0.0, "teacher_draws": 1}
 
 
 def _check_manifest(out: Path, manifest: dict) -> None:
@@ -98,8 +90,9 @@ def _check_manifest(out: Path, manifest: dict) -> None:
         return
     saved = json.loads(path.read_text())
     keys = ("teacher_digest", "teacher_steps", "text_guidance", "image_guidance", "guidance_min_sigma", "autoguidance",
-            "autoguidance_min_sigma", "guide_digest", "data", "seed", "shard_size", "groups", "teacher_draws")
-    differ = [k for k in keys if saved.get(k, _MANIFEST_DEFAULTS.get(k)) != manifest.get(k)]
+            "data", "seed", "shard_size", "groups", "teacher_draws")
+    differ = [k for k in keys if saved.get(k, _MANIFEST_DEFAULTS.get(k))
+              != manifest.get(k, _MANIFEST_DEFAULTS.get(k))]
     if differ:
         raise UserError(f"{out} holds pairs made with other settings ({', '.join(differ)} differ); "
                         f"choose a new --pairs folder for these settings")
@@ -108,8 +101,9 @@ def _check_manifest(out: Path, manifest: dict) -> None:
 def check_pairs_of_teacher(pairs: Path, teacher: Path, teacher_steps: int | None = None,
                            text_guidance: float | None = None) -> None:
     """Refuse pairs (a ``--pairs`` folder reused without ``--data``) that ``teacher`` did not make:
-    other weights, or a sampler its settings fix (image guidance, guidance interval, autoguidance:
-    ``set-sampler`` copies share weights but not these); the steps and text guidance the pairs were
+    other weights, or a sampler its settings fix (image guidance, guidance interval: ``set-sampler``
+    copies share weights but not these), or made with a removed option (autoguidance, teacher draws);
+    the steps and text guidance the pairs were
     made with (recorded in the student's ``distilled_from``) only when given. Reads configs and
     digests only, no weights into memory."""
     from tesseract4d.model.checkpoint import read_inference_config
@@ -118,8 +112,7 @@ def check_pairs_of_teacher(pairs: Path, teacher: Path, teacher_steps: int | None
     saved = json.loads((Path(pairs) / MANIFEST).read_text())
     p = preset_from_dict(read_inference_config(teacher)["preset"])
     now = {"teacher_digest": weights_digest(teacher), "image_guidance": p.image_guidance,
-           "guidance_min_sigma": p.guidance_min_sigma, "autoguidance": p.autoguidance,
-           "autoguidance_min_sigma": p.autoguidance_min_sigma,
+           "guidance_min_sigma": p.guidance_min_sigma, "autoguidance": 0.0, "teacher_draws": 1,
            **({} if teacher_steps is None else {"teacher_steps": teacher_steps}),
            **({} if text_guidance is None else {"text_guidance": text_guidance})}
     differ = [k for k, v in now.items() if saved.get(k, _MANIFEST_DEFAULTS.get(k)) != v]
@@ -139,8 +132,8 @@ def generate_pairs(cfg: PairsConfig, progress: bool = True) -> Path:
     from tesseract4d.model.predict import load_pipeline
     from tesseract4d.model.recipe import share_within_groups
 
-    if cfg.num_pairs < 1 or cfg.shard_size < 1 or cfg.batch_size < 1 or cfg.teacher_draws < 1:
-        raise UserError("--num-pairs, --pair-batch-size and --teacher-draws must be at least 1 (and the shard size of the pairs)")
+    if cfg.num_pairs < 1 or cfg.shard_size < 1 or cfg.batch_size < 1:
+        raise UserError("--num-pairs and --pair-batch-size must be at least 1 (and the shard size of the pairs)")
     # On a GPU machine the teacher samples there, as the trainers train there (CUDA_VISIBLE_DEVICES= keeps it on the CPU).
     pipe = load_pipeline(cfg.teacher, device="cuda" if torch.cuda.is_available() else "cpu", precision=cfg.precision)
     p = pipe.preset
@@ -157,11 +150,7 @@ def generate_pairs(cfg: PairsConfig, progress: bool = True) -> Path:
     out = Path(cfg.out)
     manifest = {"format": 1, "teacher": str(cfg.teacher), "teacher_digest": weights_digest(cfg.teacher),
                 "teacher_preset": p.to_dict(), "teacher_steps": steps, "text_guidance": text_g,
-                "image_guidance": image_g, "guidance_min_sigma": p.guidance_min_sigma,
-                "autoguidance": p.autoguidance, "autoguidance_min_sigma": p.autoguidance_min_sigma,
-                # and the guide it samples with, by its weights' digest
-                "guide_digest": weights_digest(cfg.teacher, subfolder=GUIDE_DIR) if p.autoguidance else None,
-                "teacher_draws": cfg.teacher_draws, "data": plain(cfg.data),
+                "image_guidance": image_g, "guidance_min_sigma": p.guidance_min_sigma, "data": plain(cfg.data),
                 "camera": data.camera, "seed": cfg.seed, "shard_size": cfg.shard_size, "groups": bool(cfg.groups), "config": cfg.to_dict()}
     _check_manifest(out, manifest)
     out.mkdir(parents=True, exist_ok=True)
@@ -170,12 +159,12 @@ def generate_pairs(cfg: PairsConfig, progress: bool = True) -> Path:
     os.replace(tmp, out / MANIFEST)
 
     num_shards = -(-cfg.num_pairs // cfg.shard_size)
-    bar = tqdm(total=cfg.num_pairs * cfg.teacher_draws, desc="reflow pairs", unit="clip", disable=not progress)
+    bar = tqdm(total=cfg.num_pairs, desc="reflow pairs", unit="clip", disable=not progress)
     for s in range(num_shards):
         n = min(cfg.shard_size, cfg.num_pairs - s * cfg.shard_size)
         path = _shard_path(out, s)
         if path.is_file() and path.with_suffix(".json").is_file():
-            bar.update(n * cfg.teacher_draws)
+            bar.update(n)
             continue
         # Every shard's batch and noise depend only on (seed, shard): a resumed run makes the same pairs.
         g = _shard_generator(cfg.seed, s)
@@ -185,20 +174,13 @@ def generate_pairs(cfg: PairsConfig, progress: bool = True) -> Path:
         texts = [t for _, t in drawn]
         noise = share_within_groups(torch.randn(pipe.latent_shape(n), generator=g), leaders)
 
-        def sample(noise: torch.Tensor, generator: torch.Generator) -> torch.Tensor:
-            x0 = []
-            for i in range(0, n, cfg.batch_size):
-                sl = slice(i, i + cfg.batch_size)
-                x0.append(pipe(first[sl], texts[sl], num_inference_steps=steps, text_guidance=text_g,
-                               image_guidance=image_g, latents=noise[sl], output_type="latent", generator=generator))
-                bar.update(len(texts[sl]))
-            return torch.cat(x0).float().cpu()
-
-        x0 = sample(noise, g)  # draw 0: the pairs of a single draw
-        chosen = None
-        if cfg.teacher_draws > 1:
-            noise, x0, chosen = _best_draws(pipe, first, noise, x0, leaders, cfg.teacher_draws,
-                                            _shard_seed(cfg.seed, s), sample)
+        x0 = []
+        for i in range(0, n, cfg.batch_size):
+            sl = slice(i, i + cfg.batch_size)
+            x0.append(pipe(first[sl], texts[sl], num_inference_steps=steps, text_guidance=text_g,
+                           image_guidance=image_g, latents=noise[sl], output_type="latent", generator=g))
+            bar.update(len(texts[sl]))
+        x0 = torch.cat(x0).float().cpu()
         tensors = {"first": first.half().contiguous(), "noise": noise.contiguous(), "x0": x0.contiguous()}
         if leaders is not None:
             tensors["leader"] = torch.tensor(leaders, dtype=torch.int64)
@@ -207,8 +189,6 @@ def generate_pairs(cfg: PairsConfig, progress: bool = True) -> Path:
         files_as_created(tmp_st)  # safetensors writes 0600
         tmp_js = path.with_name(f".{path.stem}.json.tmp")
         record = {"instructions": texts, "episodes": [data.sources[i].episode_id for i in indices], "starts": starts}
-        if chosen is not None:
-            record["draws"] = chosen
         tmp_js.write_text(json.dumps(record))
         os.replace(tmp_st, path)
         os.replace(tmp_js, path.with_suffix(".json"))
@@ -216,48 +196,8 @@ def generate_pairs(cfg: PairsConfig, progress: bool = True) -> Path:
     return out
 
 
-def _shard_seed(seed: int, shard: int) -> int:
-    return seed * 1_000_003 + shard
-
-
 def _shard_generator(seed: int, shard: int) -> torch.Generator:
-    return torch.Generator().manual_seed(_shard_seed(seed, shard))
-
-
-def _best_draws(pipe, first: torch.Tensor, noise: torch.Tensor, x0: torch.Tensor, leaders: list[int] | None,
-                draws: int, shard_seed: int, sample: Callable) -> tuple[torch.Tensor, torch.Tensor, dict]:
-    """The shard's pairs from the best of ``draws`` teacher noises (draw 0: ``noise`` and its clips
-    ``x0``; draw k from ``draw_noise_seed(shard_seed, k)``, shared within groups as draw 0's). Each
-    clip is decoded and scored by how well it keeps the objects found in its first frame
-    (draw_choice.py); a pair keeps its best draw, a group the draw of the best mean over its pairs.
-    Returns (noise, x0, {"count", "kept" per pair, "objects_kept" per draw and pair})."""
-    from tesseract4d.model.draw_choice import draw_noise_seed, object_windows, objects_kept
-    from tesseract4d.model.recipe import share_within_groups
-
-    def scores(z: torch.Tensor) -> list[float]:
-        clips = torch.cat([pipe.decode(z[i:i + 4].to(pipe.device)).cpu() for i in range(0, len(z), 4)])
-        return [objects_kept(windows[i], pipe.model_space.decode(clips[i])[0]) for i in range(len(z))]
-
-    windows = [object_windows(pipe.model_space.decode(f[None])[0][0]) for f in first.float()]
-    noises, x0s, score = [noise], [x0], [scores(x0)]
-    for k in range(1, draws):
-        g = torch.Generator().manual_seed(draw_noise_seed(shard_seed, k))
-        noises.append(share_within_groups(torch.randn(noise.shape, generator=g), leaders))
-        x0s.append(sample(noises[-1], g))
-        score.append(scores(x0s[-1]))
-    table = np.nan_to_num(np.asarray(score, np.float64), nan=-1.0)  # (draws, n); no object: every draw alike
-    units = [[i] for i in range(len(first))] if leaders is None else \
-        [[i for i, lead in enumerate(leaders) if lead == leader] for leader in sorted(set(leaders))]
-    kept = [0] * len(first)
-    for unit in units:
-        best = int(np.argmax(table[:, unit].mean(axis=1)))  # the earliest on a tie
-        for i in unit:
-            kept[i] = best
-    index = torch.tensor(kept)
-    rows = torch.arange(len(first))
-    noise = torch.stack(noises)[index, rows]
-    x0 = torch.stack(x0s)[index, rows]
-    return noise, x0, {"count": draws, "kept": kept, "objects_kept": [[float(v) for v in row] for row in score]}
+    return torch.Generator().manual_seed(seed * 1_000_003 + shard)
 
 
 def _shard_plan(data, n: int, generator: torch.Generator, groups: bool) -> tuple[list[int], list[int], list[int] | None]:
@@ -267,38 +207,6 @@ def _shard_plan(data, n: int, generator: torch.Generator, groups: bool) -> tuple
 
         return grouped_batch_plan(data, n, generator)  # whole groups
     return (*data.batch_plan(n, generator), None)
-
-
-def pair_sources(pairs: "ReflowPairs", data) -> list[tuple[str, int]]:
-    """Each pair's (episode id, clip start) in ``data`` (the clip dataset of the manifest's data folders).
-
-    Shards record them; for shards written before they did, the shard's draws are made again from
-    its seed (they come first from its generator) and checked against its instructions and first
-    frames. A UserError when ``data`` is not the data the pairs were made from."""
-    if pairs.kept is not None:
-        raise ValueError("pair_sources needs every pair of the folder (ReflowPairs without keep_following)")
-    shards = _complete_shards(pairs.folder)
-    by_id = {src.episode_id: k for k, src in enumerate(data.sources)}
-    out: list[tuple[str, int]] = []
-    for shard in shards:
-        sidecar = json.loads(shard.with_suffix(".json").read_text())
-        n = len(sidecar["instructions"])
-        if "episodes" in sidecar:
-            rows = list(zip(sidecar["episodes"], sidecar["starts"]))
-        else:
-            index = int(shard.stem[len(SHARD_PREFIX):])
-            indices, starts, _ = _shard_plan(data, n, _shard_generator(pairs.manifest["seed"], index),
-                                             bool(pairs.manifest.get("groups")))
-            rows = [(data.sources[i].episode_id, st) for i, st in zip(indices, starts)]
-        for k, (episode_id, start) in enumerate(rows):
-            pos = len(out) + k
-            i = by_id.get(episode_id)
-            clip, text = data.clip(i, start) if i is not None else (None, None)
-            if clip is None or text != pairs.instructions[pos] or not torch.equal(clip[0].half(), pairs.first[pos]):
-                raise UserError(f"pair {pos} of {pairs.folder} does not come from {episode_id} of the data in its "
-                                f"manifest as it is now; score pairs against the data they were made from")
-        out += rows
-    return out
 
 
 def _complete_shards(folder: Path) -> list[Path]:
@@ -311,52 +219,14 @@ def count_pairs(folder: str | os.PathLike) -> int:
     return sum(len(json.loads(s.with_suffix(".json").read_text())["instructions"]) for s in _complete_shards(folder))
 
 
-def write_following(folder: Path, record: dict) -> Path:
-    """Write a pairs folder's instruction-following scores (``FOLLOWING``: ``num_pairs``, ``kept`` (the
-    indices of the pairs to train on) and whatever else ``record`` holds), whole (temporary file, then rename)."""
-    from tesseract4d import dataset_format as df
-
-    path = Path(folder) / FOLLOWING
-    df.atomic_write_text(path, json.dumps(record, indent=1))
-    return path
-
-
-def task_balance(tasks: list[str], kept: list[int]) -> list[float]:
-    """Per kept pair, the draw weight that gives each task (``tasks[i]``: pair i's, for every pair of the
-    folder) its share of all the folder's pairs among the kept ones: (its task's pairs) / (its task's
-    kept pairs). Without it, a task whose teacher clips fail the check more often loses part of its
-    share of the student's training to the others."""
-    total, kept_of = Counter(tasks), Counter(tasks[i] for i in kept)
-    return [total[tasks[i]] / kept_of[tasks[i]] for i in kept]
-
-
-def read_following(folder: Path, num_pairs: int | None = None) -> dict | None:
-    """The scores :func:`write_following` wrote, or None when there are none. With ``num_pairs`` (the
-    folder's pairs now), a UserError instead when there are none or they score another number of pairs
-    (the folder has grown since)."""
-    path = Path(folder) / FOLLOWING
-    if not path.is_file():
-        if num_pairs is None:
-            return None
-        raise UserError(f"{folder} holds no instruction-following scores ({FOLLOWING}); score its pairs with "
-                        f"`tesseract4d distill --keep-following --teacher CKPT --pairs {folder} --out RUN`")
-    record = json.loads(path.read_text())
-    if num_pairs is not None and record.get("num_pairs") != num_pairs:
-        raise UserError(f"{path} scores {record.get('num_pairs')} pairs and {folder} holds {num_pairs}; score them "
-                        f"again with `tesseract4d distill --keep-following`")
-    return record
-
-
 class ReflowPairs:
     """The pairs of a folder written by :func:`generate_pairs`, in memory.
 
     ``sample_batch(b, generator)`` returns (first (b, 7, H, W), noise, x0 (b, t', c, h, w), texts);
     on grouped pairs ``sample_group_batch`` also each pair's group leader (its batch position).
-    ``keep_following``: only the pairs ``FOLLOWING`` keeps; with ``balance_tasks`` drawn so that each
-    task keeps its share of the folder's pairs (:func:`task_balance`).
     """
 
-    def __init__(self, folder: str | os.PathLike, keep_following: bool = False, balance_tasks: bool = False):
+    def __init__(self, folder: str | os.PathLike):
         from safetensors.torch import load_file
 
         self.folder = Path(folder)
@@ -386,45 +256,16 @@ class ReflowPairs:
             leader = p["leader"].tolist() if "leader" in p else list(range(n))
             self.group_of += [offset + k for k in leader]
             offset += n
-        self.kept: list[int] | None = None  # with keep_following: the folder's pairs kept, in order
-        self.num_in_folder = len(self.instructions)  # before any were left out
-        self.weights: torch.Tensor | None = None  # with balance_tasks: each kept pair's draw weight
-        if keep_following:
-            record = read_following(self.folder, len(self.instructions))
-            self._keep(record["kept"])
-            if balance_tasks:
-                tasks = [p["episode"].split("/")[0] for p in record.get("per_pair", [])]
-                if len(tasks) != self.num_in_folder:
-                    raise UserError(f"{self.folder / FOLLOWING} names no episode for each pair, so its tasks are "
-                                    f"unknown: pass --following-balance none, or move that file aside and score the "
-                                    f"pairs again with `tesseract4d distill --keep-following`")
-                self.weights = torch.tensor(task_balance(tasks, self.kept), dtype=torch.float64)
         units: dict[int, list[int]] = {}
         for i, leader in enumerate(self.group_of):
             units.setdefault(leader, []).append(i)
         self._units = list(units.values())
-        # a group's weight is its pairs' mean (a group's pairs are of one scene, so of one task)
-        self._unit_weights = None if self.weights is None else \
-            torch.stack([self.weights[u].mean() for u in self._units])
-
-    def _keep(self, kept: list[int]) -> None:
-        if not kept:
-            raise UserError(f"no pair of {self.folder} follows its instruction ({FOLLOWING}); make more pairs or "
-                            f"train without --keep-following")
-        index = torch.tensor(kept)
-        self.first, self.noise, self.x0 = self.first[index], self.noise[index], self.x0[index]
-        self.instructions = [self.instructions[i] for i in kept]
-        self.group_of = [self.group_of[i] for i in kept]  # a group's key stays its first pair's index
-        self.kept = list(kept)
 
     def __len__(self) -> int:
         return len(self.instructions)
 
     def sample_batch(self, batch_size: int, generator: torch.Generator):
-        if self.weights is None:
-            idx = torch.randint(len(self), (batch_size,), generator=generator)
-        else:
-            idx = torch.multinomial(self.weights, batch_size, replacement=True, generator=generator)
+        idx = torch.randint(len(self), (batch_size,), generator=generator)
         texts = [self.instructions[i] for i in idx.tolist()]
         return self.first[idx].float(), self.noise[idx], self.x0[idx], texts
 
@@ -441,7 +282,7 @@ class ReflowPairs:
         from tesseract4d.model.clips import draw_group_batch
 
         units = self.group_units()
-        idx, _, leaders = draw_group_batch(units, [1] * len(self), 1, batch_size, generator, self._unit_weights)
+        idx, _, leaders = draw_group_batch(units, [1] * len(self), 1, batch_size, generator)
         texts = [self.instructions[i] for i in idx]
         return self.first[idx].float(), self.noise[idx], self.x0[idx], texts, leaders
 
@@ -458,18 +299,15 @@ class ReflowConfig(TrainConfig):
     max_steps: int | str = knob(1000, MAX_STEPS_HELP, metavar="N|auto")
     val_every: int = knob(100, "PSNR of the student against the teacher every K steps (0 = never)")
     val_clips: int = knob(4, "pairs per validation")
-    keep_following: bool = False  # train only on the pairs FOLLOWING keeps (scored by `distill --keep-following`)
-    balance_tasks: bool = False  # with keep_following: draw the kept pairs so each task keeps its share of the pairs
 
 
 def student_preset(teacher_preset, student_steps: int):
     """The teacher's preset with the student's sampling defaults: ``student_steps`` Euler steps and no
-    guidance (text = image = 1.0, no autoguidance), i.e. one network pass per step. The teacher's
+    guidance (text = image = 1.0), i.e. one network pass per step. The teacher's
     static compositing (``static_tolerance``, on decoded frames, after the network) is kept: the pairs
     are latents, which it never touches."""
     return dataclasses.replace(teacher_preset, num_steps=int(student_steps), text_guidance=1.0, image_guidance=1.0,
-                               guidance_min_sigma=0.0, autoguidance=0.0, autoguidance_min_sigma=0.0,
-                               text_dropout=0.0, image_dropout=0.0)
+                               guidance_min_sigma=0.0, text_dropout=0.0, image_dropout=0.0)
 
 
 class ReflowTrainer(Trainer):
@@ -491,11 +329,10 @@ class ReflowTrainer(Trainer):
             raise UserError(f"--student-steps must be at least 1, got {config.student_steps}")
         check_not_input(config.out, [config.teacher], "--out")
         self.teacher_config = read_inference_config(config.teacher)
-        # The student inherits the teacher's target and, for a latent preset, its autoencoder (the
-        # copy inside the teacher checkpoint, hash-checked); it sees the clean first frame, as at sampling.
-        recipe = self.teacher_config.get("recipe") or {}
+        # The student inherits, for a latent preset, the teacher's autoencoder (the copy inside the
+        # teacher checkpoint, hash-checked); it sees the clean first frame, as at sampling.
         config = dataclasses.replace(config, text_dropout=0.0, image_dropout=0.0, condition_noise=0.0, text_noise=0.0,
-                                     prediction=recipe.get("prediction", "x0"), init=config.teacher,
+                                     init=config.teacher,
                                      pretrained=config.pretrained or self.teacher_config.get("pretrained_dir"))
         super().__init__(config, paraphrases)
 
@@ -513,7 +350,7 @@ class ReflowTrainer(Trainer):
         return student_preset(teacher, config.student_steps)
 
     def _build_data(self, cfg: TrainConfig) -> ReflowPairs:
-        pairs = ReflowPairs(cfg.data, keep_following=cfg.keep_following, balance_tasks=cfg.balance_tasks)
+        pairs = ReflowPairs(cfg.data)
         made_by = pairs.manifest.get("teacher_digest")
         if made_by != self.teacher_digest:
             raise UserError(f"{cfg.data} holds pairs of another teacher (weights {made_by}, --teacher has "
@@ -542,7 +379,7 @@ class ReflowTrainer(Trainer):
         t = share_within_groups(torch.rand(x0.shape[0], generator=g), leaders)
         if leaders is not None and cfg.counterfactual_swap > 0:
             shown = swap_sources(leaders, t, cfg.counterfactual_swap, g)
-        return self.denoising_loss(x0, first_enc, text, t, noise, leaders=leaders, shown=shown)
+        return self.denoising_loss(x0, first_enc, text, t, noise, shown=shown)
 
     def _inference_config(self) -> dict:
         m = self.data.manifest
@@ -551,10 +388,7 @@ class ReflowTrainer(Trainer):
             "method": "rectified-flow reflow", "teacher": str(self.cfg.teacher), "teacher_digest": self.teacher_digest,
             "teacher_steps": m.get("teacher_steps"), "text_guidance": m.get("text_guidance"),
             "image_guidance": m.get("image_guidance"), "pairs": str(self.cfg.data), "num_pairs": len(self.data),
-            "pair_groups": bool(m.get("groups")), "student_steps": self.preset.num_steps,
-            # with --keep-following: the pairs of the folder before the teacher's wrong ones were left out
-            "pairs_scored": None if self.data.kept is None else self.data.num_in_folder,
-            "pairs_balanced_by_task": self.data.weights is not None}
+            "pair_groups": bool(m.get("groups")), "student_steps": self.preset.num_steps}
         return cfg
 
     def validation_indices(self) -> list[int]:

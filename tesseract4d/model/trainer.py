@@ -109,12 +109,10 @@ class TrainConfig:
                                      "segmentation)")
     scene_object_weight: float = knob(1.0, "added loss weight of the scene's objects' cells (not the robot; latent "
                                            "presets; 1 = off)")
-    prediction: str = "x0"  # network target: "x0" (clean clip, first frame + correction) or "velocity"
-    time_shift: float = 1.0  # diffusion times t = s u / (1 + (s - 1) u), u ~ U(0, 1); > 1 trains more at high noise
-    time_logit_normal: float = 0.0  # > 0: u logit-normal with this std instead of uniform (trains most at middle noise)
+    time_logit_normal: float = knob(0.0, "> 0: diffusion times drawn logit-normal with this std instead of uniform "
+                                         "(trains most at middle noise)")
     group_batches: bool = knob(False, "batches of whole counterfactual groups (`datagen --instructions-per-scene`) "
                                       "sharing one noise and one diffusion time")
-    difference_weight: float = 1.0  # with group_batches: loss weight of cells where a group's futures differ
     counterfactual_swap: float = knob(0.0, "with group_batches: probability that a clip at noise >= 0.3 is shown a "
                                            "sibling's noisy sample and must still predict its own future")
     rephrase: float = knob(0.0, "probability of training a clip under another training wording of its instruction")
@@ -168,11 +166,10 @@ class TrainConfig:
             raise UserError("--loss-weights must not all be zero")
 
     def recipe(self) -> dict:
-        """The recipe levers, saved in the inference config (sampling needs ``prediction``)."""
+        """The recipe levers, saved in the inference config."""
         return {k: getattr(self, k) for k in ("condition_noise", "moving_weight", "object_weight",
-                                              "scene_object_weight", "prediction",
-                                              "text_dropout", "time_shift", "time_logit_normal", "group_batches",
-                                              "difference_weight", "counterfactual_swap", "rephrase", "text_noise")}
+                                              "scene_object_weight", "text_dropout", "time_logit_normal",
+                                              "group_batches", "counterfactual_swap", "rephrase", "text_noise")}
 
 
 class EMA:
@@ -396,7 +393,7 @@ class Trainer:
         return data
 
     def _check_init(self, cfg: TrainConfig) -> TrainConfig:
-        """With ``init``: refuse a checkpoint of another preset or prediction target, or a latent one
+        """With ``init``: refuse a checkpoint of another preset or of a velocity target, or a latent one
         whose autoencoder makes other latents than ``--autoencoder``; default to its autoencoder."""
         self.init_digest = None
         if cfg.init is None:
@@ -410,10 +407,9 @@ class Trainer:
         if name != self.preset.name:
             raise UserError(f"--init {cfg.init} is a {name!r} checkpoint but this run's preset is "
                             f"{self.preset.name!r}; pass --preset {name}")
-        target = (saved.get("recipe") or {}).get("prediction", "x0")
-        if target != cfg.prediction:
-            raise UserError(f"--init {cfg.init} predicts {target!r} but --prediction is {cfg.prediction!r}; "
-                            f"pass --prediction {target}")
+        from tesseract4d.model.recipe import check_samples_as_trained
+
+        check_samples_as_trained(saved.get("recipe") or {}, f"--init {cfg.init}")
         entry = saved.get("autoencoder")
         if self.preset.space != AUTOENCODER or entry is None:
             return cfg
@@ -529,11 +525,11 @@ class Trainer:
         keep_image = (torch.rand(b, generator=g) >= cfg.image_dropout).float()
         text = (text * keep_text[:, None, None]).to(self.device)
         first = first * keep_image.to(self.device)[:, None, None, None, None]
-        t = share_within_groups(sample_times(b, cfg.time_shift, g, cfg.time_logit_normal), leaders)
+        t = share_within_groups(sample_times(b, g, cfg.time_logit_normal), leaders)
         noise = share_within_groups(torch.randn(x0.shape, generator=g), leaders)
         if leaders is not None and cfg.counterfactual_swap > 0:
             shown = swap_sources(leaders, t, cfg.counterfactual_swap, g)
-        return self.denoising_loss(x0, first, text, t, noise, objects, leaders=leaders, shown=shown)
+        return self.denoising_loss(x0, first, text, t, noise, objects, shown=shown)
 
     def rephrased(self, texts: list[str], g: torch.Generator) -> list[str]:
         """The batch's instructions after the ``rephrase`` lever (unchanged, drawing nothing, at 0)."""
@@ -544,13 +540,13 @@ class Trainer:
         return rephrase(texts, self.paraphrases, self.cfg.rephrase, g)
 
     def denoising_loss(self, x0: torch.Tensor, first: torch.Tensor, text: torch.Tensor, t: torch.Tensor,
-                       noise: torch.Tensor, objects: torch.Tensor | None = None, *, leaders: list[int] | None = None,
+                       noise: torch.Tensor, objects: torch.Tensor | None = None, *,
                        shown: list[int] | None = None) -> tuple[torch.Tensor, dict[str, float]]:
-        """The weighted per-group loss of the recipe's target at ``x_t = (1 - t) x0 + t noise``. x0,
+        """The weighted per-group loss of the clean-clip target at ``x_t = (1 - t) x0 + t noise``. x0,
         noise: (b, t', c, h, w) network space; first: (b, 1, c, h, w) encoded first frame (zeros =
         dropped); text: (b, L, d) embeddings; t: (b,) in [0, 1]; objects: (b, t', 2, h, w) robot/object
-        and scene-object shares of a latent cache (``recipe.cell_weights``), or None. With group batches, ``leaders`` gives each clip's group (its
-        leader's batch position) and ``shown`` the clip whose clean sample builds each clip's ``x_t``
+        and scene-object shares of a latent cache (``recipe.cell_weights``), or None. With group
+        batches, ``shown`` gives the clip whose clean sample builds each clip's ``x_t``
         (recipe.swap_sources); the target stays the clip's own."""
         from tesseract4d.model.codec import make_condition
         from tesseract4d.model.recipe import cell_weights, recipe_loss
@@ -564,8 +560,8 @@ class Trainer:
         x_t = (1 - tt) * seen + tt * noise
         out = self.model(x_t, cond, text, t).float()
         channels = self.accelerator.unwrap_model(self.model).channel_slices()
-        weights = cell_weights(x0, objects, cfg, leaders)  # (b, t', 1, h, w) or None
-        parts = recipe_loss(out, cond, x0, noise, channels, weights, cfg.prediction)
+        weights = cell_weights(x0, objects, cfg)  # (b, t', 1, h, w) or None
+        parts = recipe_loss(out, x0, channels, weights)
         # A joint latent group (not a modality) has weight 1.
         weight_of = {n: cfg.loss_weights.get(n, 0.0) if n in MODALITIES else 1.0 for n in parts}
         total_w = sum(weight_of.values())
@@ -706,8 +702,7 @@ class Trainer:
         if not idx:
             return {}
         pipe = RGBDNPipeline(self.ema.model, make_scheduler(), self.codec, self.text_encoder, self.preset,
-                             self.model_space, camera_name=self.data.camera, bf16=self.precision.bf16,
-                             prediction=self.cfg.prediction)
+                             self.model_space, camera_name=self.data.camera, bf16=self.precision.bf16)
         clips = torch.stack([self.data.clip(i)[0] for i in idx])  # (n, T, 7, H, W)
         if getattr(self.data, "encoded", False):  # latents: compare with their decoding
             clips = self.codec.decode(clips)
