@@ -57,7 +57,7 @@ def _flag_type(cls, name: str, annotation=None) -> Callable[[str], Any]:
 
 def _default_text(value) -> str:
     value = plain(value)
-    if value is None:
+    if value is None or value == "":
         return ""
     if isinstance(value, bool):
         return ""

@@ -27,6 +27,7 @@ import numpy as np
 import torch
 
 from tesseract4d import dataset_format as df
+from tesseract4d.configs import knob
 from tesseract4d.errors import UserError
 from tesseract4d.policy.idm import (
     ARM_JOINTS, IDMConfig, InverseDynamics, clip_gap, encode_target, save_idm, sentence_embeddings,
@@ -36,32 +37,34 @@ from tesseract4d.stopping import StopSignals
 
 @dataclass
 class IDMTrainConfig:
-    data: str = ""
-    out: str = ""
-    use_future: bool = True
-    tasks: list[str] | None = None
-    max_episodes_per_task: int = 0  # 0 = all
-    camera: str | None = None
-    steps: int = 2000
-    batch_size: int = 32
-    lr: float = 1e-3
-    num_points: int = 512
-    chunk_len: int = 8
-    noise_frac: float = 0.2
-    noise_m: float = 0.02
-    gap_scales: tuple[float, ...] = (0.5, 1.0, 2.0)
-    seed: int = 0
-    ckpt_every: int = 500
-    max_minutes: float | None = None
-    resume: bool = False
-    progress: bool = True
+    data: str = knob("", "dataset folder written by `tesseract4d datagen` (best with --frames 0)", metavar="DIR")
+    out: str = knob("", "run folder", metavar="RUN", show_default=False)
+    use_future: bool = knob(True, "give the network the future cloud (false: behaviour cloning, the same network "
+                                  "without it)")
+    tasks: list[str] | None = knob(None, "task ids to train on (none: every task of the dataset)")
+    max_episodes_per_task: int = knob(0, "episodes per task at most (0 = all)")
+    camera: str | None = knob(None, "camera of the dataset (none: its first)")
+    steps: int = knob(2000, "optimiser steps", metavar="N")
+    batch_size: int = knob(32, "pairs per step")
+    lr: float = knob(1e-3, "peak learning rate")
+    num_points: int = knob(512, "points per cloud")
+    chunk_len: int = knob(8, "actions per predicted chunk")
+    noise_frac: float = knob(0.2, "share of future points given Gaussian noise, for generated frames")
+    noise_m: float = knob(0.02, "that noise's std in metres")
+    gap_scales: tuple[float, ...] = knob((0.5, 1.0, 2.0), "future frames at these multiples of episode_steps/15 ahead")
+    seed: int = knob(0, "training seed")
+    ckpt_every: int = knob(500, "checkpoint every K optimiser steps (0 = only at the end)", metavar="K")
+    max_minutes: float | None = knob(None, "stop with a checkpoint after this many minutes", metavar="M")
+    resume: bool = knob(False, "continue from RUN/checkpoint")
+    progress: bool = knob(True, "progress bars (--quiet: none)", flag_help="no progress bar")
     # A world-model checkpoint whose predictions from the episodes' frames serve as futures too
     # (None: true futures only); the share of each batch taken from those pairs; clips per episode;
     # sampler steps (None: the checkpoint's own).
-    predicted_futures: str | None = None
-    predicted_share: float = 0.5
-    predicted_starts: int = 3
-    predicted_sample_steps: int | None = None
+    predicted_futures: str | None = knob(None, "a world-model checkpoint: also train on its predicted futures "
+                                               "(none: true futures only)", metavar="CKPT")
+    predicted_share: float = knob(0.5, "share of each batch with predicted futures")
+    predicted_starts: int = knob(3, "clips predicted per episode")
+    predicted_sample_steps: int | None = knob(None, "sampler steps per predicted clip (none: the checkpoint's own)")
 
 
 @dataclass
