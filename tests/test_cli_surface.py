@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import re
+from pathlib import Path
 
 import pytest
 
@@ -108,6 +109,16 @@ def test_old_subcommand_names_still_work_with_one_deprecation_line(old, new, cap
     (("datagen",), ["--tasks", "PushCube-v1", "--episodes", "1", "--out", "o", "--randomize-colors"],
      "set_overrides", {"randomize_colors": True}),
     (("evaluate",), ["--heldout", "h", "--start-from-truth", "0.5"], "start_from_truth", 0.5),
+    (("train-idm",), ["--data", "d", "--out", "o", "--steps", "7"], "steps", 7),
+    (("train-idm",), ["--data", "d", "--out", "o", "--no-future"], "set_overrides", {"use_future": False}),
+    (("train",), ["--out", "o", "--no-progress"], "progress", False),
+    (("train",), ["--export", "run"], "export", Path("run")),
+    (("train",), ["--out", "o", "--lr", "0.1"], "set_overrides", {"lr": 0.1}),
+    (("distill",), ["--teacher", "t", "--pairs", "p", "--student-steps", "4"], "set_overrides", {"student_steps": 4}),
+    (("train-autoencoder",), ["--data", "d", "--out", "o", "--ckpt-minutes", "5"], "set_overrides",
+     {"ckpt_minutes": 5.0}),
+    (("checkpoint", "set-sampler"), ["--checkpoint", "c", "--to", "t", "--static-tolerance", "0.2"], "set_overrides",
+     {"static_tolerance": 0.2}),
 ])
 def test_old_flags_still_work_with_one_deprecation_line(words, argv, dest, value, capsys):
     args = build_parser(words)[0].parse_args(argv)
