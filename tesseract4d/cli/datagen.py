@@ -106,7 +106,7 @@ def run(args: argparse.Namespace) -> int:
     print(format_report(report))
     incomplete = [t for t, r in report["tasks"].items() if not r["complete"]]
     if incomplete:
-        print(f"warning: {', '.join(incomplete)} reached --max-attempts before {cfg.episodes} successes; "
+        print(f"warning: {', '.join(incomplete)} reached max_attempts before {cfg.episodes} successes; "
               f"raise --set max_attempts=N to try more seeds")
     print(f"dataset: {cfg.out}  (inspect with `tesseract4d dataset info {cfg.out}`)")
     return 0

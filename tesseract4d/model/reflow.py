@@ -273,7 +273,7 @@ class ReflowPairs:
         """The pairs of each group (a pair outside a group alone); a UserError for pairs made without groups."""
         if not self.grouped:
             raise UserError(f"{self.folder} holds pairs drawn one by one; the counterfactual swap needs pairs of whole "
-                            f"groups: make them with `tesseract4d distill --group-pairs` in a new --pairs folder")
+                            f"groups: make them with `tesseract4d distill --set groups=true` in a new --pairs folder")
         return self._units
 
     def sample_group_batch(self, batch_size: int, generator: torch.Generator):
@@ -326,7 +326,7 @@ class ReflowTrainer(Trainer):
         if config.teacher is None:
             raise UserError("pass --teacher CKPT (the inference checkpoint to distil)")
         if config.student_steps < 1:
-            raise UserError(f"--student-steps must be at least 1, got {config.student_steps}")
+            raise UserError(f"student_steps must be at least 1, got {config.student_steps}")
         check_not_input(config.out, [config.teacher], "--out")
         self.teacher_config = read_inference_config(config.teacher)
         # The student inherits, for a latent preset, the teacher's autoencoder (the copy inside the

@@ -202,10 +202,10 @@ def run_rollouts(cfg: RolloutConfig, progress: bool = True) -> dict:
             raise UserError(f"--idm {cfg.idm} is a behaviour-cloning model (no future input); pass it as --bc")
     if "behavior_cloning" in cfg.arms:
         if not cfg.bc:
-            raise UserError("the behavior_cloning arm needs --bc (a folder from `tesseract4d train-idm --no-future`)")
+            raise UserError("the behavior_cloning arm needs --bc (a folder from `tesseract4d train-idm --recipe bc`)")
         bc = load_idm(cfg.bc)
         if bc.config.use_future:
-            raise UserError(f"--bc {cfg.bc} is an inverse dynamics model (it needs a future); train one with --no-future")
+            raise UserError(f"--bc {cfg.bc} is an inverse dynamics model (it needs a future); train one with `tesseract4d train-idm --recipe bc`")
     for label, model in (("IDM", idm), ("BC policy", bc)):
         if model is None:
             continue
