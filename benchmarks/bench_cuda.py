@@ -66,7 +66,7 @@ def bench_autoencoder_training(data: Path, batch_size: int, steps: int) -> tuple
 
     with tempfile.TemporaryDirectory() as out:
         trainer = AutoencoderTrainer(AutoencoderTrainConfig(data=data, out=Path(out) / "run", preset="ae-f8c32",
-                                                            batch_size=batch_size, progress=False))
+                                                            batch_size=batch_size, quiet=True))
         s = cuda_seconds(trainer.train_step, steps)
         return s, peak_mb(trainer.train_step)
 

@@ -54,7 +54,7 @@ def bench_autoencoder_training(data: Path, preset: str, bf16: bool, steps: int) 
 
     with tempfile.TemporaryDirectory() as out:
         trainer = AutoencoderTrainer(AutoencoderTrainConfig(data=data, out=Path(out) / "run", preset=preset,
-                                                            precision="bf16" if bf16 else "fp32", progress=False))
+                                                            precision="bf16" if bf16 else "fp32", quiet=True))
         trainer.train_step()
         _reset_peak_rss()
         s = median_seconds(trainer.train_step, steps)

@@ -43,7 +43,7 @@ def bench_training(preset_name: str, data: Path, bf16: bool, steps: int, batch_s
     with tempfile.TemporaryDirectory() as out:
         trainer = Trainer(TrainConfig(data=data, out=Path(out), preset=preset_name, max_steps=steps + 1,
                                       precision="bf16" if bf16 else "fp32",
-                                      batch_size=batch_size, val_every=0, ckpt_every=0, progress=False))
+                                      batch_size=batch_size, val_every=0, ckpt_every=0, quiet=True))
         trainer.train_step()  # warm-up (allocations, text encoding)
         _reset_peak_rss()
         times = []

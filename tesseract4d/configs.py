@@ -164,12 +164,12 @@ def settable_fields(cls) -> dict[str, tuple[type, dataclasses.Field, tuple[str, 
     nested: dict[str, tuple[type, dataclasses.Field, tuple[str, ...]]] = {}
     types_ = field_types(cls)
     for f in dataclasses.fields(cls):
-        if not f.init:
+        if not f.init or f.metadata.get("internal"):  # set by the program, not an option
             continue
         inner = types_[f.name]
         if dataclasses.is_dataclass(inner):
             for g in dataclasses.fields(inner):
-                if g.init:
+                if g.init and not g.metadata.get("internal"):
                     nested[f"{f.name}.{g.name}"] = (inner, g, (f.name, g.name))
         else:
             out[f.name] = (cls, f, (f.name,))

@@ -44,7 +44,7 @@ def micro_checkpoint(micro_preset, tmp_path_factory) -> Path:
     root = tmp_path_factory.mktemp("micro_checkpoint")
     data = write_synthetic_dataset(root / "data", episodes=2)
     return Trainer(TrainConfig(data=data, out=root / "run", preset=micro_preset.name, max_steps=10, val_every=0,
-                               ckpt_every=0, progress=False)).train()
+                               ckpt_every=0, quiet=True)).train()
 
 
 # The one simulator dataset of the run: a PickCube-v1 episode from `tesseract4d datagen` with

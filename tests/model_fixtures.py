@@ -67,7 +67,7 @@ def short_step_budget(monkeypatch, module: str, seconds_per_call: float = 1.0):
     import functools
     import importlib
 
-    from tesseract4d.model.lr_schedule import StepBudget
+    from tesseract4d.training.schedule import StepBudget
 
     now = [0.0]
 

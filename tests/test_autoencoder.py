@@ -136,7 +136,7 @@ def _train_cfg(data, out, **kw):
     from tesseract4d.model.autoencoder_trainer import AutoencoderTrainConfig
 
     return AutoencoderTrainConfig(data=data, out=out, preset="ae-test", batch_size=2, warmup_steps=1,
-                                  precision="fp32", progress=False, **kw)
+                                  precision="fp32", quiet=True, **kw)
 
 
 def test_trainer_resume_is_exact_and_gate_is_stored(tmp_path):
@@ -466,7 +466,7 @@ def test_max_steps_auto_fits_the_autoencoder_schedule_and_resume_keeps_it(tmp_pa
     from tesseract4d.model.autoencoder_trainer import AutoencoderTrainer
 
     # Clock reads: start 1, after steps 1/2/3: 2, 3, 4 -> 1 step/s with 0.2 min - 3 s left.
-    short_step_budget(monkeypatch, "tesseract4d.model.autoencoder_trainer")
+    short_step_budget(monkeypatch, "tesseract4d.training.loop")
     fitted = 3 + int(1.0 * (12.0 - 3.0) * 0.93)
     data = write_segmented_dataset(tmp_path / "data")
     run = tmp_path / "auto"
@@ -497,5 +497,5 @@ def test_a_stop_signal_ends_training_with_a_checkpoint_and_says_so(tmp_path, cap
     assert {s: signal.getsignal(s) for s in before} == before
     assert gate["step"] == 2
     assert json.loads((tmp_path / "run" / "autoencoder" / "fidelity.json").read_text())["step"] == 2
-    assert "stopped at step 2; saving a checkpoint" in capsys.readouterr().out
+    assert "stopped by SIGTERM at step 2; saving a checkpoint and the export" in capsys.readouterr().out
     assert trainer.stopped_by == signal.SIGTERM  # the command line then ends 143 (raise_for_stop)

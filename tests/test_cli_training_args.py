@@ -101,7 +101,7 @@ TRAIN_AE = ["train-autoencoder", "--data", "data", "--out", "run"]
     (["--depth-weight", "-3"], "argument --depth-weight: must be a finite number >= 0"),
     (["--normal-weight", "inf"], "argument --normal-weight: must be a finite number >= 0"),
     (["--kl-weight", "-0.0001"], "argument --kl-weight: must be a finite number >= 0"),
-    (["--ckpt-minutes", "0"], "argument --ckpt-minutes: must be a finite number > 0"),
+    (["--ckpt-every", "-1"], "argument --ckpt-every: must be a whole number >= 0 (0 = only at the end)"),
     (["--heldout-frames", "0"], "argument --heldout-frames: must be a whole number >= 1"),
     (["--max-minutes", "-2"], "argument --max-minutes: must be a finite number >= 0"),
     (["--seed", "-1"], "argument --seed: must be a whole number in 0..4294967295"),

@@ -58,7 +58,7 @@ def test_trained_on_gpu_then_sampled_on_cpu(tmp_path):
 
     data = write_synthetic_dataset(tmp_path / "data", episodes=2)
     trainer = Trainer(TrainConfig(data=data, out=tmp_path / "run", preset=MICRO.name, max_steps=6, val_every=0,
-                                  ckpt_every=3, progress=False))
+                                  ckpt_every=3, quiet=True))
     assert trainer.device.type == "cuda"
     trainer.train()
     assert cli.main(["train", "--export", str(tmp_path / "run"), "--to", str(tmp_path / "export")]) == 0
@@ -86,7 +86,7 @@ def test_autoencoder_trains_on_gpu_and_reconstructs_alike_on_cpu(tmp_path):
 
     data = write_segmented_dataset(tmp_path / "data", episodes=2, size=32)
     trainer = AutoencoderTrainer(AutoencoderTrainConfig(data=data, out=tmp_path / "ae", preset="ae-test", max_steps=4,
-                                                        batch_size=4, progress=False))
+                                                        batch_size=4, quiet=True))
     assert trainer.device.type == "cuda" and next(trainer.model.parameters()).is_cuda
     trainer.train()
     frames = trainer.frames.frames[:4].float()
@@ -103,7 +103,7 @@ def test_distill_samples_pairs_and_trains_the_student_on_gpu(tmp_path, monkeypat
 
     data = write_synthetic_dataset(tmp_path / "data", episodes=2)
     teacher = Trainer(TrainConfig(data=data, out=tmp_path / "teacher", preset=MICRO.name, max_steps=4, val_every=0,
-                                  ckpt_every=0, progress=False)).train()
+                                  ckpt_every=0, quiet=True)).train()
     run = tmp_path / "student"
     assert cli.main(["distill", "--teacher", str(teacher), "--data", str(data), "--pairs", str(tmp_path / "pairs"),
                      "--num-pairs", "4", "--teacher-steps", "2", "--precision", "fp32", "--out", str(run),

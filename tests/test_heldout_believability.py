@@ -163,7 +163,7 @@ def two_checkpoints(micro_preset, tmp_path_factory):
     root = tmp_path_factory.mktemp("believe")
     data = write_synthetic_dataset(root / "train", episodes=2)
     a = Trainer(TrainConfig(data=data, out=root / "run", preset=MICRO.name, max_steps=4, val_every=0,
-                            ckpt_every=0, progress=False)).train()
+                            ckpt_every=0, quiet=True)).train()
     b = root / "other" / "v2"
     shutil.copytree(a, b)
     heldout = root / "heldout"
@@ -401,7 +401,7 @@ def checkpoint_64(micro_preset, tmp_path_factory):
         mp.setitem(PRESETS, preset.name, preset)
         data = write_synthetic_dataset(root / "train", episodes=2, size=2 * SIZE)
         run = Trainer(TrainConfig(data=data, out=root / "run", preset=preset.name, max_steps=2, val_every=0,
-                                  ckpt_every=0, progress=False)).train()
+                                  ckpt_every=0, quiet=True)).train()
         ckpt = root / "v2"
         shutil.copytree(run, ckpt)
         heldout = root / "heldout64"

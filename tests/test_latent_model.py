@@ -52,7 +52,7 @@ def _config(data, out, ae, **kw):
     from tesseract4d.model.trainer import TrainConfig
 
     base = dict(data=data, out=out, preset=MICRO_LATENT.name, autoencoder=ae, max_steps=2, val_every=0,
-                ckpt_every=0, progress=False)
+                ckpt_every=0, quiet=True)
     base.update(kw)
     return TrainConfig(**base)
 
@@ -437,7 +437,7 @@ def test_decoder_only_fine_tune_swaps_into_the_checkpoint_with_the_same_latents(
 
     with pytest.raises(UserError, match="--init"):
         AutoencoderTrainer(AutoencoderTrainConfig(data=data, out=tmp_path / "noinit", preset="ae-test",
-                                                  decoder_only=True, progress=False))
+                                                  decoder_only=True, quiet=True))
 
 
 @pytest.mark.parametrize("damage", ["junk", "truncated"])

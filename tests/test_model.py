@@ -141,7 +141,7 @@ def test_cogvideox_5b_structure_from_local_folder(tmp_path, monkeypatch):
 
     data = write_synthetic_dataset(tmp_path / "data", episodes=2, frames=9)
     final = Trainer(TrainConfig(data=data, out=tmp_path / "run", preset=preset.name, pretrained=folder, max_steps=1,
-                                val_every=0, progress=False)).train()
+                                val_every=0, quiet=True)).train()
     pipe = load_pipeline(final)
     assert pipe.resolution == (32, 32) and pipe.num_frames == 9 and pipe.text_encoder.kind == "t5"
     ep = predict_episode(pipe, synthetic_episode(9, frames=1), "push the square", num_frames=9, num_steps=2)

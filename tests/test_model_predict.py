@@ -26,7 +26,7 @@ def checkpoint(micro_preset, tmp_path_factory) -> Path:
     root = tmp_path_factory.mktemp("model_predict")
     data = write_synthetic_dataset(root / "data", episodes=2)
     trainer = Trainer(TrainConfig(data=data, out=root / "run", preset=MICRO.name, max_steps=10, val_every=0,
-                                  ckpt_every=0, progress=False))
+                                  ckpt_every=0, quiet=True))
     return trainer.train()
 
 

@@ -25,7 +25,7 @@ pytestmark = pytest.mark.usefixtures("micro_preset")
 
 
 def _config(data: Path, out: Path, **kw) -> TrainConfig:
-    base = dict(data=data, out=out, preset=MICRO.name, max_steps=4, val_every=0, ckpt_every=0, progress=False)
+    base = dict(data=data, out=out, preset=MICRO.name, max_steps=4, val_every=0, ckpt_every=0, quiet=True)
     base.update(kw)
     return TrainConfig(**base)
 
@@ -173,7 +173,7 @@ def test_overfit_one_clip(tmp_path):
 
 def test_max_steps_auto_fits_the_schedule_and_trains_as_that_number(dataset, tmp_path, monkeypatch, capsys):
     # Clock reads: start 1, after steps 1/2/3: 2, 3, 4 -> 2 timed steps in 2 s = 1 step/s, 0.5 min - 3 s left.
-    short_step_budget(monkeypatch, "tesseract4d.model.trainer")
+    short_step_budget(monkeypatch, "tesseract4d.training.loop")
     fitted = 3 + int(1.0 * (30.0 - 3.0) * 0.93)
     run = tmp_path / "auto"
     auto = Trainer(_config(dataset, run, max_steps="auto", max_minutes=0.5, warmup_steps=3))
@@ -203,14 +203,14 @@ def test_sigterm_stops_training_with_a_checkpoint_an_export_and_a_word(dataset, 
     import signal
 
     run = tmp_path / "run"
-    trainer = Trainer(_config(dataset, run, max_steps=1000, progress=True))
+    trainer = Trainer(_config(dataset, run, max_steps=1000, quiet=False))
     sigterm_after_step(monkeypatch, trainer, 2)
     before = signal.getsignal(signal.SIGTERM)
     final = trainer.train()
     assert signal.getsignal(signal.SIGTERM) == before
     assert [c.name for c in list_checkpoints(run)] == ["checkpoint-000002"]
     assert final == run / "final" and (final / "transformer" / "diffusion_pytorch_model.safetensors").is_file()
-    assert "terminated at step 2; saving a checkpoint" in capsys.readouterr().out
+    assert "stopped by SIGTERM at step 2; saving a checkpoint and the export" in capsys.readouterr().out
     assert trainer.stopped_by == signal.SIGTERM  # the command line then ends 143 (raise_for_stop)
 
 

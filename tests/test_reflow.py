@@ -32,7 +32,7 @@ def teacher(tmp_path_factory) -> tuple[Path, Path]:
     root = tmp_path_factory.mktemp("reflow")
     data = write_synthetic_dataset(root / "data", episodes=4)
     cfg = TrainConfig(data=data, out=root / "teacher", preset=MICRO.name, max_steps=150, batch_size=4,
-                      val_every=0, ckpt_every=0, progress=False)
+                      val_every=0, ckpt_every=0, quiet=True)
     return Trainer(cfg).train(), data
 
 

@@ -71,7 +71,7 @@ def add_field_flags(parser, cls, names: Iterable[str], *, types: dict[str, Calla
     """One flag per named field of ``cls``: ``--field-name``, its help and default from the field, its
     type from the annotation (or ``types[name]``, a parse-time check such as ``whole(1)``). Unset
     flags parse to None, so a recipe or ``--set`` below them stands. A bool field is a switch that sets
-    the opposite of its default; ``flags`` renames (``{"progress": "--quiet"}``)."""
+    the opposite of its default; ``flags`` renames (``{"steps": "--max-steps"}``)."""
     types, flags, required = types or {}, flags or {}, set(required)
     fields = settable_fields(cls)
     for name in names:
@@ -86,7 +86,7 @@ def add_field_flags(parser, cls, names: Iterable[str], *, types: dict[str, Calla
             kwargs.update(action="store_const", const=not bool(default))
             help_ = f.metadata.get("flag_help", help_).replace("%", "%%")
         else:
-            if f.metadata.get("show_default", True):
+            if f.metadata.get("show_default", True) and members[0] is not Path:  # a folder is named, not defaulted
                 help_ += _default_text(default)
             origin = typing.get_origin(members[0])
             lists = [m for m in members if typing.get_origin(m) is list]
@@ -254,17 +254,17 @@ def dataclass_from_args(cls, args, **given):
 def add_trainer_options(parser, cls, names: Iterable[str], recipes: dict[str, dict], *,
                         types: dict[str, Callable] | None = None, flags: dict[str, str] | None = None,
                         required: Iterable[str] = (), loop: Iterable[str] = ("max_steps", "max_minutes", "resume",
-                                                                             "progress", "ckpt_every")) -> list[str]:
+                                                                             "quiet", "ckpt_every")) -> list[str]:
     """The flags every trainer shares (``--recipe``, ``--recipe-from``, ``--max-steps``, ``--max-minutes``,
     ``--resume``, ``--quiet``, ``--ckpt-every``, ``--set``) after its own ``names``, all derived from
     ``cls``; returns the field names that are flags (for :func:`config_from_args`)."""
-    from tesseract4d.model.lr_schedule import max_steps_argument
+    from tesseract4d.training.schedule import max_steps_argument
 
     fields = [*names, *loop]
     # max_minutes as a plain float, as before: the config's validate() names a non-finite budget
     add_field_flags(parser, cls, fields, types={"max_steps": max_steps_argument, "max_minutes": float, **(types or {})},
-                    flags={"progress": "--quiet", **(flags or {})}, required=required)
+                    flags=flags, required=required)
     add_recipe_options(parser, recipes)
     add_set_option(parser, cls)
-    add_deprecated(parser, "--no-progress", use="--quiet", dest="progress", switch=False)
+    add_deprecated(parser, "--no-progress", use="--quiet", dest="quiet", switch=True)
     return fields

@@ -83,7 +83,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from tesseract4d.cli.config_args import recipe_from_args
     from tesseract4d.errors import UserError
-    from tesseract4d.model.lr_schedule import check_max_steps
+    from tesseract4d.training.schedule import check_max_steps
     from tesseract4d.model.reflow import MANIFEST, ReflowTrainer, check_pairs_of_teacher, generate_pairs
     from tesseract4d.outputs import check_not_input
     from tesseract4d.stopping import raise_for_stop
@@ -105,7 +105,7 @@ def run(args: argparse.Namespace) -> int:
         check_not_input(student.out, [*inputs, pairs.out], "--out")
         check_max_steps(student.max_steps, student.max_minutes, resume=student.resume)
     if data is not None:
-        generate_pairs(dataclasses.replace(pairs, data=data[0] if len(data) == 1 else data), progress=student.progress)
+        generate_pairs(dataclasses.replace(pairs, data=data[0] if len(data) == 1 else data), progress=not student.quiet)
         print(f"pairs: {pairs.out}")
     elif args.pairs_only or not (pairs.out / MANIFEST).is_file():
         raise UserError(f"pass --data DIR: the pairs in {pairs.out} are made from a dataset folder")

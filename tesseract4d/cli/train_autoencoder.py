@@ -1,9 +1,9 @@
 """Train the RGB-D-N autoencoder of the latent world model (per frame, continuous latents).
 
 Reads every frame of a dataset folder (RGB, metric depth, normals, segmentation) into memory and
-trains a diffusers AutoencoderKL behind a pixel-unshuffle stem. Every `--set ckpt_minutes=M` (default
-10) it writes a resumable checkpoint (RUN/checkpoint-XXXXXX/) and exports RUN/autoencoder/ (EMA weights,
-latent statistics), measures the fidelity gate on the --heldout frames (RGB PSNR, depth mm/AbsRel, normal
+trains a diffusers AutoencoderKL behind a pixel-unshuffle stem. Every --ckpt-every steps it writes a
+resumable checkpoint (RUN/checkpoint-XXXXXX/) and exports RUN/autoencoder/ (EMA weights, latent
+statistics), measures the fidelity gate on the --heldout frames (RGB PSNR, depth mm/AbsRel, normal
 angle; all pixels and robot/object pixels), prints it and stores it as RUN/autoencoder/fidelity.json.
 The autoencoder needs hours on a CPU: run it in the background and stop/resume at will. Where torch
 sees a CUDA GPU it trains there (about 15 times the steps/s of a 2-core CPU at batch 8);
@@ -42,14 +42,12 @@ FLAGS = ("data", "heldout", "out", "init")
 # Flags of earlier releases whose options are --set fields now, with their old types (one more release).
 MOVED = {"frame_stride": whole(1), "camera": str, "batch_size": whole(1), "lr": number(0, above=True),
          "warmup_steps": whole(0), "object_weight": number(0), "rgb_weight": number(0), "depth_weight": number(0),
-         "normal_weight": number(0), "kl_weight": number(0), "ckpt_minutes": number(0, above=True),
-         "heldout_frames": whole(1), "seed": seed()}
+         "normal_weight": number(0), "kl_weight": number(0), "heldout_frames": whole(1), "seed": seed()}
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     names = add_trainer_options(parser, AutoencoderTrainConfig, FLAGS, RECIPES, required=("data", "out"),
-                                types={"max_minutes": number(0)},
-                                loop=("max_steps", "max_minutes", "resume", "progress"))
+                                types={"max_minutes": number(0), "ckpt_every": whole(0, hint=" (0 = only at the end)")})
     parser.set_defaults(flag_fields=names)
     add_moved_to_set(parser, AutoencoderTrainConfig,
                      [(f"--{name.replace('_', '-')}", name, kind) for name, kind in MOVED.items()]
@@ -79,7 +77,7 @@ def read_recipe(folder) -> dict:
 
         recorded = json.loads(run_config.read_text())
         keep = {f.name for f in dataclasses.fields(AutoencoderTrainConfig)} - {"data", "heldout", "out", "init", "resume",
-                                                                              "max_steps_fit", "progress"}
+                                                                              "max_steps_fit", "quiet"}
         values.update({k: v for k, v in recorded.items() if k in keep})
     return values
 

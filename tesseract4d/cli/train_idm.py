@@ -63,7 +63,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     names = add_trainer_options(
         parser, IDMTrainConfig, FLAGS, IDM, required=("data", "out"), flags={"steps": "--max-steps"},
         types={"steps": whole(1), "max_minutes": number(0), "ckpt_every": whole(0, hint=" (0 = only at the end)")},
-        loop=("steps", "max_minutes", "resume", "progress", "ckpt_every"))
+        loop=("steps", "max_minutes", "resume", "quiet", "ckpt_every"))
     parser.set_defaults(flag_fields=names)
     add_deprecated(parser, "--steps", use="--max-steps", dest="steps", type=whole(1))
     add_moved_to_set(parser, IDMTrainConfig, MOVED)
@@ -99,7 +99,7 @@ def read_recipe(folder) -> dict:
     from tesseract4d.policy.idm_trainer import IDMTrainConfig
 
     folder = Path(folder)
-    keep = {f.name for f in dataclasses.fields(IDMTrainConfig)} - {"data", "out", "resume", "progress"}
+    keep = {f.name for f in dataclasses.fields(IDMTrainConfig)} - {"data", "out", "resume", "quiet"}
     for path in (folder.parent / "train_idm_config.json", folder / "train_idm_config.json"):
         if path.is_file():
             return {k: (tuple(v) if k == "gap_scales" else v) for k, v in json.loads(path.read_text()).items()

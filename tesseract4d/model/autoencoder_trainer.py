@@ -12,7 +12,9 @@ survive compression:
   + kl_weight     * KL(posterior || N(0, I)) per latent element
 
 Everything random in a step (frames, posterior sample) comes from a generator seeded by
-(seed, step), so a resumed run continues exactly.
+(seed, step), so a resumed run continues exactly. The loop (stop signals, schedule, checkpoints,
+logs) is the project's one training loop (``training/loop.py``); every checkpoint also exports
+RUN/autoencoder and measures its fidelity gate.
 
 ``decoder_only`` fine-tunes only the decoder of an ``init`` autoencoder: its encoder and latent
 statistics stay bit-identical, so the latents (and a latent model trained on them, its latent
@@ -34,7 +36,6 @@ from __future__ import annotations
 import json
 import os
 import shutil
-import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
@@ -44,68 +45,59 @@ import torch
 import torch.nn.functional as F
 
 from tesseract4d import dataset_format as df
-from tesseract4d.configs import config_dict, folder_list, knob
+from tesseract4d.configs import config_dict, folder_list
 from tesseract4d.errors import UserError
-from tesseract4d.outputs import files_as_created
 from tesseract4d.precision import announce, precision_field, resolve_precision
 from tesseract4d.segments import robot_object_mask
-from tesseract4d.stopping import StopSignals
+from tesseract4d.training.checkpoints import (list_checkpoints, load_optimizer, resume_newest, save_optimizer,
+                                              write_checkpoint)
+from tesseract4d.training.config import LoopConfig, option
+from tesseract4d.training.loop import (check_finite, learning_rate, loop_state, restore_loop_state, run_loop,
+                                       set_learning_rate, write_config_file)
 from tesseract4d.model.autoencoder import (
     FIDELITY_FILE, AutoencoderConfig, RGBDNAutoencoder, get_autoencoder_preset, load_autoencoder, save_autoencoder,
 )
-from tesseract4d.model.lr_schedule import AUTO, MAX_STEPS_HELP, UNFITTED_MAX_STEPS, StepBudget, check_max_steps, lr_at, resumed_max_steps
 from tesseract4d.model.model_space import ModelSpace, channel_slices
 
 CONFIG_FILE = "ae_train_config.json"
-CHECKPOINT_PREFIX = "checkpoint-"
-STATE_FILE = "trainer_state.json"
 EXPORT_DIR = "autoencoder"
 DEPTH_EDGE_THRESHOLD = 0.02  # model-space depth step between neighbours (~13 mm over 0.2-1.5 m)
 LATENT_STATS_FRAMES = 256
 
 
 @dataclass
-class AutoencoderTrainConfig:
-    """Options of `tesseract4d train-autoencoder`."""
+class AutoencoderTrainConfig(LoopConfig):
+    """Options of `tesseract4d train-autoencoder`: the loop's (``LoopConfig``) and the autoencoder's."""
 
-    data: Path | list[Path] | None = knob(None, "training dataset folder(s) (tesseract4d datagen), trained as one set",
-                                          metavar="DIR")
-    heldout: Path | None = knob(None, "held-out dataset folder for the fidelity gate (recommended; e.g. seeds >= "
-                                      "100000)", metavar="DIR")
-    out: Path = knob(Path("runs/autoencoder"), "run folder (new, or an existing one with --resume)", metavar="RUN",
-                     show_default=False)
-    init: Path | None = knob(None, "start from this exported autoencoder (RUN/autoencoder) instead of random weights: "
-                                   "fine-tune it on new scenes", metavar="DIR")
-    decoder_only: bool = knob(False, "with init: train only the decoder; the encoder and latent statistics stay "
-                                     "exactly as they are, so a latent model trained on them keeps working")
-    frame_stride: int = knob(1, "train on every k-th frame of each episode (less memory)")
-    preset: str = knob("ae-f8c32", "autoencoder architecture (tesseract4d/model/autoencoder.py)")
-    camera: str | None = knob(None, "camera of the dataset to train on (none: its first)")
-    max_steps: int | str = knob(20000, MAX_STEPS_HELP, metavar="N|auto")
-    max_minutes: float | None = knob(None, "stop with a checkpoint after this many minutes of this invocation",
-                                     metavar="M")
-    batch_size: int = knob(8, "frames per step")
-    lr: float = knob(4e-4, "peak learning rate")
-    warmup_steps: int = knob(300, "linear warm-up steps")
-    min_lr_ratio: float = knob(0.1, "the cosine decay ends at this share of the peak learning rate")
-    weight_decay: float = knob(0.0, "AdamW weight decay")
-    ema_decay: float = knob(0.999, "EMA decay of the exported weights")
-    grad_clip: float = knob(1.0, "gradient norm clip")
-    rgb_weight: float = knob(1.0, "loss weight of RGB")
-    depth_weight: float = knob(3.0, "loss weight of depth")
-    normal_weight: float = knob(2.0, "loss weight of normals")
-    grad_weight: float = knob(1.0, "loss weight of depth and normal gradients")
-    object_weight: float = knob(5.0, "loss weight of robot/object pixels relative to scenery")
-    edge_weight: float = knob(2.0, "loss weight of pixels at depth edges")
-    kl_weight: float = knob(1e-4, "weight of the KL term per latent element")
+    data: Path | list[Path] | None = option(None, "dataset folder(s) written by `tesseract4d datagen --resolution 128`, "
+                                                  "trained as one set")
+    heldout: Path | None = option(None, "held-out dataset folder for the fidelity gate (e.g. seeds >= 100000)")
+    out: Path = option(Path("runs/autoencoder"), "the run folder (checkpoints, logs, autoencoder/)")
+    init: Path | None = option(None, "start from this exported autoencoder (fine-tuning) instead of random weights")
+    decoder_only: bool = option(False, "with init: train only the decoder (encoder and latent statistics frozen), so "
+                                       "a latent model trained on them keeps working")
+    frame_stride: int = option(1, "train on every k-th frame of each episode")
+    preset: str = option("ae-f8c32", "autoencoder architecture (model/autoencoder.py)")
+    camera: str | None = option(None, "camera of the dataset (default: its first)")
+    max_steps: int | str = option(20000, "optimiser steps; the cosine learning-rate decay ends here; 'auto' (with "
+                                         "max_minutes) fits it to the time budget")
+    ckpt_every: int = option(1000, "write a checkpoint, export RUN/autoencoder and measure its fidelity gate every "
+                                   "N steps (0: only at the end)")
+    lr: float = option(4e-4, "peak learning rate")
+    warmup_steps: int = option(300, "linear learning-rate warm-up steps")
+    batch_size: int = option(8, "frames per step")
+    weight_decay: float = option(0.0, "AdamW weight decay")
+    ema_decay: float = option(0.999, "decay of the exported EMA weights")
+    grad_clip: float = option(1.0, "gradient-norm clip")
+    rgb_weight: float = option(1.0, "loss weight of colour")
+    depth_weight: float = option(3.0, "loss weight of depth")
+    normal_weight: float = option(2.0, "loss weight of normals")
+    grad_weight: float = option(1.0, "loss weight of the depth and normal gradient differences")
+    object_weight: float = option(5.0, "loss weight of robot/object pixels relative to scenery")
+    edge_weight: float = option(2.0, "added loss weight of depth-edge pixels")
+    kl_weight: float = option(1e-4, "weight of the KL term")
     precision: str = precision_field()
-    ckpt_minutes: float = knob(10.0, "minutes between checkpoints (each with the fidelity gate)")
-    keep_checkpoints: int = knob(2, "checkpoints kept in the run folder (the newest)")
-    heldout_frames: int = knob(96, "held-out frames in the fidelity gate")
-    seed: int = knob(0, "training seed")
-    resume: bool = knob(False, "continue the latest checkpoint in --out exactly")
-    progress: bool = knob(True, "progress bars (--quiet: none)", flag_help="no progress bar")
-    max_steps_fit: dict | None = knob(None, "set by the trainer when --max-steps auto fitted the schedule")
+    heldout_frames: int = option(96, "held-out frames in the fidelity gate")
 
     @property
     def data_folders(self) -> list[Path]:
@@ -236,10 +228,6 @@ def reconstruction_loss(pred: torch.Tensor, target: torch.Tensor, mask: torch.Te
 # --------------------------------------------------------------------------- trainer
 
 
-def list_checkpoints(run: Path) -> list[Path]:
-    return sorted(p for p in Path(run).glob(f"{CHECKPOINT_PREFIX}*") if p.is_dir() and (p / STATE_FILE).is_file())
-
-
 @torch.no_grad()
 def measure_latent_stats(model: RGBDNAutoencoder, frames: torch.Tensor, chunk: int = 32) -> tuple[torch.Tensor, torch.Tensor]:
     """Per-channel mean and std of the posterior means of ``frames`` (n, 7, H, W)."""
@@ -260,7 +248,7 @@ class AutoencoderTrainer:
             raise UserError("--data is required: a dataset folder written by `tesseract4d datagen --resolution 128`")
         if cfg.frame_stride < 1:
             raise UserError(f"--frame-stride must be at least 1, got {cfg.frame_stride}")
-        check_max_steps(cfg.max_steps, cfg.max_minutes, resume=cfg.resume)
+        cfg.check_loop()
         if cfg.decoder_only and cfg.init is None:
             raise UserError("--decoder-only fine-tunes the decoder of an existing autoencoder: pass --init AE "
                             "(e.g. tesseract4d/checkpoints/v2/autoencoder)")
@@ -290,7 +278,7 @@ class AutoencoderTrainer:
                                            betas=(0.9, 0.99))
         self.frames = FrameSet.concat([
             FrameSet.load(folder, height=ae_cfg.height, width=ae_cfg.width, model_space=self.model.model_space,
-                          camera=cfg.camera, frame_stride=cfg.frame_stride, progress=cfg.progress)
+                          camera=cfg.camera, frame_stride=cfg.frame_stride, progress=not cfg.quiet)
             for folder in cfg.data_folders])
         from tesseract4d.outputs import claim_folder
 
@@ -299,7 +287,12 @@ class AutoencoderTrainer:
         claim_folder(self.out, "train-autoencoder", inputs=[*cfg.data_folders, cfg.heldout, cfg.init],
                      legacy_marker=CONFIG_FILE)
         self.step = 0
+        self.elapsed_s = 0.0
+        self.last_loss: float | None = None
         self.stopped_by: int | None = None  # the signal that stopped train(), if one did
+        self._gate: dict = {}  # the fidelity gate of the newest export
+        if cfg.resume:
+            self.load_checkpoint()
 
     def _load_init(self, folder: Path) -> None:
         """Start from an exported autoencoder of the same preset (fine-tuning, e.g. on new scenes)."""
@@ -349,45 +342,53 @@ class AutoencoderTrainer:
             raise UserError(f"{self.out} is not empty; continue it with --resume or choose a new --out")
 
     # ------------------------------------------------------------------ state
-    def save_checkpoint(self) -> Path:
-        from tesseract4d.model.trainer import save_optimizer
+    def _write_checkpoint(self) -> Path:
+        """RUN/checkpoint-XXXXXX of the current step (training/checkpoints.py)."""
+        def write(tmp: Path) -> None:
+            save_autoencoder(self.model, tmp / "model")
+            save_autoencoder(self.ema.model, tmp / "model_ema")
+            save_optimizer(self.optimizer, tmp)
 
-        final = self.out / f"{CHECKPOINT_PREFIX}{self.step:06d}"
-        tmp = self.out / f".{final.name}.tmp"
-        shutil.rmtree(tmp, ignore_errors=True)
-        save_autoencoder(self.model, tmp / "model")
-        save_autoencoder(self.ema.model, tmp / "model_ema")
-        save_optimizer(self.optimizer, tmp)
-        (tmp / STATE_FILE).write_text(json.dumps({"step": self.step, "precision": self.precision,
-                                                  "max_steps": self.cfg.max_steps}))
-        files_as_created(tmp)
-        if final.exists():
-            shutil.rmtree(final)
-        os.replace(tmp, final)
-        for old in list_checkpoints(self.out)[: -self.cfg.keep_checkpoints]:
-            shutil.rmtree(old)
-        return final
+        return write_checkpoint(self.out, self.step, {**loop_state(self), "precision": self.precision}, write,
+                                keep=self.cfg.keep_checkpoints)
+
+    def save_checkpoint(self) -> Path:
+        """The checkpoint, and with it RUN/autoencoder and its fidelity gate (logged and shown)."""
+        ckpt = self._write_checkpoint()
+        self._gate = self._export()
+        log = getattr(self, "run_log", None)
+        if log is not None:
+            log.scalars({f"fidelity/{k}": v for k, v in self._gate.items() if k != "step"}, self.step)
+            log.say(f"step {self.step}: checkpoint + {self.out / EXPORT_DIR}\n{self.format_fn(self._gate)}")
+        return ckpt
 
     def load_checkpoint(self) -> None:
+        """Continue from the newest intact checkpoint (its step and, with ``--max-steps auto``, its schedule)."""
         from safetensors.torch import load_file
 
-        from tesseract4d.model.trainer import load_optimizer
+        run_config = json.loads((self.out / CONFIG_FILE).read_text())
 
-        ckpt = list_checkpoints(self.out)[-1]
-        self.model.load_state_dict(load_file(str(ckpt / "model" / "model.safetensors")))
-        self.ema.model.load_state_dict(load_file(str(ckpt / "model_ema" / "model.safetensors")))
-        load_optimizer(self.optimizer, ckpt)
-        state = json.loads((ckpt / STATE_FILE).read_text())
-        self.step = state["step"]
-        requested = self.cfg.max_steps
-        if requested == AUTO:  # the schedule the run was on (older checkpoints: from the run's config)
-            run_config = json.loads((self.out / CONFIG_FILE).read_text())
-            saved = state.get("max_steps", run_config.get("max_steps"))
-            self.cfg.max_steps = resumed_max_steps(requested, saved, self.cfg.max_minutes)
-            if self.cfg.max_steps != AUTO:
-                self.cfg.max_steps_fit = run_config.get("max_steps_fit")
+        def load(ckpt: Path, state: dict) -> None:
+            self.model.load_state_dict(load_file(str(ckpt / "model" / "model.safetensors")))
+            self.ema.model.load_state_dict(load_file(str(ckpt / "model_ema" / "model.safetensors")))
+            load_optimizer(self.optimizer, ckpt)
+            # older checkpoints: the schedule from the run's config
+            restore_loop_state(self, {"max_steps": run_config.get("max_steps"),
+                                      "max_steps_fit": run_config.get("max_steps_fit"), **state})
+
+        resume_newest(self.out, load)
+        print(f"resumed {self.out} at step {self.step}", flush=True)
 
     def export(self) -> dict:
+        """RUN/autoencoder of the current step with its fidelity gate (written once per step)."""
+        if self._gate.get("step") != self.step:
+            self._gate = self._export()
+        return self._gate
+
+    def write_config(self) -> None:
+        write_config_file(self.out / CONFIG_FILE, self.cfg)
+
+    def _export(self) -> dict:
         """Write RUN/autoencoder (EMA weights + latent statistics + fidelity.json) atomically; return the gate."""
         model = self.ema.model
         if not self.cfg.decoder_only:  # a frozen encoder keeps the init's statistics (set at load)
@@ -413,9 +414,8 @@ class AutoencoderTrainer:
         g = torch.Generator().manual_seed(cfg.seed * 1_000_003 + self.step)
         x, mask = self.frames.batch(cfg.batch_size, g)
         x, mask = x.to(self.device), mask.to(self.device)
-        lr = lr_at(self.step, cfg)
-        for group in self.optimizer.param_groups:
-            group["lr"] = lr
+        lr = learning_rate(self)
+        set_learning_rate(self.optimizer, lr)
         self.model.train()
         for module in self.frozen_modules():
             module.eval()
@@ -429,74 +429,23 @@ class AutoencoderTrainer:
         self.optimizer.zero_grad(set_to_none=True)
         loss.backward()
         grad_norm = torch.nn.utils.clip_grad_norm_(self.trained_parameters(), cfg.grad_clip)
-        if not torch.isfinite(loss):
-            raise RuntimeError(f"autoencoder loss is {float(loss)} at step {self.step}; lower --lr or use --precision fp32")
+        check_finite(float(loss.detach()), float(grad_norm), step=self.step + 1, run=self.out)
         self.optimizer.step()
         self.ema.update(self.model, self.step)
         self.step += 1
-        return {"loss": float(loss.detach()), "lr": lr, "grad_norm": float(grad_norm), **parts}
+        self.last_loss = float(loss.detach())
+        return {"loss": self.last_loss, "lr": lr, "grad_norm": float(grad_norm), **parts}
 
     def train(self) -> dict:
-        from torch.utils.tensorboard import SummaryWriter
-        from tqdm import tqdm
-
-        cfg = self.cfg
+        """Train until max_steps or max_minutes, or a stop signal (training/loop.py); always ends with a
+        checkpoint and RUN/autoencoder. Returns the last fidelity gate."""
         self.out.mkdir(parents=True, exist_ok=True)
-        if cfg.resume:
-            self.load_checkpoint()
-            print(f"resumed {self.out} at step {self.step}")
         # Written on a resume too, so the folder says how the run continued (e.g. a longer --max-steps).
-        df.atomic_write_text(self.out / CONFIG_FILE, json.dumps(cfg.to_dict(), indent=2))
-        print(f"autoencoder {cfg.preset}: {sum(p.numel() for p in self.model.parameters()) / 1e6:.2f} M params, "
+        self.write_config()
+        print(f"autoencoder {self.cfg.preset}: {sum(p.numel() for p in self.model.parameters()) / 1e6:.2f} M params, "
               f"{len(self.frames)} training frames, {self.device.type}, precision {self.precision}, "
               f"{self.model.config.spatial_compression}x -> latent {self.model.config.latent_shape}")
-        writer = SummaryWriter(str(self.out / "logs"))
-        with StopSignals() as stop:
-            start = last_ckpt = time.time()
-            # "auto": the cosine is fitted to max_minutes after the first steps (the config says "auto" until then).
-            budget = StepBudget(cfg.max_minutes, self.step) if cfg.max_steps == AUTO else None
-            bar = tqdm(total=None if budget else cfg.max_steps, initial=self.step, desc="train-autoencoder", unit="step",
-                       disable=not cfg.progress)
-            fidelity: dict = {}
-            try:
-                while self.step < (UNFITTED_MAX_STEPS if cfg.max_steps == AUTO else cfg.max_steps) and not stop.requested:
-                    t0 = time.perf_counter()
-                    logs = self.train_step()
-                    if budget is not None and budget.after_step(self.step) is not None:
-                        cfg.max_steps, cfg.max_steps_fit = budget.fitted, budget.record()
-                        bar.total = cfg.max_steps
-                        bar.write(budget.describe())
-                        df.atomic_write_text(self.out / CONFIG_FILE, json.dumps(cfg.to_dict(), indent=2))
-                    logs["steps_per_s"] = 1.0 / (time.perf_counter() - t0)
-                    for k, v in logs.items():
-                        writer.add_scalar(f"train/{k}", v, self.step)
-                    bar.update(1)
-                    bar.set_postfix(loss=f"{logs['loss']:.4f}", depth=f"{logs['depth']:.4f}", refresh=False)
-                    out_of_time = cfg.max_minutes is not None and time.time() - start > cfg.max_minutes * 60
-                    if time.time() - last_ckpt > cfg.ckpt_minutes * 60 or out_of_time:
-                        fidelity = self._checkpoint(writer, bar)
-                        last_ckpt = time.time()
-                    if out_of_time:
-                        break
-                if stop.requested:
-                    bar.write(f"stopped at step {self.step}; saving a checkpoint")
-                if not fidelity or fidelity.get("step") != self.step:
-                    fidelity = self._checkpoint(writer, bar)
-            finally:
-                bar.close()
-                writer.close()
-        self.stopped_by = stop.signum
-        return fidelity
-
-    def _checkpoint(self, writer, bar) -> dict:
-        self.save_checkpoint()
-        fidelity = self.export()
-        for k, v in fidelity.items():
-            if isinstance(v, (int, float)) and k != "step":
-                writer.add_scalar(f"fidelity/{k}", v, self.step)
-        writer.flush()
-        bar.write(f"step {self.step}: checkpoint + {self.out / EXPORT_DIR}\n{self.format_fn(fidelity)}")
-        return fidelity
+        return run_loop(self, "train-autoencoder")
 
 
 def load_heldout_frames(root: str | os.PathLike, model: RGBDNAutoencoder, count: int, camera: str | None = None) -> FrameSet:

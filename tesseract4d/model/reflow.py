@@ -40,9 +40,9 @@ from tesseract4d.configs import knob
 from tesseract4d.errors import UserError
 from tesseract4d.outputs import files_as_created
 from tesseract4d.model.checkpoint import weights_digest
-from tesseract4d.model.lr_schedule import MAX_STEPS_HELP
 from tesseract4d.model.trainer import TrainConfig, Trainer
 from tesseract4d.precision import precision_field
+from tesseract4d.training.config import option
 
 MANIFEST = "reflow_pairs.json"
 SHARD_PREFIX = "pairs-"
@@ -294,11 +294,11 @@ class ReflowConfig(TrainConfig):
     """Options of the student's training (`tesseract4d distill`). ``data`` is the pairs folder;
     the preset, model space, text encoder and initial weights are the teacher's."""
 
-    teacher: Path | None = knob(None, "the inference checkpoint to distil (e.g. RUN/final)", metavar="CKPT")
-    student_steps: int = knob(2, "the student's sampler steps, one network pass each")
-    max_steps: int | str = knob(1000, MAX_STEPS_HELP, metavar="N|auto")
-    val_every: int = knob(100, "PSNR of the student against the teacher every K steps (0 = never)")
-    val_clips: int = knob(4, "pairs per validation")
+    teacher: Path | None = option(None, "the teacher's inference checkpoint folder")
+    student_steps: int = option(2, "the student's sampler steps (its preset's num_steps), one network pass each")
+    max_steps: int | str = option(1000, "the student's optimiser steps; the cosine learning-rate decay ends here")
+    val_every: int = option(100, "PSNR of the student against the teacher every N steps (0: never)")
+    val_clips: int = option(4, "pairs the validation compares")
 
 
 def student_preset(teacher_preset, student_steps: int):

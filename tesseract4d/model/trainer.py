@@ -23,25 +23,26 @@ from __future__ import annotations
 
 import copy
 import dataclasses
-import json
 import math
 import os
 import shutil
-import signal
-import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
 import numpy as np
 import torch
 
-from tesseract4d.configs import config_dict, folder_list, knob
+from tesseract4d.configs import config_dict, folder_list
 from tesseract4d.errors import UserError
-from tesseract4d.outputs import files_as_created
 from tesseract4d.precision import announce, precision_field, resolve_precision
 from tesseract4d.psnr import rgb_psnr
-from tesseract4d.model.lr_schedule import AUTO, MAX_STEPS_HELP, UNFITTED_MAX_STEPS, StepBudget, check_max_steps, lr_at, resumed_max_steps
+from tesseract4d.training.checkpoints import (CHECKPOINT_PREFIX, list_checkpoints, read_state, resume_newest,
+                                              write_checkpoint)
+from tesseract4d.training.checkpoints import load_optimizer, load_rng, save_optimizer, save_rng
+from tesseract4d.training.config import LoopConfig, option
+from tesseract4d.training.loop import (check_finite, learning_rate, loop_state, restore_loop_state, run_loop,
+                                       set_learning_rate, write_config_file)
 from tesseract4d.model.model_space import MODALITIES, ModelSpace
 from tesseract4d.model.checkpoint import (
     INFERENCE_CONFIG_FILE, MODEL_CONFIG_FILE, SCHEDULER_CONFIG_FILE, SCHEDULER_DIR, TRANSFORMER_DIR, WEIGHTS_FILE,
@@ -49,76 +50,51 @@ from tesseract4d.model.checkpoint import (
 )
 from tesseract4d.model.presets import ModelPreset, get_preset, preset_from_dict
 
-CHECKPOINT_PREFIX = "checkpoint-"
 EMA_DIR = "transformer_ema"
-STATE_FILE = "trainer_state.json"
+CONFIG_FILE = "train_config.json"
 FINAL_DIR = "final"
 VALIDATION_STEPS = 10
 
 
 @dataclass
-class TrainConfig:
-    """Options of `tesseract4d train`; unset (None) training values take the preset's defaults."""
+class TrainConfig(LoopConfig):
+    """Options of `tesseract4d train`: the loop's (``LoopConfig``) and the model's; unset (None)
+    training values take the preset's defaults."""
 
-    data: Path | list[Path] | None = knob(None, "dataset folder(s) written by `tesseract4d datagen`; several folders "
-                                                "(same resolution and camera) train as one set", metavar="DIR")
-    out: Path = knob(Path("runs/tiny"), "run folder (checkpoints, logs, validation videos, final/)", metavar="RUN",
-                     show_default=False)
-    preset: str = knob("latent-128", "model preset: latent-128, tiny or cogvideox-5b (tesseract4d/model/presets.py)")
-    pretrained: Path | None = knob(None, "local CogVideoX-5B-I2V folder (cogvideox-5b preset)")
-    # Also the length of the cosine decay; "auto" fits it to max_minutes from the first steps' rate
-    # (tesseract4d.model.lr_schedule.StepBudget), the fit recorded in max_steps_fit.
-    max_steps: int | str = knob(5000, MAX_STEPS_HELP, metavar="N|auto")
-    max_minutes: float | None = knob(None, "stop with a checkpoint after this many minutes of this invocation",
-                                     metavar="M")
-    # A run cut short of its schedule, reproducible in one command (--resume goes on from there).
-    stop_at_step: int | None = knob(None, "stop with a checkpoint at this step; the learning-rate schedule still ends "
-                                          "at max_steps")
-    batch_size: int | None = knob(None, "clips per step (none: the preset's)")
-    lr: float | None = knob(None, "peak learning rate (none: the preset's)")
-    warmup_steps: int | None = knob(None, "linear warm-up steps (none: the preset's)")
-    min_lr_ratio: float = knob(0.1, "the cosine decay ends at this share of the peak learning rate")
-    weight_decay: float = knob(0.01, "AdamW weight decay")
-    ema_decay: float | None = knob(None, "EMA decay of the exported weights (none: the preset's)")
-    grad_clip: float | None = knob(None, "gradient norm clip (none: the preset's)")
-    text_dropout: float | None = knob(None, "share of steps without text, for guidance (none: the preset's)")
-    image_dropout: float | None = knob(None, "share of steps without the first frame, for guidance (none: the preset's)")
-    loss_weights: dict[str, float] = knob(help="per-modality loss weights, e.g. rgb=1,depth=1,normal=1",
-                                          default_factory=lambda: {m: 1.0 for m in MODALITIES})
+    data: Path | list[Path] | None = option(None, "dataset folder(s) written by `tesseract4d datagen`, trained as one set")
+    out: Path = option(Path("runs/tiny"), "the run folder (checkpoints, logs, final/)")
+    preset: str = option("latent-128", "model preset (model/presets.py)")
+    pretrained: Path | None = option(None, "a local diffusers-format CogVideoX folder (the cogvideox-5b preset)")
+    batch_size: int | None = option(None, "clips per step (default: the preset's)")
+    weight_decay: float = option(0.01, "AdamW weight decay")
+    ema_decay: float | None = option(None, "decay of the exported EMA weights (default: the preset's)")
+    grad_clip: float | None = option(None, "gradient-norm clip (default: the preset's)")
+    text_dropout: float | None = option(None, "probability of dropping a clip's instruction, for text guidance "
+                                              "(default: the preset's)")
+    image_dropout: float | None = option(None, "probability of dropping a clip's first frame, for first-frame "
+                                               "guidance (default: the preset's)")
+    loss_weights: dict[str, float] = option(None, "loss weight per modality (rgb, depth, normal)",
+                                            default_factory=lambda: {m: 1.0 for m in MODALITIES})
     precision: str = precision_field()
-    resume: bool = knob(False, "continue from the latest intact checkpoint in --out")
-    val_every: int = knob(500, "validation videos every K steps (0 = never)")
-    val_clips: int = knob(2, "clips per validation")
-    ckpt_every: int = knob(500, "checkpoint every K optimiser steps (0 = only at the end)", metavar="K")
-    keep_checkpoints: int = knob(2, "checkpoints kept in the run folder (the newest)")
-    seed: int = knob(0, "training seed")
-    camera: str | None = knob(None, "camera of the dataset to train on (none: its first)")
-    progress: bool = knob(True, "progress bars (--quiet: none)", flag_help="no progress bar")
-    autoencoder: Path | None = knob(None, "RGB-D-N autoencoder folder of a latent preset (RUN/autoencoder of "
-                                          "`tesseract4d train-autoencoder`); the data is encoded once into "
-                                          "DATA/latent_cache/", metavar="DIR")
-    init: Path | None = knob(None, "start from this inference checkpoint's transformer weights (e.g. "
-                                   "tesseract4d/checkpoints/v2) with a fresh optimiser and schedule; a latent preset "
-                                   "then uses its autoencoder unless --autoencoder names one with the same encoder",
-                             metavar="CKPT")
+    val_every: int = option(500, "sample the validation clips every N steps (0: never)")
+    val_clips: int = option(2, "validation clips")
+    camera: str | None = option(None, "camera of the dataset (default: its first)")
+    autoencoder: Path | None = option(None, "latent presets: the RGB-D-N autoencoder folder (RUN/autoencoder of "
+                                            "`tesseract4d train-autoencoder`)")
+    init: Path | None = option(None, "an inference checkpoint whose transformer starts the run (a fine-tune: fresh "
+                                     "optimiser and schedule; a latent preset then uses its autoencoder)")
     # Recipe levers (model/recipe.py): each a switch whose effect benchmarks/ablate_latent.py measures.
-    condition_noise: float = knob(0.0, "max std of noise on the conditioning first frame in training (U(0, max) per "
-                                        "clip)")
-    moving_weight: float = knob(1.0, "loss weight of moving cells (differ from the first frame)")
-    object_weight: float = knob(1.0, "loss weight of robot/object cells (latent presets: from the cached "
-                                     "segmentation)")
-    scene_object_weight: float = knob(1.0, "added loss weight of the scene's objects' cells (not the robot; latent "
-                                           "presets; 1 = off)")
-    time_logit_normal: float = knob(0.0, "> 0: diffusion times drawn logit-normal with this std instead of uniform "
-                                         "(trains most at middle noise)")
-    group_batches: bool = knob(False, "batches of whole counterfactual groups (`datagen --instructions-per-scene`) "
-                                      "sharing one noise and one diffusion time")
-    counterfactual_swap: float = knob(0.0, "with group_batches: probability that a clip at noise >= 0.3 is shown a "
-                                           "sibling's noisy sample and must still predict its own future")
-    rephrase: float = knob(0.0, "probability of training a clip under another training wording of its instruction")
-    text_noise: float = knob(0.0, "max std of noise on the instruction's token embeddings, relative to each token's "
-                                  "size (0 = off)")
-    max_steps_fit: dict | None = knob(None, "set by the trainer when --max-steps auto fitted the schedule")
+    condition_noise: float = option(0.0, "max std of Gaussian noise on the conditioning first frame (per clip U(0, max))")
+    moving_weight: float = option(1.0, "loss weight of moving cells (differ from the first frame)")
+    object_weight: float = option(1.0, "loss weight of robot/object cells (latent presets)")
+    scene_object_weight: float = option(1.0, "added loss weight of the scene's objects' cells, not the robot's "
+                                             "(latent presets; 1: off)")
+    time_logit_normal: float = option(0.0, "> 0: diffusion times logit-normal with this std instead of uniform "
+                                           "(trains most at middle noise)")
+    group_batches: bool = option(False, "batches of whole counterfactual groups sharing one noise and diffusion time")
+    counterfactual_swap: float = option(0.0, "with group_batches: probability of showing a clip a sibling's noisy sample")
+    rephrase: float = option(0.0, "probability of training a clip under another training wording of its instruction")
+    text_noise: float = option(0.0, "max std of noise on the instruction's token embeddings, relative to each token's RMS")
 
     def resolved(self, preset: ModelPreset) -> "TrainConfig":
         out = dataclasses.replace(self)
@@ -138,24 +114,11 @@ class TrainConfig:
     def validate(self) -> None:
         """One-line UserErrors for numeric options that would train into NaN or not train at all
         (call on the resolved config, before anything is written)."""
-        def finite(name, value, low, low_ok=False):
-            ok = value is not None and math.isfinite(value) and (value >= low if low_ok else value > low)
-            if not ok:
-                raise UserError(f"--{name.replace('_', '-')} must be a finite number {'>=' if low_ok else '>'} {low}, got {value}")
-
-        check_max_steps(self.max_steps, self.max_minutes, self.stop_at_step, resume=self.resume)
+        self.check_loop()
         if self.batch_size < 1:
             raise UserError(f"--batch-size must be at least 1, got {self.batch_size}")
-        finite("lr", self.lr, 0)
-        if self.warmup_steps < 0:
-            raise UserError(f"--warmup-steps must be >= 0, got {self.warmup_steps}")
-        if self.max_minutes is not None:
-            finite("max_minutes", self.max_minutes, 0, low_ok=True)
-        if self.stop_at_step is not None and self.max_steps != AUTO and not 1 <= self.stop_at_step <= self.max_steps:
-            raise UserError(f"--stop-at-step must be between 1 and --max-steps ({self.max_steps}), got {self.stop_at_step}")
-        for name in ("val_every", "ckpt_every"):
-            if getattr(self, name) < 0:
-                raise UserError(f"--{name.replace('_', '-')} must be >= 0 (0 = never), got {getattr(self, name)}")
+        if self.val_every < 0:
+            raise UserError(f"--val-every must be >= 0 (0 = never), got {self.val_every}")
         unknown = set(self.loss_weights) - set(MODALITIES)
         if unknown:
             raise UserError(f"unknown loss weight(s) {sorted(unknown)}; modalities are {', '.join(MODALITIES)}")
@@ -185,66 +148,6 @@ class EMA:
         decay = min(self.decay, (1 + step) / (10 + step))
         for e, p in zip(self.model.parameters(), model.parameters()):
             e.lerp_(p.detach().to(e.dtype), 1 - decay)
-
-
-# --------------------------------------------------------------------------- state without pickle
-
-
-def save_optimizer(optimizer: torch.optim.Optimizer, folder: Path) -> None:
-    from safetensors.torch import save_file
-
-    sd = optimizer.state_dict()
-    tensors, scalars = {}, {}
-    for idx, st in sd["state"].items():
-        for key, value in st.items():
-            if torch.is_tensor(value):
-                tensors[f"{idx}.{key}"] = value.detach().cpu().contiguous()
-            else:
-                scalars[f"{idx}.{key}"] = value
-    save_file(tensors, str(folder / "optimizer.safetensors"))
-    (folder / "optimizer.json").write_text(json.dumps({"param_groups": sd["param_groups"], "scalars": scalars}))
-
-
-def load_optimizer(optimizer: torch.optim.Optimizer, folder: Path) -> None:
-    from safetensors.torch import load_file
-
-    tensors = load_file(str(folder / "optimizer.safetensors"))
-    meta = json.loads((folder / "optimizer.json").read_text())
-    state: dict[int, dict] = {}
-    for name, value in list(tensors.items()) + list(meta["scalars"].items()):
-        idx, key = name.split(".", 1)
-        state.setdefault(int(idx), {})[key] = value
-    optimizer.load_state_dict({"state": state, "param_groups": meta["param_groups"]})
-
-
-def save_rng(folder: Path) -> None:
-    """Global RNG states (the training loop itself draws from per-step generators)."""
-    from safetensors.torch import save_file
-
-    tensors = {"torch_cpu": torch.get_rng_state()}
-    if torch.cuda.is_available():
-        for i, s in enumerate(torch.cuda.get_rng_state_all()):
-            tensors[f"cuda_{i}"] = s
-    save_file(tensors, str(folder / "rng_state.safetensors"))
-    np_state = np.random.get_state()
-    (folder / "rng_state.json").write_text(json.dumps({"numpy": [np_state[0], np_state[1].tolist(), *np_state[2:]]}))
-
-
-def load_rng(folder: Path) -> None:
-    from safetensors.torch import load_file
-
-    tensors = load_file(str(folder / "rng_state.safetensors"))
-    torch.set_rng_state(tensors["torch_cpu"])
-    if torch.cuda.is_available():
-        states = [tensors[k] for k in sorted(tensors) if k.startswith("cuda_")]
-        if states:
-            torch.cuda.set_rng_state_all(states)
-    s = json.loads((folder / "rng_state.json").read_text())["numpy"]
-    np.random.set_state((s[0], np.asarray(s[1], dtype=np.uint32), *s[2:]))
-
-
-def list_checkpoints(run: Path) -> list[Path]:
-    return sorted(p for p in Path(run).glob(f"{CHECKPOINT_PREFIX}*") if p.is_dir() and (p / STATE_FILE).is_file())
 
 
 # --------------------------------------------------------------------------- export
@@ -292,8 +195,7 @@ def export_checkpoint(run: str | os.PathLike, to: str | os.PathLike | None = Non
               f"{SCHEDULER_DIR}/{SCHEDULER_CONFIG_FILE}"}
     with OutputDir(to, "export", inputs=[ckpt], overwrite=overwrite, flag="--to", legacy_files=legacy) as tmp:
         shutil.copytree(ckpt / EMA_DIR, tmp / TRANSFORMER_DIR)
-        state = json.loads((ckpt / STATE_FILE).read_text())
-        config = dict(state["inference_config"])
+        config = dict(read_state(ckpt)["inference_config"])
         if half:
             weights_to_half(tmp / TRANSFORMER_DIR / WEIGHTS_FILE)
         if "autoencoder" in config:
@@ -330,7 +232,7 @@ def _check_resume_names_init(cfg: TrainConfig) -> None:
     if not checkpoints:
         return  # the trainer says there is nothing to resume
     try:
-        state = json.loads((checkpoints[-1] / STATE_FILE).read_text())
+        state = read_state(checkpoints[-1])
     except (OSError, ValueError):
         return  # a damaged checkpoint: _resume reports it
     started = _start_record(state).get("init")
@@ -370,12 +272,12 @@ class Trainer:
         from tesseract4d.outputs import claim_folder, release_new_folder
 
         fresh = claim_folder(self.out, self.command, inputs=[*cfg.data_folders, cfg.pretrained, cfg.init],
-                             legacy_marker="train_config.json")
+                             legacy_marker=CONFIG_FILE)
         try:
             self._setup(cfg, existing)
         except BaseException:
             if fresh is not None:  # a mistake found while setting up leaves nothing behind
-                release_new_folder(self.out, ["train_config.json"], remove_folder=fresh)
+                release_new_folder(self.out, [CONFIG_FILE], remove_folder=fresh)
             raise
 
     # Hooks a specialised trainer (tesseract4d.model.reflow.ReflowTrainer) overrides.
@@ -388,7 +290,7 @@ class Trainer:
         from tesseract4d.model.recipe import check_scene_objects, load_training_data
 
         data = load_training_data(cfg, self.preset, self.model_space, self.codec,
-                                  progress=cfg.progress and self.accelerator.is_main_process)
+                                  progress=not cfg.quiet and self.accelerator.is_main_process)
         check_scene_objects(data, cfg)
         return data
 
@@ -443,7 +345,6 @@ class Trainer:
 
     def _setup(self, cfg: "TrainConfig", existing: list[Path]) -> None:
         from accelerate import Accelerator
-        from accelerate.utils import ProjectConfiguration
 
         from tesseract4d.model.build import build_codec, build_text_encoder, build_transformer
 
@@ -451,11 +352,7 @@ class Trainer:
         announce(self.precision)
         mixed_precision = self.precision.accelerate_mixed_precision
         _allow_new_accelerator(mixed_precision)
-        self.accelerator = Accelerator(
-            mixed_precision=mixed_precision,
-            log_with="tensorboard",
-            project_config=ProjectConfiguration(project_dir=str(self.out), logging_dir=str(self.out / "logs")),
-        )
+        self.accelerator = Accelerator(mixed_precision=mixed_precision)  # the loop logs (training/loop.py)
         self.device = self.accelerator.device
         self.model_space = ModelSpace(self.preset.near_m, self.preset.far_m)
         self.codec = build_codec(self.preset, cfg.pretrained, autoencoder=cfg.autoencoder).to(self.device)
@@ -477,12 +374,19 @@ class Trainer:
         self.step = 0
         self.elapsed_s = 0.0
         self.last_loss: float | None = None
-        self._stop_requested = False
         self.stopped_by: int | None = None  # the signal that stopped train(), if one did
         if cfg.resume and existing:
-            self._resume(existing)
-        if self.accelerator.is_main_process:
-            (self.out / "train_config.json").write_text(json.dumps(self.cfg.to_dict(), indent=2))
+            resume_newest(self.out, self._load_checkpoint)
+        self.write_config()
+
+    @property
+    def is_main_process(self) -> bool:
+        return self.accelerator.is_main_process
+
+    def write_config(self) -> None:
+        """RUN/train_config.json: the resolved config (again once --max-steps auto is fitted)."""
+        if self.is_main_process:
+            write_config_file(self.out / CONFIG_FILE, self.cfg)
 
     def _check_group_data(self) -> None:
         """UserError when the training data holds no counterfactual group (for --group-batches)."""
@@ -569,19 +473,13 @@ class Trainer:
         return loss, {f"loss/{n}": float(v.detach()) for n, v in parts.items()}
 
     def train_step(self) -> dict[str, float]:
-        lr = lr_at(self.step, self.cfg)
-        for group in self.optimizer.param_groups:
-            group["lr"] = lr
+        lr = learning_rate(self)
+        set_learning_rate(self.optimizer, lr)
         self.model.train()
         loss, logs = self.compute_loss(self.step)
         self.accelerator.backward(loss)
         grad_norm = self.accelerator.clip_grad_norm_(self.model.parameters(), self.cfg.grad_clip)
-        if not (math.isfinite(float(loss.detach())) and math.isfinite(float(grad_norm))):
-            # Stop before the optimiser step, so the weights and the checkpoints on disk stay good.
-            last = list_checkpoints(self.out)
-            raise UserError(f"training diverged at step {self.step + 1}: loss {float(loss.detach())}, gradient norm "
-                            f"{float(grad_norm)}; nothing was saved from this step (last good checkpoint: "
-                            f"{last[-1] if last else 'none'}); lower --lr or check the data and --loss-weights")
+        check_finite(float(loss.detach()), float(grad_norm), step=self.step + 1, run=self.out)
         self.optimizer.step()
         self.optimizer.zero_grad(set_to_none=True)
         self.ema.update(self.accelerator.unwrap_model(self.model), self.step)
@@ -621,48 +519,24 @@ class Trainer:
         return {"init": str(self.cfg.init), "init_digest": self.init_digest}
 
     def save_checkpoint(self) -> Path:
+        """RUN/checkpoint-XXXXXX of the current step (training/checkpoints.py), by the main process."""
         self.accelerator.wait_for_everyone()
-        final = self.out / f"{CHECKPOINT_PREFIX}{self.step:06d}"
-        if not self.accelerator.is_main_process:
-            return final
-        tmp = self.out / f".{final.name}.tmp"
-        shutil.rmtree(tmp, ignore_errors=True)
-        tmp.mkdir(parents=True)
-        self.accelerator.unwrap_model(self.model).save_pretrained(tmp / TRANSFORMER_DIR)
-        self.ema.model.save_pretrained(tmp / EMA_DIR)
-        save_optimizer(self.optimizer, tmp)
-        save_rng(tmp)
-        state = {"step": self.step, "elapsed_s": self.elapsed_s, "last_loss": self.last_loss,
-                 "preset": self.preset.to_dict(), "config": self.cfg.to_dict(),
+        if not self.is_main_process:
+            return self.out / f"{CHECKPOINT_PREFIX}{self.step:06d}"
+
+        def write(tmp: Path) -> None:
+            self.accelerator.unwrap_model(self.model).save_pretrained(tmp / TRANSFORMER_DIR)
+            self.ema.model.save_pretrained(tmp / EMA_DIR)
+            save_optimizer(self.optimizer, tmp)
+            save_rng(tmp)
+
+        state = {**loop_state(self), "preset": self.preset.to_dict(), "config": self.cfg.to_dict(),
                  "inference_config": self._inference_config()}
-        (tmp / STATE_FILE).write_text(json.dumps(state, indent=2))
-        files_as_created(tmp)
-        shutil.rmtree(final, ignore_errors=True)
-        os.replace(tmp, final)
-        for old in list_checkpoints(self.out)[:-max(1, self.cfg.keep_checkpoints)]:
-            shutil.rmtree(old, ignore_errors=True)
-        return final
+        return write_checkpoint(self.out, self.step, state, write, keep=self.cfg.keep_checkpoints)
 
-    def _resume(self, checkpoints: list[Path]) -> None:
-        """Load the newest intact checkpoint, saying which ones were skipped as damaged."""
-        from safetensors import SafetensorError
-
-        for ckpt in reversed(checkpoints):
-            try:
-                self._load_checkpoint(ckpt)
-            except (SafetensorError, OSError, ValueError, KeyError) as e:
-                print(f"warning: checkpoint {ckpt} is damaged ({type(e).__name__}: {str(e).splitlines()[0][:120]}); "
-                      f"trying an older one", flush=True)
-                continue
-            if ckpt != checkpoints[-1]:
-                print(f"resuming from {ckpt.name} (step {self.step}), the newest intact checkpoint", flush=True)
-            return
-        raise UserError(f"every checkpoint in {self.out} is damaged; start a new run with another --out")
-
-    def _load_checkpoint(self, ckpt: Path) -> None:
+    def _load_checkpoint(self, ckpt: Path, state: dict) -> None:
         from safetensors.torch import load_file
 
-        state = json.loads((ckpt / STATE_FILE).read_text())
         saved = preset_from_dict(state["preset"]).to_dict()  # fields this version no longer has do not count
         if saved != self.preset.to_dict():
             diff = sorted(k for k in set(saved) | set(self.preset.to_dict()) if saved.get(k) != self.preset.to_dict().get(k))
@@ -684,14 +558,7 @@ class Trainer:
                 raise UserError(f"{ckpt / sub} does not match preset {self.preset.name!r}: {str(e).splitlines()[0]}") from e
         load_optimizer(self.optimizer, ckpt)
         load_rng(ckpt)
-        saved_cfg = state.get("config", {})
-        requested = self.cfg.max_steps
-        self.cfg.max_steps = resumed_max_steps(requested, saved_cfg.get("max_steps"), self.cfg.max_minutes)
-        if requested == AUTO and self.cfg.max_steps != AUTO:  # the schedule of the run, and how it was fitted
-            self.cfg.max_steps_fit = saved_cfg.get("max_steps_fit")
-        self.step = int(state["step"])
-        self.elapsed_s = float(state["elapsed_s"])
-        self.last_loss = state["last_loss"]
+        restore_loop_state(self, state)
 
     # ------------------------------------------------------------------ validation
     def validate(self) -> dict[str, float]:
@@ -725,65 +592,22 @@ class Trainer:
 
     # ------------------------------------------------------------------ loop
     def train(self) -> Path:
-        """Train until max_steps, stop_at_step or max_minutes (or SIGTERM/Ctrl-C); always ends with a
-        checkpoint and an export of the EMA weights to RUN/final. Returns that folder."""
-        from tqdm import tqdm
+        """Train until max_steps, stop_at_step or max_minutes, or a stop signal (training/loop.py);
+        always ends with a checkpoint and an export of the EMA weights to RUN/final. Returns that folder."""
+        return run_loop(self, f"train {self.preset.name}")
 
-        cfg = self.cfg
-        acc = self.accelerator
-        acc.init_trackers("train", config={k: v for k, v in cfg.to_dict().items() if isinstance(v, (int, float, str, bool))})
-        previous = signal.signal(signal.SIGTERM, self._request_stop)
-        start = time.monotonic()
-        start_step = self.step
-        elapsed_before = self.elapsed_s
-        # "auto": the cosine is fitted to max_minutes after the first steps (the config says "auto" until then).
-        budget = StepBudget(cfg.max_minutes, self.step) if cfg.max_steps == AUTO else None
-        bar = tqdm(total=None if budget else cfg.max_steps, initial=self.step, desc=f"train {self.preset.name}",
-                   unit="step", disable=not (cfg.progress and acc.is_main_process), dynamic_ncols=True)
-        smooth = None
-        last_step = UNFITTED_MAX_STEPS if budget else cfg.max_steps if cfg.stop_at_step is None else cfg.stop_at_step
-        try:
-            while self.step < last_step and not self._stop_requested:
-                logs = self.train_step()
-                if budget is not None and budget.after_step(self.step) is not None:
-                    budget.fitted = cfg.max_steps = last_step = self._agreed_max_steps(budget.fitted)
-                    cfg.max_steps_fit = budget.record()
-                    bar.total = cfg.max_steps
-                    bar.write(budget.describe())
-                    if acc.is_main_process:
-                        (self.out / "train_config.json").write_text(json.dumps(cfg.to_dict(), indent=2))
-                self.elapsed_s = elapsed_before + time.monotonic() - start
-                smooth = logs["loss"] if smooth is None else 0.95 * smooth + 0.05 * logs["loss"]
-                rate = (self.step - start_step) / max(1e-6, time.monotonic() - start)
-                bar.update(1)
-                bar.set_postfix(loss=f"{smooth:.4f}", steps_per_s=f"{rate:.2f}")
-                acc.log({**logs, "steps_per_s": rate}, step=self.step)
-                if cfg.val_every and self.step % cfg.val_every == 0 and acc.is_main_process:
-                    acc.log(self.validate(), step=self.step)
-                if cfg.ckpt_every and self.step % cfg.ckpt_every == 0:
-                    self.save_checkpoint()
-                if cfg.max_minutes is not None and time.monotonic() - start >= cfg.max_minutes * 60:
-                    bar.write(f"stopping after {cfg.max_minutes} min at step {self.step}")
-                    break
-            if self._stop_requested:
-                bar.write(f"terminated at step {self.step}; saving a checkpoint")
-        except KeyboardInterrupt:
-            self.stopped_by = signal.SIGINT
-            bar.write(f"interrupted at step {self.step}; saving a checkpoint")
-        finally:
-            bar.close()
-            signal.signal(signal.SIGTERM, previous)
-        if not list_checkpoints(self.out) or list_checkpoints(self.out)[-1].name != f"{CHECKPOINT_PREFIX}{self.step:06d}":
-            self.save_checkpoint()
-        acc.end_training()
-        acc.wait_for_everyone()
-        return export_checkpoint(self.out) if acc.is_main_process else self.out / FINAL_DIR
+    def after_step(self) -> dict[str, float]:
+        """Validation every ``val_every`` steps (main process)."""
+        if self.cfg.val_every and self.step % self.cfg.val_every == 0 and self.is_main_process:
+            return self.validate()
+        return {}
 
-    def _request_stop(self, signum, frame) -> None:
-        self._stop_requested = True
-        self.stopped_by = signum
+    def export(self) -> Path:
+        """RUN/final from the newest checkpoint (main process; the others wait for it)."""
+        self.accelerator.wait_for_everyone()
+        return export_checkpoint(self.out) if self.is_main_process else self.out / FINAL_DIR
 
-    def _agreed_max_steps(self, fitted: int) -> int:
+    def agree_max_steps(self, fitted: int) -> int:
         """The main process's fitted schedule, for every process (each timed its own steps; they must
         stop at the same step)."""
         if self.accelerator.num_processes == 1:

@@ -56,7 +56,7 @@ class IDMTrainConfig:
     ckpt_every: int = knob(500, "checkpoint every K optimiser steps (0 = only at the end)", metavar="K")
     max_minutes: float | None = knob(None, "stop with a checkpoint after this many minutes", metavar="M")
     resume: bool = knob(False, "continue from RUN/checkpoint")
-    progress: bool = knob(True, "progress bars (--quiet: none)", flag_help="no progress bar")
+    quiet: bool = knob(False, "no progress bars")
     # A world-model checkpoint whose predictions from the episodes' frames serve as futures too
     # (None: true futures only); the share of each batch taken from those pairs; clips per episode;
     # sampler steps (None: the checkpoint's own).
@@ -253,7 +253,7 @@ class IDMTrainer:
                                          sample_steps=cfg.predicted_sample_steps, sample_seed=cfg.seed)
         self.pairs = load_pairs(cfg.data, camera=cfg.camera, num_points=cfg.num_points, chunk_len=cfg.chunk_len,
                                 tasks=cfg.tasks, max_episodes_per_task=cfg.max_episodes_per_task,
-                                text_encoder=self.text_encoder, seed=cfg.seed, progress=cfg.progress,
+                                text_encoder=self.text_encoder, seed=cfg.seed, progress=not cfg.quiet,
                                 gap_scales=tuple(cfg.gap_scales), predicted=predicted)
         p = self.pairs
         self.true_idx, self.pred_idx = np.flatnonzero(~p.predicted), np.flatnonzero(p.predicted)
@@ -347,7 +347,7 @@ class IDMTrainer:
         cfg = self.config
         t0 = time.monotonic()
         bar = tqdm(total=cfg.steps, initial=self.step, desc="train idm" if cfg.use_future else "train bc", unit="step",
-                   disable=not cfg.progress)
+                   disable=cfg.quiet)
         # Ctrl-C or SIGTERM stop after the step: the checkpoint and final/ are written, then the command
         # line exits 130 / 143 (stopped_by).
         with StopSignals() as stop:

@@ -1,8 +1,9 @@
 """The learning-rate schedule of the trainers, and fitting its length to a time budget.
 
-Every trainer of this package (``train``, ``distill``, ``train-autoencoder``) warms the learning
-rate up linearly and then decays it along a cosine that ends at ``max_steps``. A run that has a
-fixed amount of time rather than a number of steps (a lent GPU, a session) should end its decay
+Every trainer (``train``, ``distill``, ``train-autoencoder``, ``train-idm``; the loop of
+``training/loop.py`` sets it before each step) warms the learning rate up linearly and then decays it
+along a cosine that ends at ``max_steps``. A run that has a fixed amount of time rather than a number
+of steps (a lent GPU, a fixed slot on a shared machine) should end its decay
 when its time ends: ``--max-steps auto --max-minutes M`` times the invocation's first steps and then
 fixes ``max_steps`` so that the cosine ends at ``M`` minutes (``StepBudget``). The fitted number is
 written into the run's config and checkpoints, so ``--resume`` (with ``auto`` or without a new
@@ -46,11 +47,6 @@ def max_steps_argument(text: str) -> int | str:
         return int(text)
     except ValueError:
         raise argparse.ArgumentTypeError(f"expected a whole number of steps or 'auto', got {text!r}") from None
-
-
-MAX_STEPS_HELP = (f"optimiser steps; the cosine learning-rate decay ends here. 'auto' (with --max-minutes M) times "
-                  f"the first {PROBE_SKIP_STEPS + PROBE_TIMED_STEPS} steps and sets it so that the decay ends when "
-                  f"the M minutes do; the number is saved with the run, and --resume goes on along it")
 
 
 def add_max_steps_argument(parser: argparse.ArgumentParser, default: int, what: str = "training steps") -> None:

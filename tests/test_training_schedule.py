@@ -8,7 +8,7 @@ from types import SimpleNamespace
 import pytest
 
 from tesseract4d.errors import UserError
-from tesseract4d.model.lr_schedule import (
+from tesseract4d.training.schedule import (
     AUTO, StepBudget, check_max_steps, lr_at, max_steps_argument, resumed_max_steps)
 
 
