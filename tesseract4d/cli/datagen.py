@@ -17,6 +17,11 @@ multi-object scene Tesseract4dTabletop-v1, or in PickCube/PushCube/PullCube/Stac
 (--episodes then counts scenes; each scene gives K episodes seed_<S>_k<k>.h5):
   tesseract4d datagen --tasks Tesseract4dTabletop-v1 --instructions-per-scene 4 --episodes 100 \\
       --out data/skills --workers 2
+
+Scene randomisation and the other options of the run are fields of DatagenConfig and SimConfig, set
+with `--set NAME=VALUE` (`--set list` prints them): e.g. `--set randomize_colors=true`,
+`--set randomize_lighting=true`, `--set camera_jitter_m=0.02`, `--set goal_marker=true`,
+`--set max_attempts=N`, `--set previews=false`.
 """
 
 from __future__ import annotations

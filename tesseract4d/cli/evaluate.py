@@ -22,7 +22,7 @@ resolutions differ from the data's by a whole factor (the first frame is resized
 resolution and its prediction back; every metric is taken at the data's resolution). Several
 --sample-seed values predict every episode once per noise seed and pool the scores: one noise
 draw decides much of an instruction's outcome, so compare checkpoints on several. Writes
-report.json and report.md (the README's results table) to --out.
+report.json and report.md (the results table) to --out.
 
 Examples:
   tesseract4d evaluate out/recon --gt data/test/episodes/PickCube-v1/seed_100000.h5 --json out/report.json

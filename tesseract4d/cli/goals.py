@@ -4,7 +4,7 @@ One column per checkpoint of each report (its predictions as `demo` shows them),
 moving-region RGB PSNR, depth AbsRel, normal error and 4D Chamfer; object permanence; instruction
 contrast, right-way following, the moved object found whole, "keep still"; token grid and edge
 sharpness; ✓ where a goal is met, ✗ where not. Numbers are read from the reports, not measured
-again, so the same reports always give the same table (the README's is made this way); redirect it
+again, so the same reports always give the same table; redirect it
 into a file to keep it (`... > goals.md`).
 
 Example:

@@ -38,7 +38,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help=f"comma-separated arms from {', '.join(ARMS)} (default: %(default)s; static_world feeds "
                              f"the IDM the current frame repeated, the control for what the predicted frames add)")
     parser.add_argument("--idm", help="inverse dynamics model folder (train-idm RUN/final)")
-    parser.add_argument("--bc", help="behaviour-cloning model folder (train-idm --no-future RUN/final)")
+    parser.add_argument("--bc", help="behaviour-cloning model folder (RUN/final of `train-idm --recipe bc`)")
     parser.add_argument("--checkpoint", default=str(SHIPPED_CHECKPOINT),
                         help="world-model inference checkpoint (default: the shipped v2-2step, 2 steps; "
                              "tesseract4d/checkpoints/v2 takes 10 guided steps)")

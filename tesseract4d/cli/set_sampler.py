@@ -10,12 +10,11 @@ tesseract4d_config.json). Score the copy beside the original with `evaluate --he
 
 Static compositing (`--set static_tolerance=T`): where the decoded clip stays within T of its frame 0, the
 given first frame's own pixels are shown instead of the decoder's redrawing of them; the parts of the
-scene the model moves are left as predicted (README "Static compositing").
+scene the model moves are left as predicted.
 
 Several noise draws (`--set draws=N`): every future is predicted from N noises and the one whose objects
 keep their colours best is kept (read from the first frame and the predicted clip only: its objects
-named by its segmentation, or found by their colour without one; README "The best of two noise
-draws"); N times the sampling.
+named by its segmentation, or found by their colour without one); N times the sampling.
 
 Example (v2's 10 guided steps, guidance only at noise ≥ 0.5: 15 network passes per clip instead of 20):
   tesseract4d checkpoint set-sampler --checkpoint tesseract4d/checkpoints/v2 --set guidance_min_sigma=0.5 \\
