@@ -44,6 +44,7 @@ GROUPS: dict[str, dict[str, tuple[str, str]]] = {
         "goals": ("tesseract4d.cli.goals", "the held-out goals against `evaluate --heldout` reports, as one Markdown table"),
         "from-truth": ("tesseract4d.cli.from_truth",
                        "held-out evaluation with sampling started part-way from the true future"),
+        "phrasings": ("tesseract4d.cli.phrasings", "does a model keep still under every way of saying keep still"),
     },
 }
 HIDDEN = {"research"}

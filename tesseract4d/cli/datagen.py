@@ -21,7 +21,8 @@ multi-object scene Tesseract4dTabletop-v1, or in PickCube/PushCube/PullCube/Stac
 Scene randomisation and the other options of the run are fields of DatagenConfig and SimConfig, set
 with `--set NAME=VALUE` (`--set list` prints them): e.g. `--set randomize_colors=true`,
 `--set randomize_lighting=true`, `--set camera_jitter_m=0.02`, `--set goal_marker=true`,
-`--set max_attempts=N`, `--set previews=false`.
+`--set max_attempts=N`, `--set previews=false`, and `--set ray_address=HOST:PORT` (a running Ray
+cluster for --workers; default: a local Ray instance).
 """
 
 from __future__ import annotations
@@ -55,8 +56,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seed-start", type=int, default=0, help="first seed tried per task (default %(default)s)")
     parser.add_argument("--workers", type=int, default=1,
                         help="parallel workers; more than 1 runs Ray actors (default %(default)s)")
-    parser.add_argument("--ray-address", default=None,
-                        help="address of a running Ray cluster (default: a local Ray instance when --workers > 1)")
     parser.add_argument("--instruction-split", choices=SPLITS, default=d.instruction_split,
                         help="instruction paraphrases to draw from (default %(default)s; 'heldout' is kept for evaluation)")
     from datagen.skills import VARIANTS
@@ -71,7 +70,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_set_option(parser, DatagenConfig)
     # Options now set as `--set NAME=VALUE`; the old flags keep working for one release.
     for old, name, kind in (("--height", "height", int), ("--width", "width", int),
-                            ("--max-attempts", "max_attempts", int), ("--camera-jitter", "camera_jitter_m", float)):
+                            ("--max-attempts", "max_attempts", int), ("--camera-jitter", "camera_jitter_m", float),
+                            ("--ray-address", "ray_address", str)):
         add_deprecated(parser, old, use=f"--set {name}=VALUE", set_field=name, config_class=DatagenConfig, type=kind)
     for old, name in (("--randomize-lighting", "randomize_lighting"), ("--randomize-colors", "randomize_colors"),
                       ("--goal-marker", "goal_marker"), ("--no-previews", "previews")):
@@ -91,7 +91,6 @@ def config_from_args(args: argparse.Namespace) -> DatagenConfig:
     cfg = DatagenConfig(
         tasks=parse_task_list(args.tasks), episodes=args.episodes, out=args.out, sim=sim,
         seed_start=args.seed_start, workers=args.workers,
-        ray_address=args.ray_address,
         instructions_per_scene=args.instructions_per_scene, skills=_skills(args.skills, args.tasks),
     )
     return with_overrides(cfg, args.set_overrides)

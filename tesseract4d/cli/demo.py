@@ -50,7 +50,7 @@ class DemoConfig:
     skill: str | None = None  # None: DEFAULT_SKILL in the tabletop, the task's instruction elsewhere
     contrast_instruction: str | None = None  # None: from `contrast_skill`
     contrast_skill: str | None = DEFAULT_CONTRAST_SKILL
-    contrast: bool = True  # False: one future only
+    contrast: bool = knob(True, "predict the contrast future too (false: the main instruction's only)")
     checkpoint: Path = SHIPPED_CHECKPOINT
     out: Path = Path("demo_out")
     num_frames: int | None = knob(None, "frames to predict (none: one clip, the checkpoint preset's length)")
@@ -85,7 +85,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--contrast-skill", default=d.contrast_skill, metavar="VARIANT[@OBJECT]",
                         help="skill whose instruction is the contrast when --contrast-instruction is not given "
                              "(default %(default)s)")
-    parser.add_argument("--no-contrast", action="store_true", help="predict one future only (the main instruction)")
     parser.add_argument("--checkpoint", type=Path, default=d.checkpoint, help="model checkpoint folder (default: the shipped v2-2step, tesseract4d/checkpoints/v2-2step; tesseract4d/checkpoints/v2 is its 10-step teacher)")
     parser.add_argument("--out", type=Path, default=d.out, help="output folder (default %(default)s)")
     parser.add_argument("--steps", type=whole(1), help="sampler steps (default: the checkpoint preset's)")
@@ -96,12 +95,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_moved_to_set(parser, DemoConfig, [
         ("--num-frames", "num_frames", whole(1)), ("--draws", "draws", whole(1, hint=" (1: a single draw)")),
         ("--camera", "camera"), ("--host", "host"), ("--port", "port", whole(0, 65535)), PRECISION_MOVED,
-        ("--sample-seed", "sample_seed", seed()),
+        ("--sample-seed", "sample_seed", seed()), ("--no-contrast", "contrast", None, False),
     ])
 
 
 def run(args: argparse.Namespace) -> int:
-    cfg = dataclass_from_args(DemoConfig, args, contrast=not args.no_contrast)
+    cfg = dataclass_from_args(DemoConfig, args)
     outputs = run_demo(cfg)
     instruction = outputs["instruction"].read_text().strip()
     print(f"instruction: {instruction}")
@@ -140,7 +139,7 @@ def _check_config(cfg: DemoConfig) -> None:
     from datagen import skills as sk
 
     if not cfg.contrast and cfg.contrast_instruction is not None:
-        raise UserError("--no-contrast and --contrast-instruction contradict each other; drop one")
+        raise UserError("--set contrast=false and --contrast-instruction contradict each other; drop one")
     if cfg.instruction is not None and cfg.skill is not None:
         raise UserError("--instruction and --skill both set the main instruction; drop one")
     for flag, text in (("--instruction", cfg.instruction), ("--contrast-instruction", cfg.contrast_instruction)):
@@ -175,7 +174,7 @@ def resolve_instructions(cfg: DemoConfig, sim, first) -> tuple[str, str | None, 
         contrast = commanded_future(sim, cfg.seed, cfg.contrast_skill)[0]
     if contrast is not None and contrast == main:
         raise UserError(f"the contrast instruction is the main one ({main!r}); pass another --contrast-instruction "
-                        f"or --contrast-skill, or --no-contrast")
+                        f"or --contrast-skill, or --set contrast=false")
     return main, contrast, skills
 
 
