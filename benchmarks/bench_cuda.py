@@ -56,7 +56,7 @@ def bench_latent_training(data: Path, ae_dir: Path, batch_size: int, steps: int)
     with tempfile.TemporaryDirectory() as out:
         trainer = Trainer(TrainConfig(data=data, out=Path(out) / "run", preset="latent-128", autoencoder=ae_dir,
                                       max_steps=10**6, batch_size=batch_size, val_every=0, ckpt_every=0,
-                                      progress=False))
+                                      quiet=True))
         s = cuda_seconds(trainer.train_step, steps)
         return s, peak_mb(trainer.train_step)
 

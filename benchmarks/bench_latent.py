@@ -68,7 +68,7 @@ def bench_latent_training(data: Path, ae_dir: Path, bf16: bool, steps: int, batc
         trainer = Trainer(TrainConfig(data=data, out=Path(out), preset="latent-128", autoencoder=ae_dir,
                                       precision="bf16" if bf16 else "fp32",
                                       max_steps=steps + 1, batch_size=batch_size, val_every=0, ckpt_every=0,
-                                      progress=False))
+                                      quiet=True))
         trainer.train_step()
         _reset_peak_rss()
         s = median_seconds(trainer.train_step, steps)

@@ -76,8 +76,7 @@ DISTILL: dict[str, dict] = {
 
 # The closed loop's IDM (README "Closed loop"): `train-idm --data data/idm_train128 --max-steps 3000`
 # on 128² renders of every simulator step; `bc` is its behaviour-cloning twin without the future.
-# (IDMTrainConfig's field `steps` is the flag --max-steps.)
 IDM: dict[str, dict] = {
-    "idm": {"steps": 3000},
-    "bc": {"steps": 3000, "use_future": False},
+    "idm": {"max_steps": 3000},
+    "bc": {"max_steps": 3000, "use_future": False},
 }

@@ -50,7 +50,7 @@ def built(micro_registered, tmp_path_factory) -> dict[str, Path]:
     data = write_synthetic_dataset(root / "data", episodes=2)
     run = root / "run"
     final = Trainer(TrainConfig(data=data, out=run, preset=MICRO.name, max_steps=2, val_every=0, ckpt_every=1,
-                                progress=False)).train()
+                                quiet=True)).train()
     return {"data": data, "run": run, "checkpoint": final}
 
 

@@ -109,7 +109,7 @@ def test_old_subcommand_names_still_work_with_one_deprecation_line(old, new, cap
     (("datagen",), ["--tasks", "PushCube-v1", "--episodes", "1", "--out", "o", "--randomize-colors"],
      "set_overrides", {"randomize_colors": True}),
     (("evaluate",), ["--heldout", "h", "--start-from-truth", "0.5"], "start_from_truth", 0.5),
-    (("train-idm",), ["--data", "d", "--out", "o", "--steps", "7"], "steps", 7),
+    (("train-idm",), ["--data", "d", "--out", "o", "--steps", "7"], "max_steps", 7),
     (("train-idm",), ["--data", "d", "--out", "o", "--no-future"], "set_overrides", {"use_future": False}),
     (("train",), ["--out", "o", "--no-progress"], "quiet", True),
     (("train",), ["--export", "run"], "export", Path("run")),

@@ -24,6 +24,7 @@ FLOORS = {
     "tesseract4d.policy": 3,
     "datagen": 2,
     "tesseract4d.model": 2,
+    "tesseract4d.training": 2,
     "reconstruction": 2,
     "tesseract4d": 1,
 }

@@ -143,7 +143,7 @@ def overfit(episodes, text_encoder, tmp_path_factory):
     from tesseract4d.policy.idm_trainer import IDMTrainConfig, IDMTrainer
 
     out = tmp_path_factory.mktemp("idm_run") / "run"
-    trainer = IDMTrainer(IDMTrainConfig(data=str(episodes), out=str(out), steps=600, noise_frac=0.0, lr=2e-3,
+    trainer = IDMTrainer(IDMTrainConfig(data=str(episodes), out=str(out), max_steps=600, noise_frac=0.0, lr=2e-3,
                                         quiet=True), text_encoder=text_encoder)
     trainer.train()
     return trainer, out
@@ -212,7 +212,7 @@ def test_train_idm_resume_is_exact(episodes, text_encoder, tmp_path):
     from tesseract4d.policy.idm_trainer import IDMTrainConfig, IDMTrainer
 
     def cfg(out, steps, resume=False):
-        return IDMTrainConfig(data=str(episodes), out=str(out), steps=steps, batch_size=4, num_points=64,
+        return IDMTrainConfig(data=str(episodes), out=str(out), max_steps=steps, batch_size=4, num_points=64,
                               resume=resume, quiet=True, ckpt_every=0)
 
     straight = IDMTrainer(cfg(tmp_path / "a", 4), text_encoder=text_encoder)
@@ -241,7 +241,7 @@ def test_a_stopped_idm_run_keeps_its_checkpoint_and_final_and_says_which_signal(
     from tesseract4d.policy.idm_trainer import IDMTrainConfig, IDMTrainer
     from tesseract4d.stopping import raise_for_stop
 
-    cfg = IDMTrainConfig(data=str(episodes), out=str(tmp_path / "run"), steps=1000, batch_size=4, num_points=64,
+    cfg = IDMTrainConfig(data=str(episodes), out=str(tmp_path / "run"), max_steps=1000, batch_size=4, num_points=64,
                          quiet=True, ckpt_every=0)
     trainer = IDMTrainer(cfg, text_encoder=text_encoder)
     sigterm_after_step(monkeypatch, trainer, 3)
@@ -252,8 +252,8 @@ def test_a_stopped_idm_run_keeps_its_checkpoint_and_final_and_says_which_signal(
     from tesseract4d.policy.idm import load_idm
 
     assert load_idm(final).config.training["trained_steps"] == 3
-    assert json.loads((tmp_path / "run" / "checkpoint" / "trainer_state.json").read_text())["step"] == 3
-    assert not (tmp_path / "run" / ".checkpoint.tmp").exists()  # written beside and swapped in
+    assert json.loads((tmp_path / "run" / "checkpoint-000003" / "trainer_state.json").read_text())["step"] == 3
+    assert not list((tmp_path / "run").glob(".checkpoint-*.tmp"))  # written beside and swapped in
     assert "stopped by SIGTERM at step 3; saving a checkpoint and the export" in capsys.readouterr().out
     assert IDMTrainer(dataclasses.replace(cfg, resume=True), text_encoder=text_encoder).step == 3
     from tesseract4d.errors import Terminated
@@ -340,7 +340,7 @@ def test_idm_trains_on_the_world_models_predicted_futures(episodes, text_encoder
     from tesseract4d.policy.predicted_pairs import clip_starts
 
     def cfg(out, **kw):
-        return IDMTrainConfig(data=str(episodes), out=str(out), steps=2, batch_size=4, num_points=64, ckpt_every=0,
+        return IDMTrainConfig(data=str(episodes), out=str(out), max_steps=2, batch_size=4, num_points=64, ckpt_every=0,
                               quiet=True, predicted_futures=str(SHIPPED_CHECKPOINT), predicted_starts=2,
                               predicted_sample_steps=1, **kw)
 

@@ -112,9 +112,9 @@ def test_idm_recipes():
 
     module, args = _config(("train-idm",), ["--recipe", "bc", "--data", "d", "--out", "o"])
     cfg = config_from_args(IDMTrainConfig, args, args.flag_fields, recipe=recipes.IDM["bc"])
-    assert (cfg.steps, cfg.use_future) == (3000, False)
+    assert (cfg.max_steps, cfg.use_future) == (3000, False)
     _, args = _config(("train-idm",), ["--recipe", "idm", "--data", "d", "--out", "o", "--max-steps", "5"])
-    assert config_from_args(IDMTrainConfig, args, args.flag_fields, recipe=recipes.IDM["idm"]).steps == 5
+    assert config_from_args(IDMTrainConfig, args, args.flag_fields, recipe=recipes.IDM["idm"]).max_steps == 5
 
 
 @pytest.mark.slow

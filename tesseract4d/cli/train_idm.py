@@ -61,11 +61,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     from tesseract4d.recipes import IDM
 
     names = add_trainer_options(
-        parser, IDMTrainConfig, FLAGS, IDM, required=("data", "out"), flags={"steps": "--max-steps"},
-        types={"steps": whole(1), "max_minutes": number(0), "ckpt_every": whole(0, hint=" (0 = only at the end)")},
-        loop=("steps", "max_minutes", "resume", "quiet", "ckpt_every"))
+        parser, IDMTrainConfig, FLAGS, IDM, required=("data", "out"),
+        types={"max_minutes": number(0), "ckpt_every": whole(0, hint=" (0 = only at the end)")})
     parser.set_defaults(flag_fields=names)
-    add_deprecated(parser, "--steps", use="--max-steps", dest="steps", type=whole(1))
+    add_deprecated(parser, "--steps", use="--max-steps", dest="max_steps", type=whole(1))
     add_moved_to_set(parser, IDMTrainConfig, MOVED)
 
 

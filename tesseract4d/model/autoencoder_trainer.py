@@ -51,7 +51,7 @@ from tesseract4d.precision import announce, precision_field, resolve_precision
 from tesseract4d.segments import robot_object_mask
 from tesseract4d.training.checkpoints import (list_checkpoints, load_optimizer, resume_newest, save_optimizer,
                                               write_checkpoint)
-from tesseract4d.training.config import LoopConfig, option
+from tesseract4d.training.config import TrainingLoopConfig, option
 from tesseract4d.training.loop import (check_finite, learning_rate, loop_state, restore_loop_state, run_loop,
                                        set_learning_rate, write_config_file)
 from tesseract4d.model.autoencoder import (
@@ -66,8 +66,8 @@ LATENT_STATS_FRAMES = 256
 
 
 @dataclass
-class AutoencoderTrainConfig(LoopConfig):
-    """Options of `tesseract4d train-autoencoder`: the loop's (``LoopConfig``) and the autoencoder's."""
+class AutoencoderTrainConfig(TrainingLoopConfig):
+    """Options of `tesseract4d train-autoencoder`: the loop's (``TrainingLoopConfig``) and the autoencoder's."""
 
     data: Path | list[Path] | None = option(None, "dataset folder(s) written by `tesseract4d datagen --resolution 128`, "
                                                   "trained as one set")

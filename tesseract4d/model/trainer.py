@@ -40,7 +40,7 @@ from tesseract4d.psnr import rgb_psnr
 from tesseract4d.training.checkpoints import (CHECKPOINT_PREFIX, list_checkpoints, read_state, resume_newest,
                                               write_checkpoint)
 from tesseract4d.training.checkpoints import load_optimizer, load_rng, save_optimizer, save_rng
-from tesseract4d.training.config import LoopConfig, option
+from tesseract4d.training.config import TrainingLoopConfig, option
 from tesseract4d.training.loop import (check_finite, learning_rate, loop_state, restore_loop_state, run_loop,
                                        set_learning_rate, write_config_file)
 from tesseract4d.model.model_space import MODALITIES, ModelSpace
@@ -57,8 +57,8 @@ VALIDATION_STEPS = 10
 
 
 @dataclass
-class TrainConfig(LoopConfig):
-    """Options of `tesseract4d train`: the loop's (``LoopConfig``) and the model's; unset (None)
+class TrainConfig(TrainingLoopConfig):
+    """Options of `tesseract4d train`: the loop's (``TrainingLoopConfig``) and the model's; unset (None)
     training values take the preset's defaults."""
 
     data: Path | list[Path] | None = option(None, "dataset folder(s) written by `tesseract4d datagen`, trained as one set")

@@ -10,16 +10,16 @@ episodes' frames, and ``predicted_share`` of every batch pairs a true frame with
 predicted future instead (``predicted_pairs.py``), so the IDM learns to read generated frames.
 
     RUN/train_idm_config.json     the resolved IDMTrainConfig
-    RUN/checkpoint/               model.safetensors + idm_config.json + optimizer + rng + trainer_state.json
+    RUN/checkpoint-XXXXXX/        model.safetensors + idm_config.json + optimizer + rng + trainer_state.json
+    RUN/logs/                     TensorBoard (loss, lr, steps/s)
     RUN/final/                    the trained IDM (load_idm), with its fit on the training pairs
+
+The loop (stop signals, schedule, checkpoints, logs) is the project's one training loop
+(``tesseract4d/training/loop.py``).
 """
 
 from __future__ import annotations
 
-import dataclasses
-import json
-import os
-import time
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -27,44 +27,53 @@ import numpy as np
 import torch
 
 from tesseract4d import dataset_format as df
-from tesseract4d.configs import knob
 from tesseract4d.errors import UserError
 from tesseract4d.policy.idm import (
     ARM_JOINTS, IDMConfig, InverseDynamics, clip_gap, encode_target, save_idm, sentence_embeddings,
 )
 from tesseract4d.policy.points import frame_points
-from tesseract4d.stopping import StopSignals
+from tesseract4d.training.checkpoints import (list_checkpoints, load_optimizer, load_rng, resume_newest, save_optimizer,
+                                              save_rng, write_checkpoint)
+from tesseract4d.training.config import TrainingLoopConfig, option
+from tesseract4d.training.loop import (check_finite, learning_rate, loop_state, restore_loop_state, run_loop,
+                                       set_learning_rate, write_config_file)
+
+CONFIG_FILE = "train_idm_config.json"
+
 
 @dataclass
-class IDMTrainConfig:
-    data: str = knob("", "dataset folder written by `tesseract4d datagen` (best with --frames 0)", metavar="DIR")
-    out: str = knob("", "run folder", metavar="RUN", show_default=False)
-    use_future: bool = knob(True, "give the network the future cloud (false: behaviour cloning, the same network "
-                                  "without it)")
-    tasks: list[str] | None = knob(None, "task ids to train on (none: every task of the dataset)")
-    max_episodes_per_task: int = knob(0, "episodes per task at most (0 = all)")
-    camera: str | None = knob(None, "camera of the dataset (none: its first)")
-    steps: int = knob(2000, "optimiser steps", metavar="N")
-    batch_size: int = knob(32, "pairs per step")
-    lr: float = knob(1e-3, "peak learning rate")
-    num_points: int = knob(512, "points per cloud")
-    chunk_len: int = knob(8, "actions per predicted chunk")
-    noise_frac: float = knob(0.2, "share of future points given Gaussian noise, for generated frames")
-    noise_m: float = knob(0.02, "that noise's std in metres")
-    gap_scales: tuple[float, ...] = knob((0.5, 1.0, 2.0), "future frames at these multiples of episode_steps/15 ahead")
-    seed: int = knob(0, "training seed")
-    ckpt_every: int = knob(500, "checkpoint every K optimiser steps (0 = only at the end)", metavar="K")
-    max_minutes: float | None = knob(None, "stop with a checkpoint after this many minutes", metavar="M")
-    resume: bool = knob(False, "continue from RUN/checkpoint")
-    quiet: bool = knob(False, "no progress bars")
+class IDMTrainConfig(TrainingLoopConfig):
+    """Options of `tesseract4d train-idm`: the loop's (``TrainingLoopConfig``) and the IDM's."""
+
+    data: str = option("", "dataset folder of datagen episodes (with actions)")
+    out: str = option("", "the run folder (checkpoints, logs, final/)")
+    use_future: bool = option(True, "read the future frame (an inverse dynamics model); False: behaviour cloning")
+    tasks: list[str] | None = option(None, "train on these tasks only (default: every task of the data)")
+    max_episodes_per_task: int = option(0, "at most this many episodes per task (0: all)")
+    camera: str | None = option(None, "camera of the dataset (default: its first)")
+    max_steps: int | str = option(2000, "optimiser steps; the cosine learning-rate decay ends here; 'auto' (with "
+                                        "max_minutes) fits it to the time budget")
+    lr: float = option(1e-3, "peak learning rate")
+    warmup_steps: int = option(100, "linear learning-rate warm-up steps")
+    min_lr_ratio: float = option(0.0, "the learning rate at max_steps, as a share of the peak")
+    batch_size: int = option(32, "pairs per step")
+    num_points: int = option(512, "points per cloud")
+    chunk_len: int = option(8, "actions per predicted chunk")
+    noise_frac: float = option(0.2, "share of the future cloud's points given Gaussian noise (as on generated frames)")
+    noise_m: float = option(0.02, "std of that noise (metres)")
+    gap_scales: tuple[float, ...] = option((0.5, 1.0, 2.0), "future frames at these multiples of episode_steps/15 ahead")
     # A world-model checkpoint whose predictions from the episodes' frames serve as futures too
     # (None: true futures only); the share of each batch taken from those pairs; clips per episode;
     # sampler steps (None: the checkpoint's own).
-    predicted_futures: str | None = knob(None, "a world-model checkpoint: also train on its predicted futures "
-                                               "(none: true futures only)", metavar="CKPT")
-    predicted_share: float = knob(0.5, "share of each batch with predicted futures")
-    predicted_starts: int = knob(3, "clips predicted per episode")
-    predicted_sample_steps: int | None = knob(None, "sampler steps per predicted clip (none: the checkpoint's own)")
+    predicted_futures: str | None = option(None, "a world-model checkpoint whose predicted futures are trained on too")
+    predicted_share: float = option(0.5, "share of each batch from the predicted futures' pairs")
+    predicted_starts: int = option(3, "predicted clips per episode")
+    predicted_sample_steps: int | None = option(None, "sampler steps per predicted clip (default: the checkpoint's)")
+
+    def to_dict(self) -> dict:
+        from tesseract4d.configs import config_dict
+
+        return config_dict(self)
 
 
 @dataclass
@@ -216,25 +225,26 @@ class IDMTrainer:
     def __init__(self, config: IDMTrainConfig, text_encoder=None):
         from tesseract4d.outputs import claim_folder, release_new_folder
 
-        self.config = cfg = config
+        self.config = self.cfg = cfg = config
         if not cfg.data or not cfg.out:
             raise UserError("pass --data DATASET and --out RUN")
+        cfg.check_loop()
         self.out = Path(cfg.out)
-        ckpt = self.out / "checkpoint"
-        if ckpt.exists() and not cfg.resume:
+        existing = list_checkpoints(self.out)
+        if existing and not cfg.resume:
             raise UserError(f"{self.out} already holds a checkpoint; pass --resume to continue, or choose a new --out")
-        if cfg.resume and not ckpt.exists():
+        if cfg.resume and not existing:
             raise UserError(f"--resume: {self.out} has no checkpoint to continue from")
         # A folder holding other files is refused (a run of its own is continued with --resume).
-        fresh = claim_folder(self.out, "train-idm", inputs=[cfg.data], legacy_marker="train_idm_config.json")
+        fresh = claim_folder(self.out, "train-idm", inputs=[cfg.data], legacy_marker=CONFIG_FILE)
         try:
-            self._setup(cfg, ckpt, text_encoder)
+            self._setup(cfg, text_encoder)
         except BaseException:
             if fresh is not None:  # a mistake found while setting up leaves nothing behind
                 release_new_folder(self.out, remove_folder=fresh)
             raise
 
-    def _setup(self, cfg: IDMTrainConfig, ckpt: Path, text_encoder) -> None:
+    def _setup(self, cfg: IDMTrainConfig, text_encoder) -> None:
         from safetensors.torch import load_file
 
         from tesseract4d.model.text_encoder import TextEncoder
@@ -261,7 +271,7 @@ class IDMTrainer:
             use_future=cfg.use_future, num_points=cfg.num_points, chunk_len=cfg.chunk_len, action_dim=p.action_dim,
             qpos_dim=int(p.qpos.shape[1]), text_dim=int(p.text.shape[1]), control_mode=p.control_mode, camera=p.camera,
             resolution=list(p.resolution),
-            training={"data": str(cfg.data), "episodes": len(p.episodes), "pairs": int(len(p.now)), "steps": cfg.steps,
+            training={"data": str(cfg.data), "episodes": len(p.episodes), "pairs": int(len(p.now)), "steps": cfg.max_steps,
                       "batch_size": cfg.batch_size, "lr": cfg.lr, "noise_frac": cfg.noise_frac, "noise_m": cfg.noise_m, "gap_scales": list(cfg.gap_scales),
                       "tasks": sorted({e.split("/")[0] for e in p.episodes}), "seed": cfg.seed},
         )
@@ -278,26 +288,23 @@ class IDMTrainer:
         self.model.qpos_std.copy_(torch.from_numpy(np.maximum(p.qpos.std(0), 1e-3)))
         self.optimizer = torch.optim.AdamW(self.model.parameters(), lr=cfg.lr, weight_decay=1e-4)
         self.step = 0
+        self.elapsed_s = 0.0
         self.stopped_by: int | None = None  # the signal that stopped train(), if one did
         self.last_loss = float("nan")
         if cfg.resume:
-            from tesseract4d.model.trainer import load_optimizer, load_rng
+            def load(ckpt: Path, state: dict) -> None:
+                if state["use_future"] != cfg.use_future:
+                    raise UserError(f"{self.out} trains use_future={state['use_future']}; resume it the same way")
+                self.model.load_state_dict(load_file(str(ckpt / "model.safetensors")))
+                load_optimizer(self.optimizer, ckpt)
+                load_rng(ckpt)
+                restore_loop_state(self, state)
 
-            saved = json.loads((ckpt / "trainer_state.json").read_text())
-            if saved["use_future"] != cfg.use_future:
-                raise UserError(f"{self.out} trains use_future={saved['use_future']}; resume it the same way")
-            self.model.load_state_dict(load_file(str(ckpt / "model.safetensors")))
-            load_optimizer(self.optimizer, ckpt)
-            load_rng(ckpt)
-            self.step = int(saved["step"])
-        df.atomic_write_text(self.out / "train_idm_config.json", json.dumps(dataclasses.asdict(cfg), indent=2))
+            resume_newest(self.out, load)
+        self.write_config()
 
-    def lr_at(self, step: int) -> float:
-        warm = 100
-        if step < warm:
-            return self.config.lr * (step + 1) / warm
-        frac = (step - warm) / max(1, self.config.steps - warm)
-        return self.config.lr * 0.5 * (1 + np.cos(np.pi * min(1.0, frac)))
+    def write_config(self) -> None:
+        write_config_file(self.out / CONFIG_FILE, self.cfg)
 
     def train_step(self) -> float:
         cfg, p = self.config, self.pairs
@@ -308,68 +315,40 @@ class IDMTrainer:
         else:
             idx = rng.integers(0, len(p.now), cfg.batch_size)
         b = make_batch(p, idx, rng, cfg.noise_frac, cfg.noise_m)
-        for g in self.optimizer.param_groups:
-            g["lr"] = self.lr_at(self.step)
+        lr = learning_rate(self)
+        set_learning_rate(self.optimizer, lr)
         self.model.train()
         out = self.model(b["points_now"], b["points_next"] if cfg.use_future else None, b["text"], b["qpos"])
         loss = torch.nn.functional.mse_loss(out, (b["target"] - self.model.target_mean) / self.model.target_std)
         self.optimizer.zero_grad(set_to_none=True)
         loss.backward()
-        torch.nn.utils.clip_grad_norm_(self.model.parameters(), 1.0)
+        grad_norm = torch.nn.utils.clip_grad_norm_(self.model.parameters(), 1.0)
+        check_finite(float(loss.detach()), float(grad_norm), step=self.step + 1, run=self.out)
         self.optimizer.step()
         self.step += 1
         self.last_loss = float(loss.detach())
-        return self.last_loss
+        return {"loss": self.last_loss, "lr": lr, "grad_norm": float(grad_norm)}
 
     def save_checkpoint(self) -> Path:
-        """RUN/checkpoint, written whole beside it and swapped in: a stop mid-write keeps the previous one."""
-        import shutil
+        """RUN/checkpoint-XXXXXX of the current step (training/checkpoints.py)."""
+        def write(tmp: Path) -> None:
+            save_idm(self.model, tmp)
+            save_optimizer(self.optimizer, tmp)
+            save_rng(tmp)
 
-        from tesseract4d.model.trainer import save_optimizer, save_rng
-        from tesseract4d.outputs import signals_held
+        return write_checkpoint(self.out, self.step, {**loop_state(self), "use_future": self.cfg.use_future}, write,
+                                keep=self.cfg.keep_checkpoints)
 
-        ckpt = self.out / "checkpoint"
-        tmp = self.out / ".checkpoint.tmp"  # this run's own name; one a killed run left is replaced
-        shutil.rmtree(tmp, ignore_errors=True)
-        save_idm(self.model, tmp)
-        save_optimizer(self.optimizer, tmp)
-        save_rng(tmp)
-        df.atomic_write_text(tmp / "trainer_state.json", json.dumps(
-            {"step": self.step, "use_future": self.config.use_future, "last_loss": self.last_loss}))
-        with signals_held():
-            shutil.rmtree(ckpt, ignore_errors=True)
-            os.replace(tmp, ckpt)
-        return ckpt
+    def export(self) -> Path:
+        """RUN/final: the trained IDM with its fit on the training pairs."""
+        self.model.config.training.update({"trained_steps": self.step, "last_loss": self.last_loss,
+                                           "minutes": round(self.elapsed_s / 60, 2)})
+        self.model.config.training["fit"] = fit_report(self.model, self.pairs)
+        if len(self.pred_idx):
+            self.model.config.training["fit_predicted"] = fit_report(self.model, self.pairs, predicted=True)
+        return save_idm(self.model, self.out / "final")
 
     def train(self) -> Path:
-        from tqdm import tqdm
-
-        cfg = self.config
-        t0 = time.monotonic()
-        bar = tqdm(total=cfg.steps, initial=self.step, desc="train idm" if cfg.use_future else "train bc", unit="step",
-                   disable=cfg.quiet)
-        # Ctrl-C or SIGTERM stop after the step: the checkpoint and final/ are written, then the command
-        # line exits 130 / 143 (stopped_by).
-        with StopSignals() as stop:
-            while self.step < cfg.steps and not stop.requested:
-                loss = self.train_step()
-                bar.update(1)
-                bar.set_postfix_str(f"loss {loss:.4f}")
-                if cfg.ckpt_every and self.step % cfg.ckpt_every == 0:
-                    self.save_checkpoint()
-                if cfg.max_minutes is not None and time.monotonic() - t0 > 60 * cfg.max_minutes:
-                    break
-            bar.close()
-            if stop.requested:
-                print(f"stopped at step {self.step}; saving a checkpoint and final/", flush=True)
-            self.save_checkpoint()
-            self.model.config.training.update({"trained_steps": self.step, "last_loss": self.last_loss,
-                                               "minutes": round((time.monotonic() - t0) / 60, 2)})
-            self.model.config.training["fit"] = fit_report(self.model, self.pairs)
-            if len(self.pred_idx):
-                self.model.config.training["fit_predicted"] = fit_report(self.model, self.pairs, predicted=True)
-            final = save_idm(self.model, self.out / "final")
-        self.stopped_by = stop.signum
-        return final
-
-
+        """Train until max_steps or max_minutes, or a stop signal (training/loop.py); always ends with a
+        checkpoint and RUN/final. Returns that folder."""
+        return run_loop(self, "train idm" if self.cfg.use_future else "train bc")

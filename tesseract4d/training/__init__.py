@@ -5,7 +5,7 @@ autoencoder trainer (``model/autoencoder_trainer.py``) and the inverse dynamics 
 (``policy/idm_trainer.py``) each supply their step and their export; this package owns what they
 share, so a run behaves the same whichever command started it:
 
-- ``config.py``: ``LoopConfig``, the loop's options (steps, minutes, checkpoint cadence, learning
+- ``config.py``: ``TrainingLoopConfig``, the loop's options (steps, minutes, checkpoint cadence, learning
   rate and warm-up, seed, quiet, resume), which every trainer's config extends;
 - ``schedule.py``: the learning-rate schedule and ``--max-steps auto``;
 - ``checkpoints.py``: checkpoint folders written whole and rotated, optimiser and RNG state without

@@ -1,4 +1,4 @@
-"""The training loop's options, once: every trainer's config extends ``LoopConfig``.
+"""The training loop's options, once: every trainer's config extends ``TrainingLoopConfig``.
 
 Each field carries its default and a one-line help (``metadata["help"]``), from which the command
 line derives its flags. A trainer may give a field another default by declaring it again (the
@@ -26,7 +26,7 @@ def option(default, help: str, *, default_factory=None, internal: bool = False):
 
 
 @dataclass
-class LoopConfig:
+class TrainingLoopConfig:
     """Options of the loop that every trainer shares (``training/loop.py``)."""
 
     max_steps: int | str = option(5000, "optimiser steps; the cosine learning-rate decay ends here; 'auto' (with "

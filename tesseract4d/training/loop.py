@@ -1,7 +1,7 @@
 """The training loop every trainer plugs into: the trainer supplies its step and its export, the loop the rest.
 
 A trainer (``model/trainer.py``, ``model/reflow.py``, ``model/autoencoder_trainer.py``,
-``policy/idm_trainer.py``) has ``cfg`` (a ``LoopConfig``), ``out`` (its run folder), ``step``, and:
+``policy/idm_trainer.py``) has ``cfg`` (a ``TrainingLoopConfig``), ``out`` (its run folder), ``step``, and:
 
 - ``train_step() -> dict``: one optimiser step at ``learning_rate(trainer)``, its logs (with ``loss``);
   it calls :func:`check_finite` before the optimiser step;
