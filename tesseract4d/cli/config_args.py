@@ -29,6 +29,10 @@ from tesseract4d.configs import (
 from tesseract4d.errors import UserError
 
 SET_DEST = "set_overrides"
+# How --help names the value of the trainers' common fields (their metadata may name it otherwise).
+METAVARS = {"max_steps": "N|auto", "max_minutes": "M", "ckpt_every": "N", "data": "DIR", "pairs.data": "DIR",
+            "heldout": "DIR", "out": "RUN", "student.out": "RUN", "pairs.out": "PAIRS", "init": "CKPT",
+            "teacher": "CKPT", "autoencoder": "DIR", "predicted_futures": "CKPT"}
 
 
 def deprecation_line(old: str, new: str) -> str:
@@ -100,6 +104,8 @@ def add_field_flags(parser, cls, names: Iterable[str], *, types: dict[str, Calla
             for key in ("metavar", "choices"):
                 if key in f.metadata:
                     kwargs[key] = f.metadata[key]
+            if "metavar" not in kwargs and name in METAVARS:
+                kwargs["metavar"] = METAVARS[name]
             if name in required:
                 kwargs["required"] = True
         parser.add_argument(flag, help=help_, **kwargs)
