@@ -146,3 +146,11 @@ def test_set_list_prints_every_field_with_its_help(capsys):
         build_parser(("reconstruct",))[0].parse_args(["in", "--out", "o", "--set", "list"])
     out = capsys.readouterr().out
     assert ended.value.code == 0 and "flow_threshold_px = 1.0" in out and "marks a pixel dynamic" in out
+
+
+def test_groups_list_their_subcommands(capsys):
+    assert main(["checkpoint", "--help"]) == 0
+    out = capsys.readouterr().out
+    assert all(name in out for name in GROUPS["checkpoint"])
+    assert main(["research"]) == 2 and "phrasings" in capsys.readouterr().err
+    assert main(["checkpoint", "frobnicate"]) == 2 and "export" in capsys.readouterr().err

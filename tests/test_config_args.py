@@ -59,7 +59,7 @@ def _config(argv, **kw) -> Options:
 def test_flags_carry_the_fields_help_and_default():
     text = " ".join(_parser().format_help().split())
     assert "--lr LR peak learning rate" in text
-    assert "--max-steps MAX_STEPS optimiser steps, or auto (default 5000)" in text
+    assert "--max-steps N|auto optimiser steps, or auto (default 5000)" in text
     assert "--group-batches batches of whole groups" in text and "--quiet progress bars" in text
     assert "--no-progress" not in text and "--learning-rate" not in text  # old spellings hidden
 

@@ -144,7 +144,7 @@ def main(argv: list[str] | None = None) -> int:
     words: tuple[str, ...] = (name,)
     if name in GROUPS:
         if len(argv) < 2 or argv[1] in ("-h", "--help"):
-            print(_group_help(name))
+            print(_group_help(name), file=sys.stdout if len(argv) >= 2 else sys.stderr)
             return 0 if len(argv) >= 2 else 2
         if argv[1] not in GROUPS[name]:
             print(f"tesseract4d {name}: unknown subcommand {argv[1]!r}; choose one of: {', '.join(GROUPS[name])}",
