@@ -180,10 +180,3 @@ PRECISION_HELP = ("numeric precision: auto (default) = bf16 only where the CPU h
 def precision_field():
     """The ``precision`` field of a config dataclass (auto|fp32|bf16), with its help."""
     return knob("auto", PRECISION_HELP, choices=PRECISIONS)
-
-
-def add_precision_argument(parser) -> None:
-    """The ``--precision`` option shared by every command that runs a model."""
-    parser.add_argument(
-        "--precision", choices=PRECISIONS, default="auto", help=PRECISION_HELP,
-    )
