@@ -396,7 +396,7 @@ def test_resume_falls_back_to_the_newest_intact_checkpoint(sandbox, capsys):
     rc, out, err = run_cli(capsys, "train", "--set", f"preset={MICRO.name}", "--data", "data", "--out", "run", "--resume",
                            "--max-steps", "3", "--ckpt-every", "0", "--set", "val_every=0", "--quiet")
     assert rc == 0, err
-    assert "checkpoint-000002" in out and "damaged" in out and "resuming from checkpoint-000001" in out
+    assert "checkpoint-000002" in out and "damaged" in out and "resuming from checkpoint-000001 (step 1)" in out
     state = json.loads((sandbox / "run" / "checkpoint-000003" / "trainer_state.json").read_text())
     assert state["step"] == 3
 

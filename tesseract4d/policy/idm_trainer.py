@@ -70,11 +70,6 @@ class IDMTrainConfig(TrainingLoopConfig):
     predicted_starts: int = option(3, "predicted clips per episode")
     predicted_sample_steps: int | None = option(None, "sampler steps per predicted clip (default: the checkpoint's)")
 
-    def to_dict(self) -> dict:
-        from tesseract4d.configs import config_dict
-
-        return config_dict(self)
-
 
 @dataclass
 class PairSet:

@@ -72,13 +72,14 @@ def resume_newest(run: str | os.PathLike, load: Callable[[Path, dict], None]) ->
                         f"drop --resume to start a new run")
     for ckpt in reversed(checkpoints):
         try:
-            load(ckpt, read_state(ckpt))
+            state = read_state(ckpt)
+            load(ckpt, state)
         except (SafetensorError, OSError, ValueError, KeyError) as e:
             print(f"warning: checkpoint {ckpt} is damaged ({type(e).__name__}: {str(e).splitlines()[0][:120]}); "
                   f"trying an older one", flush=True)
             continue
         if ckpt != checkpoints[-1]:
-            print(f"resuming from {ckpt.name}, the newest intact checkpoint", flush=True)
+            print(f"resuming from {ckpt.name} (step {state.get('step')}), the newest intact checkpoint", flush=True)
         return ckpt
     raise UserError(f"every checkpoint in {run} is damaged; start a new run with another --out")
 

@@ -11,7 +11,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from tesseract4d.configs import knob
+from tesseract4d.configs import config_dict, knob
 from tesseract4d.errors import UserError
 from tesseract4d.training.schedule import AUTO, check_max_steps
 
@@ -44,6 +44,9 @@ class TrainingLoopConfig:
     resume: bool = option(False, "continue the run in the output folder from its newest intact checkpoint")
     quiet: bool = option(False, "no progress bars")
     max_steps_fit: dict | None = option(None, "set by the loop: how max_steps 'auto' was fitted", internal=True)
+
+    def to_dict(self) -> dict:
+        return config_dict(self)
 
     def check_loop(self) -> None:
         """One-line UserErrors for loop options that cannot run (call on the resolved config, before
