@@ -87,7 +87,8 @@ def test_no_dated_work_log_in_any_help():
     for words in every_subcommand():
         for p in _nested(build_parser(words)[0]):
             text = p.format_help()
-            assert not re.search(r"\b20\d\d-\d\d-\d\d\b|\b(runs|outputs)/s\d\d|\bsession\b", text), p.prog
+            assert not re.search(r"\b20\d\d-\d\d-\d\d\b|\b(runs|outputs)/s\d\d|\bsession\b|results_history|"
+                                 r"\bcommit [0-9a-f]{7}|README \"", text), p.prog
 
 
 @pytest.mark.parametrize("old, new", sorted(DEPRECATED_COMMANDS.items()))
