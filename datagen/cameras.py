@@ -7,7 +7,7 @@
 - ``side``: the ``close`` view mirrored to the robot's other side (y -> -y), a second viewpoint.
 
 A view is an eye point, a look-at target and an up vector in world metres plus a vertical field
-of view. Pose jitter (``--camera-jitter M``) moves eye and target by independent uniform offsets
+of view. Pose jitter (``datagen --set camera_jitter_m=M``) moves eye and target by independent uniform offsets
 in [-M, M] metres per axis, drawn from the episode's seed, so every episode sees the scene from
 a slightly different pose and the same seed always gives the same pose.
 """

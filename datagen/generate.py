@@ -36,6 +36,7 @@ from datagen.tasks import get_task
 from tesseract4d.dataset_format import (
     INFO_FILE, LOCK_FILE, PREVIEWS_DIR, DatasetInfo, atomic_write_text, init_dataset, list_episode_files, remove_partial_files,
 )
+from tesseract4d.configs import knob
 from tesseract4d.errors import UserError
 
 CONFIG_FILE = "datagen_config.json"
@@ -61,10 +62,10 @@ class DatagenConfig:
     out: Path
     sim: SimConfig = field(default_factory=SimConfig)
     seed_start: int = 0
-    max_attempts: int | None = None  # per task; None = 4 * episodes + 4
+    max_attempts: int | None = knob(None, "seeds tried per task at most (none: 4 * episodes + 4)")
     workers: int = 1
-    ray_address: str | None = None
-    previews: bool = True
+    ray_address: str | None = knob(None, "address of a running Ray cluster (none: a local Ray instance when workers > 1)")
+    previews: bool = knob(True, "write MP4 previews of every episode")
     instructions_per_scene: int = 1  # K futures per initial state (skill mode)
     skills: list[str] | None = None  # skill specs (datagen/skills.py); None = all that apply
 

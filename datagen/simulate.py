@@ -17,6 +17,7 @@ import numpy as np
 
 from datagen.cameras import PRESETS, episode_views
 from datagen.tasks import CONTROL_MODE, get_task
+from tesseract4d.configs import knob
 from tesseract4d.dataset_format import CameraFrames, Episode
 from tesseract4d.errors import UserError
 
@@ -36,15 +37,18 @@ VULKAN_FIX = (
 class SimConfig:
     """How episodes are simulated and rendered (the datagen options that shape one episode)."""
 
-    height: int = 128  # training-data default; the tiny preset trains at 64 (datagen --resolution 64)
-    width: int = 128
-    cameras: list[str] = field(default_factory=lambda: ["close"])
-    frames: int = 16  # evenly spaced frames kept per episode; 0 = every step
-    camera_jitter_m: float = 0.0
-    randomize_colors: bool = False
-    randomize_lighting: bool = False
-    instruction_split: str = "train"
-    goal_marker: bool = False  # scenes without a task (the tabletop): show a goal marker
+    # training-data default; the tiny preset trains at 64 (datagen --resolution 64)
+    height: int = knob(128, "image height in pixels (datagen --resolution sets both)")
+    width: int = knob(128, "image width in pixels (datagen --resolution sets both)")
+    cameras: list[str] = knob(help="camera presets (datagen/cameras.py)", default_factory=lambda: ["close"])
+    frames: int = knob(16, "evenly spaced frames kept per episode, first and last included; 0 = every step")
+    camera_jitter_m: float = knob(0.0, "move camera eye and target by up to this many metres per axis, per episode")
+    randomize_colors: bool = knob(False, "random named colour of the task's cubes per episode (the instruction says "
+                                         "it; the tabletop draws its objects' colours every episode anyway)")
+    randomize_lighting: bool = knob(False, "random ambient/directional light per episode")
+    instruction_split: str = knob("train", "instruction paraphrases to draw from ('heldout' is kept for evaluation)")
+    goal_marker: bool = knob(False, "a red and white goal marker on the tabletop (default: none, so only the "
+                                    "instruction says what should happen)")
 
     def env_kwargs(self, env_id: str) -> dict:
         """Keyword arguments of gym.make for ``env_id`` (stored per episode for re-simulation)."""

@@ -180,7 +180,7 @@ def present_objects(env_id: str, base_env) -> list[SceneObject]:
 
 def object_colors(env_id: str, base_env, appearance_colors: dict[str, str] | None = None) -> dict[str, str]:
     """Colour name of each present object (the tabletop draws them per episode; the single-task
-    scenes have ManiSkill's colours unless ``--randomize-colors`` replaced them)."""
+    scenes have ManiSkill's colours unless ``datagen --set randomize_colors=true`` replaced them)."""
     if env_id == TABLETOP_ID:
         return dict(base_env.object_colors)
     appearance_colors = appearance_colors or {}

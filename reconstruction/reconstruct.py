@@ -31,6 +31,7 @@ import numpy as np
 
 from reconstruction.backproject import frame_points
 from reconstruction.recon4d import Recon4D
+from tesseract4d.configs import knob
 from tesseract4d.dataset_format import CameraFrames, Episode
 from tesseract4d.errors import UserError
 from tesseract4d.geometry import MIN_NORMAL_LENGTH, normals_from_depth
@@ -42,21 +43,25 @@ class ReconConfig:
     per pixel pair); the paper used 200 / 20 / 2 (background / dynamic / regulariser) on
     synthetic data. The normal weight is ours (the paper does not publish it)."""
 
-    refine: bool = True  # False: plain back-projection of the input depth
-    normal_weight: float = 100.0  # normal-depth consistency, per neighbouring pixel pair
-    static_weight: float = 200.0  # temporal term where the pixel is static in both frames
-    dynamic_weight: float = 20.0  # temporal term elsewhere (moving parts)
-    reg_weight: float = 2.0  # pull toward the input depth
-    iterations: int = 300  # maximum conjugate-gradient iterations of the joint solve
-    tolerance: float = 1e-4  # relative residual at which the solve stops (1e-5 changes Chamfer < 0.01 mm)
-    flow_threshold_px: float = 1.0  # flow beyond the camera's own motion above this = dynamic (DIS errors reach ~0.5 px)
-    discontinuity_log_tol: float = 0.05  # drop normal rows whose input depth step differs this much (log); adaptive to noise
-    discontinuity_normal_deg: float = 45.0  # ... or whose two normals differ by more (degrees)
-    temporal_gate_log: float = 0.02  # drop temporal rows whose input depths differ more (occlusions); adaptive to noise
-    voxel_size_m: float | None = None  # TSDF voxel; None = 1.5 pixel footprints at the median depth
-    trunc_voxels: float = 4.0  # TSDF truncation, in voxels
-    fuse_background: bool = True  # TSDF-fuse static pixels into a background cloud and mesh
-    mesh: bool = True  # also extract the background mesh
+    refine: bool = knob(True, "refine depth (false: plain back-projection of the input depth)")
+    normal_weight: float = knob(100.0, "normal-depth consistency, per neighbouring pixel pair")
+    static_weight: float = knob(200.0, "temporal term where the pixel is static in both frames (background)")
+    dynamic_weight: float = knob(20.0, "temporal term elsewhere (moving parts)")
+    reg_weight: float = knob(2.0, "pull toward the input depth (> 0: it fixes the depth scale)")
+    iterations: int = knob(300, "maximum conjugate-gradient iterations of the joint solve")
+    # 1e-5 changes Chamfer < 0.01 mm
+    tolerance: float = knob(1e-4, "relative residual at which the solve stops")
+    # DIS optical flow errors reach ~0.5 px
+    flow_threshold_px: float = knob(1.0, "flow in pixels beyond the camera's own motion that marks a pixel dynamic")
+    discontinuity_log_tol: float = knob(0.05, "drop normal rows whose input depth step differs this much (log); "
+                                              "adaptive to noise")
+    discontinuity_normal_deg: float = knob(45.0, "... or whose two normals differ by more (degrees)")
+    temporal_gate_log: float = knob(0.02, "drop temporal rows whose input depths differ more (occlusions); "
+                                          "adaptive to noise")
+    voxel_size_m: float | None = knob(None, "TSDF voxel edge in metres (none: 1.5 pixel footprints at the median depth)")
+    trunc_voxels: float = knob(4.0, "TSDF truncation, in voxels")
+    fuse_background: bool = knob(True, "TSDF-fuse static pixels into a background cloud and mesh")
+    mesh: bool = knob(True, "also extract the background mesh")
 
     def validate(self) -> None:
         for name in ("normal_weight", "static_weight", "dynamic_weight", "reg_weight"):

@@ -25,6 +25,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Iterable
 
+from tesseract4d.configs import knob
 from tesseract4d.errors import UserError
 
 PRECISIONS = ("auto", "fp32", "bf16")
@@ -172,10 +173,10 @@ def announce(precision: Precision) -> None:
         print(line, file=sys.stderr)
 
 
-def add_precision_argument(parser) -> None:
-    """The ``--precision`` option shared by every command that runs a model."""
-    parser.add_argument(
-        "--precision", choices=PRECISIONS, default="auto",
-        help="numeric precision: auto (default) = bf16 only where the CPU has AMX or AVX512-BF16 "
-             "(or on a GPU with bf16), else fp32; forcing bf16 elsewhere is much slower",
-    )
+PRECISION_HELP = ("numeric precision: auto (default) = bf16 only where the CPU has AMX or AVX512-BF16 (or on a GPU "
+                  "with bf16), else fp32; forcing bf16 elsewhere is much slower")
+
+
+def precision_field():
+    """The ``precision`` field of a config dataclass (auto|fp32|bf16), with its help."""
+    return knob("auto", PRECISION_HELP, choices=PRECISIONS)

@@ -233,15 +233,15 @@ def test_export_keeps_files_it_did_not_write(sandbox, capsys):
     to.mkdir()
     (to / "MODEL_CARD.md").write_text("# my model card")
     before = snapshot(sandbox)
-    rc, _, err = run_cli(capsys, "train", "--export", "run", "--to", to)
+    rc, _, err = run_cli(capsys, "checkpoint", "export", "run", "--to", to)
     assert_one_line_error(rc, err, "published", "--overwrite")
     assert changed(before, snapshot(sandbox)) == set()
-    rc, _, err = run_cli(capsys, "train", "--export", "run", "--to", to, "--overwrite")
+    rc, _, err = run_cli(capsys, "checkpoint", "export", "run", "--to", to, "--overwrite")
     assert rc == 0, err
     assert (to / "MODEL_CARD.md").read_text() == "# my model card"
     assert (to / "transformer" / "diffusion_pytorch_model.safetensors").is_file()
     # Exporting again replaces the export's own files only.
-    rc, _, err = run_cli(capsys, "train", "--export", "run", "--to", to)
+    rc, _, err = run_cli(capsys, "checkpoint", "export", "run", "--to", to)
     assert rc == 0, err
     assert (to / "MODEL_CARD.md").read_text() == "# my model card"
 
@@ -250,10 +250,10 @@ def test_export_keeps_files_it_did_not_write(sandbox, capsys):
 def test_output_that_is_a_file(sandbox, capsys, case):
     before = snapshot(sandbox)
     if case == "export-to-file":
-        rc, _, err = run_cli(capsys, "train", "--export", "run", "--to", "notes.txt")
+        rc, _, err = run_cli(capsys, "checkpoint", "export", "run", "--to", "notes.txt")
     else:
-        rc, _, err = run_cli(capsys, "train", "--preset", MICRO.name, "--data", "data", "--out", "notes.txt",
-                             "--max-steps", "1", "--no-progress")
+        rc, _, err = run_cli(capsys, "train", "--set", f"preset={MICRO.name}", "--data", "data", "--out", "notes.txt",
+                             "--max-steps", "1", "--quiet")
     assert_one_line_error(rc, err, "notes.txt", "is a file")
     assert changed(before, snapshot(sandbox)) == set()
 
@@ -343,7 +343,6 @@ def test_two_datagen_processes_on_one_folder(tmp_path, capsys):
     (["--loss-weights", "rgb=-1,depth=1,normal=1"], ["rgb=-1", ">= 0"]),
     (["--loss-weights", "rgb=0,depth=0,normal=0"], ["not all be zero"]),
     (["--loss-weights", "colour=1"], ["colour"]),
-    (["--loss-weights", "rgb"], ["--loss-weights"]),
     (["--max-steps", "0"], ["--max-steps"]),
     (["--max-steps", "-1"], ["--max-steps"]),
     (["--max-steps", "auto"], ["--max-steps auto", "--max-minutes"]),
@@ -353,22 +352,31 @@ def test_two_datagen_processes_on_one_folder(tmp_path, capsys):
 ])
 def test_train_numeric_options_are_checked_before_anything_is_written(sandbox, capsys, args, words):
     before = snapshot(sandbox)
-    rc, _, err = run_cli(capsys, "train", "--preset", MICRO.name, "--data", "data", "--out", "newrun", "--no-progress",
+    rc, _, err = run_cli(capsys, "train", "--set", f"preset={MICRO.name}", "--data", "data", "--out", "newrun", "--quiet",
                          "--max-steps", "1", *args)
     assert_one_line_error(rc, err, *words)
     assert changed(before, snapshot(sandbox)) == set()
 
 
+def test_train_loss_weights_that_are_no_weights_end_at_parse_time(sandbox, capsys):
+    before = snapshot(sandbox)
+    for argv in (["--loss-weights", "rgb"], ["--set", "loss_weights=rgb"]):
+        with pytest.raises(SystemExit) as ended:
+            run_cli(capsys, "train", "--set", f"preset={MICRO.name}", "--data", "data", "--out", "newrun", *argv)
+        assert ended.value.code == 2 and "loss" in capsys.readouterr().err
+    assert changed(before, snapshot(sandbox)) == set()
+
+
 def test_train_with_missing_data_leaves_no_run_folder(sandbox, capsys):
     before = snapshot(sandbox)
-    rc, _, err = run_cli(capsys, "train", "--preset", MICRO.name, "--data", "nowhere", "--out", "newrun", "--no-progress")
+    rc, _, err = run_cli(capsys, "train", "--set", f"preset={MICRO.name}", "--data", "nowhere", "--out", "newrun", "--quiet")
     assert_one_line_error(rc, err, "nowhere")
     assert changed(before, snapshot(sandbox)) == set()
 
 
 def test_train_out_inside_the_data_is_refused(sandbox, capsys):
     before = snapshot(sandbox)
-    rc, _, err = run_cli(capsys, "train", "--preset", MICRO.name, "--data", "data", "--out", "data/run", "--no-progress")
+    rc, _, err = run_cli(capsys, "train", "--set", f"preset={MICRO.name}", "--data", "data", "--out", "data/run", "--quiet")
     assert_one_line_error(rc, err, "input")
     assert changed(before, snapshot(sandbox)) == set()
 
@@ -376,8 +384,8 @@ def test_train_out_inside_the_data_is_refused(sandbox, capsys):
 def test_resume_without_a_checkpoint_errors(sandbox, capsys):
     (sandbox / "empty_run").mkdir()
     before = snapshot(sandbox)
-    rc, _, err = run_cli(capsys, "train", "--preset", MICRO.name, "--data", "data", "--out", "empty_run", "--resume",
-                         "--no-progress")
+    rc, _, err = run_cli(capsys, "train", "--set", f"preset={MICRO.name}", "--data", "data", "--out", "empty_run", "--resume",
+                         "--quiet")
     assert_one_line_error(rc, err, "no checkpoint", "drop --resume")
     assert changed(before, snapshot(sandbox)) == set()
 
@@ -385,8 +393,8 @@ def test_resume_without_a_checkpoint_errors(sandbox, capsys):
 def test_resume_falls_back_to_the_newest_intact_checkpoint(sandbox, capsys):
     latest = sandbox / "run" / "checkpoint-000002" / "transformer" / "diffusion_pytorch_model.safetensors"
     latest.write_bytes(latest.read_bytes()[:1000])  # truncated, as by a full disk
-    rc, out, err = run_cli(capsys, "train", "--preset", MICRO.name, "--data", "data", "--out", "run", "--resume",
-                           "--max-steps", "3", "--ckpt-every", "0", "--val-every", "0", "--no-progress")
+    rc, out, err = run_cli(capsys, "train", "--set", f"preset={MICRO.name}", "--data", "data", "--out", "run", "--resume",
+                           "--max-steps", "3", "--ckpt-every", "0", "--set", "val_every=0", "--quiet")
     assert rc == 0, err
     assert "checkpoint-000002" in out and "damaged" in out and "resuming from checkpoint-000001 (step 1)" in out
     state = json.loads((sandbox / "run" / "checkpoint-000003" / "trainer_state.json").read_text())
@@ -394,9 +402,9 @@ def test_resume_falls_back_to_the_newest_intact_checkpoint(sandbox, capsys):
 
 
 def test_diverging_training_stops_with_the_step_and_keeps_the_checkpoints(sandbox, capsys):
-    rc, _, err = run_cli(capsys, "train", "--preset", MICRO.name, "--data", "data", "--out", "run", "--resume",
-                         "--max-steps", "50", "--lr", "1e30", "--warmup-steps", "0", "--ckpt-every", "1",
-                         "--val-every", "0", "--no-progress")
+    rc, _, err = run_cli(capsys, "train", "--set", f"preset={MICRO.name}", "--data", "data", "--out", "run", "--resume",
+                         "--max-steps", "50", "--set", "lr=1e30", "--set", "warmup_steps=0", "--ckpt-every", "1",
+                         "--set", "val_every=0", "--quiet")
     assert_one_line_error(rc, err, "diverged at step", "last good checkpoint")
     step = int(err.split("diverged at step ")[1].split(":")[0])
     ckpts = sorted(p.name for p in (sandbox / "run").glob("checkpoint-*"))
@@ -480,8 +488,8 @@ def _damage(path: Path, how: str) -> None:
 
 COMMANDS = {
     "dataset check": lambda sb, p: ["dataset", "check", "data"],
-    "train": lambda sb, p: ["train", "--preset", MICRO.name, "--data", "data", "--out", "newrun", "--max-steps", "1",
-                            "--no-progress"],
+    "train": lambda sb, p: ["train", "--set", f"preset={MICRO.name}", "--data", "data", "--out", "newrun", "--max-steps", "1",
+                            "--quiet"],
     "predict": lambda sb, p: ["predict", "--checkpoint", "ckpt", "--episode", p, "--out", "pred", "--steps", "1"],
     "view": lambda sb, p: ["view", p, "--export", "scene.html"],
     "evaluate": lambda sb, p: ["evaluate", p, "--gt", "data/Synthetic-v0/1"],

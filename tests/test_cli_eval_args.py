@@ -92,17 +92,20 @@ def test_reconstruct_refuses_bad_numbers_with_the_flag_name(tmp_path, capsys, fl
 def test_help_says_what_a_user_can_act_on(capsys):
     from tesseract4d.model.predict import DEFAULT_SCENE_BATCH
 
+    with pytest.raises(SystemExit):
+        cli.main(["evaluate", "--set", "list"])
+    text = " ".join(capsys.readouterr().out.split())
+    assert f"scenes predicted together in one network call (default {DEFAULT_SCENE_BATCH};" in text
     for name in ("evaluate", "rollout"):
         with pytest.raises(SystemExit):
             cli.main([name, "--help"])
         text = " ".join(capsys.readouterr().out.split())  # argparse wraps lines
         if name == "evaluate":
-            assert f"scenes predicted together in one network call (default {DEFAULT_SCENE_BATCH};" in text
             assert "DEFAULT_SCENE_BATCH" not in text and "predict_scenes" not in text
             # The example's line continuation survives: the second line starts with its own option.
             assert "checkpoints/v2 \\ --checkpoint tesseract4d/checkpoints/v2-2step" in text
         else:
-            assert "--no-progress no progress bar" in text
+            assert "--quiet no progress bar" in text
 
 
 # --------------------------------------------------------------------------- scored scene

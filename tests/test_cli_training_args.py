@@ -85,7 +85,7 @@ def test_train_idm_help_example_keeps_its_line_continuation(capsys):
         cli.main(["train-idm", "--help"])
     out = capsys.readouterr().out
     assert ended.value.code == 0
-    assert "--steps 3000 \\\n      --predicted-futures tesseract4d/checkpoints/v2-2step" in out, out
+    assert "--max-steps 3000 \\\n      --predicted-futures tesseract4d/checkpoints/v2-2step" in out, out
 
 
 TRAIN_AE = ["train-autoencoder", "--data", "data", "--out", "run"]

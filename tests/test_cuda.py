@@ -61,7 +61,7 @@ def test_trained_on_gpu_then_sampled_on_cpu(tmp_path):
                                   ckpt_every=3, quiet=True))
     assert trainer.device.type == "cuda"
     trainer.train()
-    assert cli.main(["train", "--export", str(tmp_path / "run"), "--to", str(tmp_path / "export")]) == 0
+    assert cli.main(["checkpoint", "export", str(tmp_path / "run"), "--to", str(tmp_path / "export")]) == 0
     first, text = _first_frame(MICRO.height)
     cpu = _sample(load_pipeline(tmp_path / "export", device="cpu", precision="fp32"), first, text)
     gpu = _sample(load_pipeline(tmp_path / "export", device="cuda", precision="fp32"), first, text)

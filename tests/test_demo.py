@@ -1,6 +1,6 @@
 """The one-command demo with the shipped checkpoint, as a user runs it: a counterfactual pair by
 default (one held-out tabletop scene, two instructions, two futures side by side), one future
-with --no-contrast, the instruction defaults of a plain ManiSkill task and the refused options."""
+with `--set contrast=false`, the instruction defaults of a plain ManiSkill task and the refused options."""
 
 from __future__ import annotations
 
@@ -73,8 +73,8 @@ def test_demo_predicts_a_counterfactual_pair(tmp_path):
 @pytest.mark.slow
 def test_demo_without_contrast_writes_one_future(tmp_path):
     out = tmp_path / "demo"
-    proc = cli("demo", "--headless", "--task", "PushCube-v1", "--seed", HELDOUT_SEED_START + 1, "--no-contrast",
-               "--steps", 2, "--draws", 2, "--out", out)
+    proc = cli("demo", "--headless", "--task", "PushCube-v1", "--seed", HELDOUT_SEED_START + 1, "--set", "contrast=false",
+               "--steps", 2, "--set", "draws=2", "--out", out)
     assert "instruction:" in proc.stdout and "contrast:" not in proc.stdout
     config = json.loads((out / "demo_config.json").read_text())
     assert config["contrast"] is False and config["contrast_instruction"] is None and config["instruction"]
@@ -111,7 +111,7 @@ def test_a_maniskill_task_keeps_its_instruction_and_contrasts_with_keeping_still
 
 
 @pytest.mark.parametrize("argv, message", [
-    (["--no-contrast", "--contrast-instruction", "stay"], "contradict"),
+    (["--set", "contrast=false", "--contrast-instruction", "stay"], "contradict"),
     (["--instruction", "push it", "--skill", "push_left"], "--instruction and --skill"),
     (["--contrast-instruction", " "], "--contrast-instruction is empty"),
     (["--task", "PickCube-v1", "--skill", "stack"], "needs two objects"),

@@ -79,7 +79,8 @@ def test_the_score_of_any_clip_is_between_0_and_1(seed):
 @pytest.fixture(scope="module")
 def draws_checkpoint(micro_checkpoint, tmp_path_factory):
     to = tmp_path_factory.mktemp("draws") / "best_of_3"
-    assert cli.main(["set-sampler", "--checkpoint", str(micro_checkpoint), "--to", str(to), "--draws", "3"]) == 0
+    assert cli.main(["checkpoint", "set-sampler", "--checkpoint", str(micro_checkpoint), "--to", str(to),
+                     "--set", "draws=3"]) == 0
     return to
 
 

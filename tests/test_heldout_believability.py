@@ -660,7 +660,7 @@ def test_goals_table_reads_the_reports_numbers(two_checkpoints, tmp_path, capsys
     report = evaluate_heldout(HeldoutConfig(checkpoint=[a, b], data=heldout, num_steps=2), progress=False)
     write_heldout_report(report, tmp_path / "eval")
     capsys.readouterr()
-    assert cli.main(["goals", f"{tmp_path / 'eval'}=synthetic", "--references"]) == 0
+    assert cli.main(["research", "goals", f"{tmp_path / 'eval'}=synthetic", "--references"]) == 0
     lines = capsys.readouterr().out.splitlines()
     header = [c.strip() for c in lines[0].strip("|").split("|")]
     assert header == ["measure (goal)", f"synthetic: {a.name}", "synthetic: v2", "synthetic: static world"]
@@ -679,13 +679,13 @@ def test_goals_table_reads_the_reports_numbers(two_checkpoints, tmp_path, capsys
     assert rows["token grid ratio (0.8–1.25)"][2] == f"{grid:.3f} " + ("✓" if 0.8 <= grid <= 1.25 else "✗")
     assert any("noise seeds 0" in line and "2 steps" in line for line in lines)
     # Without --references only the checkpoints.
-    assert cli.main(["goals", str(tmp_path / "eval")]) == 0
+    assert cli.main(["research", "goals", str(tmp_path / "eval")]) == 0
     assert capsys.readouterr().out.splitlines()[0].count("eval: ") == 2
     # Piped into a reader that stops early (`| head`): a quiet stop, no traceback.
     import subprocess
     import sys
 
-    proc = subprocess.Popen([sys.executable, "-m", "tesseract4d.cli", "goals", str(tmp_path / "eval")],
+    proc = subprocess.Popen([sys.executable, "-m", "tesseract4d.cli", "research", "goals", str(tmp_path / "eval")],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE)
     proc.stdout.close()
     err = proc.stderr.read().decode()
@@ -718,6 +718,6 @@ def test_goals_refuses_what_is_not_a_heldout_report(tmp_path, capsys):
     (tmp_path / "torn" / "report.json").write_text('{"format": "tesseract4d-he')
     for folder, words in (("empty", "holds no report.json"), ("other", "not a held-out report"),
                           ("old", "format 3"), ("torn", "not a readable report")):
-        assert cli.main(["goals", str(tmp_path / folder)]) == 2
+        assert cli.main(["research", "goals", str(tmp_path / folder)]) == 2
         err = capsys.readouterr().err
         assert words in err and "Traceback" not in err, err

@@ -134,7 +134,7 @@ def test_checkpoint_save_load_identical_samples_and_autoencoder_checks(tmp_path)
     broken = tmp_path / "broken"
     shutil.copytree(final, broken)
     shutil.rmtree(broken / "autoencoder")
-    with pytest.raises(UserError, match="--export"):
+    with pytest.raises(UserError, match="checkpoint export"):
         load_pipeline(broken)
     _autoencoder(broken / "autoencoder", seed=5)
     with pytest.raises(UserError, match="re-export"):
@@ -152,7 +152,7 @@ def test_half_export_is_half_the_size_and_samples_like_the_float32_export(tmp_pa
     ae = _autoencoder(tmp_path / "ae", data=data)
     run = tmp_path / "run"
     full = Trainer(_config(data, run, ae, max_steps=4)).train()
-    assert cli.main(["train", "--export", str(run), "--to", str(tmp_path / "half"), "--half"]) == 0
+    assert cli.main(["checkpoint", "export", str(run), "--to", str(tmp_path / "half"), "--half"]) == 0
     half = tmp_path / "half"
     for rel in ("transformer/diffusion_pytorch_model.safetensors", "autoencoder/model.safetensors"):
         with safe_open(str(half / rel), "pt") as f:
@@ -304,7 +304,7 @@ def test_init_fine_tunes_a_checkpoint_in_its_own_latent_space(tmp_path):
     data = write_segmented_dataset(tmp_path / "data", episodes=1)
     ae = _autoencoder(tmp_path / "ae", data=data)
     Trainer(_config(data, tmp_path / "first", ae, max_steps=3)).train()
-    assert cli.main(["train", "--export", str(tmp_path / "first"), "--to", str(tmp_path / "ckpt"), "--half"]) == 0
+    assert cli.main(["checkpoint", "export", str(tmp_path / "first"), "--to", str(tmp_path / "ckpt"), "--half"]) == 0
     ckpt = tmp_path / "ckpt"
     start = load_file(str(ckpt / "transformer" / "diffusion_pytorch_model.safetensors"))
 
@@ -319,7 +319,7 @@ def test_init_fine_tunes_a_checkpoint_in_its_own_latent_space(tmp_path):
     after = load_file(str(final / "transformer" / "diffusion_pytorch_model.safetensors"))
     assert any(not torch.equal(after[k], start[k].float()) for k in start)  # it trained from there
     # A resumed run keeps the record of its start: --init must hold the same weights as at the start.
-    assert cli.main(["train", "--export", str(tmp_path / "more"), "--to", str(tmp_path / "ckpt2"), "--half"]) == 0
+    assert cli.main(["checkpoint", "export", str(tmp_path / "more"), "--to", str(tmp_path / "ckpt2"), "--half"]) == 0
     with pytest.raises(UserError, match="started from .* resume with --init naming those weights"):
         Trainer(_config(data, tmp_path / "more", None, init=tmp_path / "ckpt2", max_steps=3, resume=True))
     with pytest.raises(UserError, match=re.escape(f"started from --init {ckpt}; resume it with --init {ckpt} --resume")):
@@ -384,8 +384,8 @@ def test_a_latent_teacher_distils_into_a_few_step_student_that_carries_its_autoe
 
 
 def test_decoder_only_fine_tune_swaps_into_the_checkpoint_with_the_same_latents(tmp_path):
-    """train-autoencoder --decoder-only keeps the encoder and latent statistics bit for bit, and
-    swap-decoder puts the new decoder into a copy of the checkpoint: same latents, new pixels; an
+    """train-autoencoder with decoder_only keeps the encoder and latent statistics bit for bit, and
+    checkpoint swap-decoder puts the new decoder into a copy of the checkpoint: same latents, new pixels; an
     autoencoder that encodes differently, or --decoder-only without --init, is refused."""
     from tesseract4d import cli
     from tesseract4d.model.autoencoder import load_autoencoder
@@ -406,7 +406,7 @@ def test_decoder_only_fine_tune_swaps_into_the_checkpoint_with_the_same_latents(
     assert not all(torch.equal(so[k], sn[k]) for k in so if k.startswith("vae.decoder."))
 
     swapped = tmp_path / "swapped"
-    assert cli.main(["swap-decoder", "--checkpoint", str(final), "--autoencoder", str(dec / "autoencoder"),
+    assert cli.main(["checkpoint", "swap-decoder", "--checkpoint", str(final), "--autoencoder", str(dec / "autoencoder"),
                      "--to", str(swapped), "--half"]) == 0
     cfg = json.loads((swapped / "tesseract4d_config.json").read_text())
     before = json.loads((final / "tesseract4d_config.json").read_text())["autoencoder"]["hash"]
@@ -418,17 +418,17 @@ def test_decoder_only_fine_tune_swaps_into_the_checkpoint_with_the_same_latents(
     assert torch.equal(za, zb)
     assert not torch.equal(a.codec.decode(za), b.codec.decode(zb))
     # A swap and an export own their folders apart: neither replaces the other's without --overwrite.
-    assert cli.main(["train", "--export", str(tmp_path / "run"), "--to", str(swapped)]) == 2
+    assert cli.main(["checkpoint", "export", str(tmp_path / "run"), "--to", str(swapped)]) == 2
     assert cfg == json.loads((swapped / "tesseract4d_config.json").read_text())
     exported = tmp_path / "exported"
-    assert cli.main(["train", "--export", str(tmp_path / "run"), "--to", str(exported)]) == 0
-    assert cli.main(["swap-decoder", "--checkpoint", str(final), "--autoencoder", str(dec / "autoencoder"),
+    assert cli.main(["checkpoint", "export", str(tmp_path / "run"), "--to", str(exported)]) == 0
+    assert cli.main(["checkpoint", "swap-decoder", "--checkpoint", str(final), "--autoencoder", str(dec / "autoencoder"),
                      "--to", str(exported)]) == 2
-    assert cli.main(["swap-decoder", "--checkpoint", str(final), "--autoencoder", str(dec / "autoencoder"),
+    assert cli.main(["checkpoint", "swap-decoder", "--checkpoint", str(final), "--autoencoder", str(dec / "autoencoder"),
                      "--to", str(swapped), "--half"]) == 0  # its own earlier swap: replaced
 
     other = _autoencoder(tmp_path / "other", seed=9, data=data)
-    with pytest.raises(UserError, match="--decoder-only"):
+    with pytest.raises(UserError, match="ae-f8c32-decoder"):
         from tesseract4d.model.checkpoint_copies import replace_decoder
 
         replace_decoder(final, other, tmp_path / "refused")
@@ -453,11 +453,11 @@ def test_swap_decoder_names_a_corrupt_autoencoder(tmp_path, capsys, damage):
     bad = shutil.copytree(final / "autoencoder", tmp_path / "bad")
     weights = bad / "model.safetensors"
     weights.write_bytes(b"junk" if damage == "junk" else weights.read_bytes()[:-100])
-    rc = cli.main(["swap-decoder", "--checkpoint", str(final), "--autoencoder", str(bad),
+    rc = cli.main(["checkpoint", "swap-decoder", "--checkpoint", str(final), "--autoencoder", str(bad),
                    "--to", str(tmp_path / "to")])
     err = capsys.readouterr().err
     assert rc == 2 and "Traceback" not in err
-    assert f"tesseract4d swap-decoder: error: autoencoder weights {weights} are corrupt or truncated (" in err, err
+    assert f"tesseract4d checkpoint swap-decoder: error: autoencoder weights {weights} are corrupt or truncated (" in err, err
     assert "train them again with `tesseract4d train-autoencoder`" in err
     assert not (tmp_path / "to").exists()
     # encode-latents reads the same weights the same way (before: the same traceback).

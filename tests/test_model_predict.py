@@ -269,8 +269,8 @@ def test_set_sampler_writes_a_copy_that_samples_with_the_new_settings(checkpoint
     (source / "MODEL_CARD.md").write_text("the source's card\n")
     before = {p.relative_to(source): p.read_bytes() for p in source.rglob("*") if p.is_file()}
     to = tmp_path / "interval"
-    assert cli.main(["set-sampler", "--checkpoint", str(source), "--to", str(to), "--guidance-min-sigma", "0.5",
-                     "--text-guidance", "2"]) == 0
+    assert cli.main(["checkpoint", "set-sampler", "--checkpoint", str(source), "--to", str(to),
+                     "--set", "guidance_min_sigma=0.5", "--text-guidance", "2"]) == 0
     assert {p.relative_to(source): p.read_bytes() for p in source.rglob("*") if p.is_file()} == before
     weights = Path("transformer") / "diffusion_pytorch_model.safetensors"
     assert (to / weights).read_bytes() == before[weights] and not (to / "MODEL_CARD.md").exists()
@@ -293,14 +293,14 @@ def test_set_sampler_writes_a_copy_that_samples_with_the_new_settings(checkpoint
 
 def test_set_sampler_refuses_bad_settings(checkpoint, tmp_path, capsys):
     runs = [(["--to", str(tmp_path / "a")], "nothing to change"),
-            (["--to", str(tmp_path / "b"), "--guidance-min-sigma", "-0.1"], "--guidance-min-sigma must be"),
+            (["--to", str(tmp_path / "b"), "--set", "guidance_min_sigma=-0.1"], "--set guidance_min_sigma must be"),
             (["--to", str(tmp_path / "c"), "--text-guidance", "0"], "--text-guidance must be"),
             (["--to", str(tmp_path / "d"), "--steps", "0"], "--steps must be"),
-            (["--to", str(tmp_path / "e"), "--static-tolerance", "-0.1"], "--static-tolerance must be"),
-            (["--to", str(tmp_path / "f"), "--draws", "0"], "--draws must be a whole number of noise draws"),
+            (["--to", str(tmp_path / "e"), "--set", "static_tolerance=-0.1"], "--set static_tolerance must be"),
+            (["--to", str(tmp_path / "f"), "--set", "draws=0"], "--set draws must be a whole number of noise draws"),
             (["--to", str(checkpoint), "--steps", "3"], "--to")]
     for extra, message in runs:
-        assert cli.main(["set-sampler", "--checkpoint", str(checkpoint), *extra]) != 0
+        assert cli.main(["checkpoint", "set-sampler", "--checkpoint", str(checkpoint), *extra]) != 0
         assert message in capsys.readouterr().err
     assert not any((tmp_path / name).exists() for name in "abcdef")
 
@@ -312,7 +312,8 @@ def test_set_sampler_static_tolerance_keeps_the_first_frame_where_the_clip_is_st
     from tesseract4d.model.static_composite import stillness
 
     to = tmp_path / "still"
-    assert cli.main(["set-sampler", "--checkpoint", str(checkpoint), "--to", str(to), "--static-tolerance", "0.1"]) == 0
+    assert cli.main(["checkpoint", "set-sampler", "--checkpoint", str(checkpoint), "--to", str(to),
+                     "--set", "static_tolerance=0.1"]) == 0
     copy, original = load_pipeline(to, precision="fp32"), load_pipeline(checkpoint, precision="fp32")
     assert copy.preset.static_tolerance == 0.1 and original.preset.static_tolerance == 0.0
     p = copy.preset

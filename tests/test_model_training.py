@@ -122,9 +122,9 @@ def test_train_cli_and_export(dataset, tmp_path, capsys):
     assert cli.main(["train", "--preset", MICRO.name, "--data", str(dataset), "--out", str(run), "--max-steps", "2",
                      "--val-every", "0", "--no-progress"]) == 0
     assert (run / "final" / "transformer" / "diffusion_pytorch_model.safetensors").is_file()
-    assert cli.main(["train", "--export", str(run), "--to", str(tmp_path / "exported")]) == 0
+    assert cli.main(["checkpoint", "export", str(run), "--to", str(tmp_path / "exported")]) == 0
     assert (tmp_path / "exported" / "tesseract4d_config.json").is_file()
-    assert cli.main(["train", "--export", str(tmp_path / "empty")]) == 2
+    assert cli.main(["checkpoint", "export", str(tmp_path / "empty")]) == 2
     assert "holds no checkpoint" in capsys.readouterr().err
 
 
@@ -234,7 +234,7 @@ def test_weights_are_as_readable_as_the_users_other_files(dataset, tmp_path):
     previous = os.umask(0o022)
     try:
         final = Trainer(_config(dataset, tmp_path / "run", max_steps=1)).train()
-        assert cli.main(["train", "--export", str(tmp_path / "run"), "--to", str(tmp_path / "exported")]) == 0
+        assert cli.main(["checkpoint", "export", str(tmp_path / "run"), "--to", str(tmp_path / "exported")]) == 0
     finally:
         os.umask(previous)
     written = [p for root in (tmp_path / "run", tmp_path / "exported") for p in root.rglob("*.safetensors")]

@@ -68,12 +68,18 @@ def test_fp32_is_always_fp32_and_unknown_names_are_refused():
         resolve_precision("fp16", "cpu", cpuinfo=XEON_AMX)
 
 
-@pytest.mark.parametrize("command", ["train", "predict", "evaluate", "demo", "view"])
+@pytest.mark.parametrize("command", ["train", "train-autoencoder", "distill", "predict", "evaluate", "demo", "view",
+                                     "rollout"])
 def test_every_model_command_offers_precision(command, capsys):
+    """Precision is a config option of every command that runs a model: `--set precision=...`, listed with
+    its help by `--set list`, a value outside auto|fp32|bf16 refused at parse time."""
     from tesseract4d.cli import main
 
     with pytest.raises(SystemExit) as exit_info:
-        main([command, "--help"])
+        main([command, "--set", "list"])
     assert exit_info.value.code == 0
     out = capsys.readouterr().out
-    assert "--precision {auto,fp32,bf16}" in out and "AVX512-BF16" in out
+    assert "precision = 'auto'" in out and "AVX512-BF16" in out
+    with pytest.raises(SystemExit) as exit_info:
+        main([command, "--set", "precision=fp16"])
+    assert exit_info.value.code == 2 and "choose one of auto, fp32, bf16" in capsys.readouterr().err

@@ -200,7 +200,8 @@ def test_reconstruct_and_evaluate_cli(scene, tmp_path, capsys):
     noisy.source = "prediction"
     pred_path = write_episode(tmp_path / "pred", noisy)
     out = tmp_path / "recon"
-    assert main(["reconstruct", str(pred_path), "--out", str(out), "--iterations", "200", "--voxel-size", "0.02"]) == 0
+    assert main(["reconstruct", str(pred_path), "--out", str(out), "--set", "iterations=200",
+                 "--set", "voxel_size_m=0.02"]) == 0
     assert "wrote" in capsys.readouterr().out
     manifest = json.loads((out / "manifest.json").read_text())
     assert manifest["metadata"]["config"]["iterations"] == 200 and manifest["metadata"]["voxel_size_m"] == 0.02
@@ -209,9 +210,10 @@ def test_reconstruct_and_evaluate_cli(scene, tmp_path, capsys):
     printed = capsys.readouterr().out
     assert "chamfer_l1_m" in printed and "moving" in printed
     refined = json.loads(report_path.read_text())
-    assert main(["evaluate", str(tmp_path / "pred"), "--gt", str(gt_path), "--no-per-frame"]) == 0
+    assert main(["evaluate", str(tmp_path / "pred"), "--gt", str(gt_path), "--set", "per_frame=false"]) == 0
     capsys.readouterr()
-    assert main(["reconstruct", str(pred_path), "--out", str(tmp_path / "raw"), "--no-refine", "--no-ply"]) == 0
+    assert main(["reconstruct", str(pred_path), "--out", str(tmp_path / "raw"), "--set", "refine=false",
+                 "--no-ply"]) == 0
     assert not (tmp_path / "raw" / "frames").exists()
     assert refined["mean"]["chamfer_l1_m"] < 0.7 * evaluate_episode(noisy, scene)["mean"]["chamfer_l1_m"]
     # Errors are one line with the fix, exit code 2.

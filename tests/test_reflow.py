@@ -243,7 +243,7 @@ def test_group_pairs_share_first_frame_and_noise(teacher, tmp_path):
         generate_pairs(dataclasses.replace(cfg(tmp_path / "c", 4), data=data), progress=False)
     assert not (tmp_path / "c").exists()
     plain = ReflowPairs(generate_pairs(_pairs_cfg(ckpt, data, tmp_path / "d", 2), progress=False))
-    with pytest.raises(UserError, match="--group-pairs"):
+    with pytest.raises(UserError, match="--set groups=true"):
         plain.group_units()
 
 

@@ -1,11 +1,11 @@
-"""scripts/still_phrasings.py: every keep-still phrasing asked in every held-out scene."""
+"""`tesseract4d research phrasings` (evaluation/still_phrasings.py): every keep-still phrasing asked in every
+held-out scene."""
 
 from __future__ import annotations
 
 import json
 
 import numpy as np
-from project_scripts import load_script
 from synthetic_scene import write_grouped_dataset
 
 
@@ -13,11 +13,12 @@ def test_every_phrasing_in_every_scene_against_the_scene_s_true_motion(micro_che
     from tesseract4d import dataset_format as df
     from tesseract4d.evaluation.heldout_believability import clip_motion
 
-    tool = load_script("still_phrasings")
+    from tesseract4d.cli import main
+
     data = write_grouped_dataset(tmp_path / "groups", scenes=2)
     out = tmp_path / "probe.json"
-    assert tool.main(["--heldout", str(data), "--checkpoint", str(micro_checkpoint), "--sample-seed", "0", "1",
-                      "--phrase", "stay still", "don't move", "--json", str(out)]) == 0
+    assert main(["research", "phrasings", "--heldout", str(data), "--checkpoint", str(micro_checkpoint),
+                 "--sample-seed", "0", "1", "--phrase", "stay still", "don't move", "--json", str(out)]) == 0
     printed = capsys.readouterr().out
     assert "| stay still | given |" in printed and "| don't move | given |" in printed
 
@@ -37,14 +38,16 @@ def test_every_phrasing_in_every_scene_against_the_scene_s_true_motion(micro_che
 
 
 def test_default_phrasings_are_the_skill_library_s_and_bad_input_is_one_line(tmp_path, capsys):
-    tool = load_script("still_phrasings")
-    phrasings = tool.keep_still_phrasings()
+    from tesseract4d.cli import main
+    from tesseract4d.evaluation.still_phrasings import keep_still_phrasings
+
+    phrasings = keep_still_phrasings()
     assert ("don't move", "heldout") in phrasings and ("stay still", "train") in phrasings
 
-    assert tool.main(["--heldout", str(tmp_path / "nothing")]) == 2
+    assert main(["research", "phrasings", "--heldout", str(tmp_path / "nothing")]) == 2
     assert "not a dataset folder" in capsys.readouterr().err
     taken = tmp_path / "taken.json"
     taken.write_text("{}")
-    assert tool.main(["--heldout", str(tmp_path), "--json", str(taken)]) == 2
+    assert main(["research", "phrasings", "--heldout", str(tmp_path), "--json", str(taken)]) == 2
     assert "exists" in capsys.readouterr().err
     assert taken.read_text() == "{}"

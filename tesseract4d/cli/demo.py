@@ -28,8 +28,11 @@ from pathlib import Path
 
 from datagen.tabletop import ENV_ID as TABLETOP_ID
 from tesseract4d.cli.argument_types import seed, whole
+from tesseract4d.cli.config_args import PRECISION_MOVED, add_moved_to_set, add_set_option, dataclass_from_args
+from tesseract4d.configs import knob
 from tesseract4d.dataset_format import HELDOUT_SEED_START
 from tesseract4d.errors import UserError
+from tesseract4d.precision import precision_field
 from tesseract4d.model.checkpoint import SHIPPED_CHECKPOINT
 
 # The skills whose futures the demo contrasts by default (datagen.skills.VARIANTS).
@@ -47,24 +50,23 @@ class DemoConfig:
     skill: str | None = None  # None: DEFAULT_SKILL in the tabletop, the task's instruction elsewhere
     contrast_instruction: str | None = None  # None: from `contrast_skill`
     contrast_skill: str | None = DEFAULT_CONTRAST_SKILL
-    contrast: bool = True  # False: one future only
+    contrast: bool = knob(True, "predict the contrast future too (false: the main instruction's only)")
     checkpoint: Path = SHIPPED_CHECKPOINT
     out: Path = Path("demo_out")
-    num_frames: int | None = None  # None: one clip of the checkpoint's preset
+    num_frames: int | None = knob(None, "frames to predict (none: one clip, the checkpoint preset's length)")
     steps: int | None = None  # None: the checkpoint preset's
-    draws: int | None = None  # noise draws per future, the best kept; None: the checkpoint preset's
-    sample_seed: int = 0
-    camera: str | None = None  # None: the checkpoint's camera preset
-    host: str = "127.0.0.1"
-    port: int = 8080
+    draws: int | None = knob(None, "noise draws per future, the one whose objects keep their colours best kept "
+                                   "(none: the checkpoint preset's; 1 = a single draw)")
+    sample_seed: int = knob(0, "noise seed of the predictions")
+    camera: str | None = knob(None, "camera preset to render the first frame from (none: the checkpoint's)")
+    host: str = knob("127.0.0.1", "viewer host (0.0.0.0 serves every address)")
+    port: int = knob(8080, "viewer port")
     headless: bool = False
-    precision: str = "auto"
+    precision: str = precision_field()
     overwrite: bool = False
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from tesseract4d.precision import add_precision_argument
-
     d = DemoConfig()
     parser.add_argument("--task", default=d.task,
                         help="scene: the project's tabletop or a ManiSkill task id such as PickCube-v1 (default %(default)s)")
@@ -83,33 +85,22 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--contrast-skill", default=d.contrast_skill, metavar="VARIANT[@OBJECT]",
                         help="skill whose instruction is the contrast when --contrast-instruction is not given "
                              "(default %(default)s)")
-    parser.add_argument("--no-contrast", action="store_true", help="predict one future only (the main instruction)")
     parser.add_argument("--checkpoint", type=Path, default=d.checkpoint, help="model checkpoint folder (default: the shipped v2-2step, tesseract4d/checkpoints/v2-2step; tesseract4d/checkpoints/v2 is its 10-step teacher)")
     parser.add_argument("--out", type=Path, default=d.out, help="output folder (default %(default)s)")
-    parser.add_argument("--num-frames", type=whole(1), help="frames to predict (default: one clip, the checkpoint preset's length)")
     parser.add_argument("--steps", type=whole(1), help="sampler steps (default: the checkpoint preset's)")
-    parser.add_argument("--draws", type=whole(1, hint=" (1: a single draw)"), metavar="N",
-                        help="noise draws per future; each keeps the one whose objects keep their colours best "
-                             "(default: the checkpoint preset's; 1 = a single draw)")
-    parser.add_argument("--sample-seed", type=seed(), default=d.sample_seed,
-                        help="diffusion noise seed, shared by both futures (default %(default)s)")
-    parser.add_argument("--camera", help="camera preset to render the first frame from (default: the checkpoint's)")
-    parser.add_argument("--host", default=d.host, help="viewer host (default %(default)s)")
-    parser.add_argument("--port", type=whole(0, 65535), default=d.port, help="viewer port (default %(default)s)")
     parser.add_argument("--headless", action="store_true", help="write the outputs and exit without serving the viewer")
-    add_precision_argument(parser)
     parser.add_argument("--overwrite", action="store_true",
                         help="write into a folder holding other files (only the demo's own files are replaced)")
+    add_set_option(parser, DemoConfig)
+    add_moved_to_set(parser, DemoConfig, [
+        ("--num-frames", "num_frames", whole(1)), ("--draws", "draws", whole(1, hint=" (1: a single draw)")),
+        ("--camera", "camera"), ("--host", "host"), ("--port", "port", whole(0, 65535)), PRECISION_MOVED,
+        ("--sample-seed", "sample_seed", seed()), ("--no-contrast", "contrast", None, False),
+    ])
 
 
 def run(args: argparse.Namespace) -> int:
-    cfg = DemoConfig(
-        task=args.task, seed=args.seed, instruction=args.instruction, skill=args.skill,
-        contrast_instruction=args.contrast_instruction, contrast_skill=args.contrast_skill, contrast=not args.no_contrast,
-        checkpoint=args.checkpoint, out=args.out, num_frames=args.num_frames, steps=args.steps,
-        draws=args.draws, sample_seed=args.sample_seed, camera=args.camera, host=args.host, port=args.port, headless=args.headless,
-        precision=args.precision, overwrite=args.overwrite,
-    )
+    cfg = dataclass_from_args(DemoConfig, args)
     outputs = run_demo(cfg)
     instruction = outputs["instruction"].read_text().strip()
     print(f"instruction: {instruction}")
@@ -136,7 +127,7 @@ def run_demo(cfg: DemoConfig) -> dict[str, Path]:
 
     _check_config(cfg)
     if not Path(cfg.checkpoint).is_dir():
-        raise UserError(f"checkpoint {cfg.checkpoint} not found; pass --checkpoint DIR (a folder written by `tesseract4d train --export`).")
+        raise UserError(f"checkpoint {cfg.checkpoint} not found; pass --checkpoint DIR (a folder written by `tesseract4d checkpoint export`).")
     final = Path(cfg.out)
     with OutputDir(final, "demo", inputs=[cfg.checkpoint], overwrite=cfg.overwrite) as stage:
         written = _run_demo_stages(cfg, stage)
@@ -148,7 +139,7 @@ def _check_config(cfg: DemoConfig) -> None:
     from datagen import skills as sk
 
     if not cfg.contrast and cfg.contrast_instruction is not None:
-        raise UserError("--no-contrast and --contrast-instruction contradict each other; drop one")
+        raise UserError("--set contrast=false and --contrast-instruction contradict each other; drop one")
     if cfg.instruction is not None and cfg.skill is not None:
         raise UserError("--instruction and --skill both set the main instruction; drop one")
     for flag, text in (("--instruction", cfg.instruction), ("--contrast-instruction", cfg.contrast_instruction)):
@@ -183,7 +174,7 @@ def resolve_instructions(cfg: DemoConfig, sim, first) -> tuple[str, str | None, 
         contrast = commanded_future(sim, cfg.seed, cfg.contrast_skill)[0]
     if contrast is not None and contrast == main:
         raise UserError(f"the contrast instruction is the main one ({main!r}); pass another --contrast-instruction "
-                        f"or --contrast-skill, or --no-contrast")
+                        f"or --contrast-skill, or --set contrast=false")
     return main, contrast, skills
 
 

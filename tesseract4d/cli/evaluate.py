@@ -38,9 +38,36 @@ import json
 import sys
 from pathlib import Path
 
+from dataclasses import dataclass
+
 from tesseract4d.cli.argument_types import number, seed, whole
+from tesseract4d.configs import knob
+from tesseract4d.precision import precision_field
 from tesseract4d.dataset_format import HELDOUT_SEED_START
 from tesseract4d.model.checkpoint import SHIPPED_CHECKPOINT
+
+
+@dataclass
+class EvaluateOptions:
+    """The options of `evaluate` set with ``--set NAME=VALUE``."""
+
+    max_depth: float | None = knob(None, "evaluation range in metres: depth, normal and Chamfer metrics count only "
+                                         "pixels whose true depth is at most this (none: all pixels; held-out "
+                                         "evaluation: the checkpoint's depth range)")
+    # "default 4" is model/predict.py's DEFAULT_SCENE_BATCH, written out so that --help needs no torch
+    # (tests/test_cli_eval_args.py compares the two).
+    batch_size: int | None = knob(None, "held-out: scenes predicted together in one network call (default 4; more "
+                                        "needs more memory); each scene gets the noise it gets alone")
+    text_guidance: float | None = knob(None, "held-out: text guidance scale of the sampler (none: each checkpoint "
+                                             "preset's; 1 = no guidance)")
+    precision: str = precision_field()
+    per_frame: bool = knob(True, "print every frame's metrics, not only the means")
+
+
+def _options(args: argparse.Namespace) -> EvaluateOptions:
+    values = {k: getattr(args, k) for k in ("max_depth", "batch_size", "text_guidance", "precision") if hasattr(args, k)}
+    values.update(getattr(args, "set_overrides", None) or {})
+    return EvaluateOptions(**values)
 
 
 class _AppendCheckpoint(argparse.Action):
@@ -52,46 +79,54 @@ class _AppendCheckpoint(argparse.Action):
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from tesseract4d.precision import add_precision_argument
+    from tesseract4d.cli.config_args import PRECISION_MOVED, add_deprecated, add_moved_to_set, add_set_option
 
     parser.add_argument("pred", nargs="?", help="reconstruction folder, or a predicted episode (.h5 / folder / DIR/ENV_ID/SEED)")
     parser.add_argument("--gt", help="ground-truth episode (.h5 / folder / DIR/ENV_ID/SEED)")
-    parser.add_argument("--camera", help="camera to compare (default: the ground truth's first)")
     parser.add_argument("--json", type=Path, metavar="REPORT", help="also write the report as JSON")
-    parser.add_argument("--no-per-frame", action="store_true", help="print only the means")
-    parser.add_argument("--max-depth", type=number(0, above=True), metavar="M",
-                        help="evaluation range in metres: depth, normal and Chamfer metrics count only pixels whose true "
-                             "depth is at most M (default: all pixels; held-out evaluation: the checkpoint's depth range)")
-    held = parser.add_argument_group("held-out evaluation of a model (instead of PRED --gt)")
+    add_heldout_arguments(parser, full=True)
+    add_set_option(parser, EvaluateOptions)
+    add_moved_to_set(parser, EvaluateOptions, [
+        ("--max-depth", "max_depth", number(0, above=True)), ("--batch-size", "batch_size", whole(1)),
+        ("--text-guidance", "text_guidance", number(0, above=True, hint=" (1: no guidance)")), PRECISION_MOVED,
+        ("--no-per-frame", "per_frame", None, False),
+    ])
+    add_deprecated(parser, "--start-from-truth", use="`tesseract4d research from-truth --sigma SIGMA`",
+                   dest="start_from_truth", type=float, metavar="SIGMA")
+    parser.set_defaults(start_from_truth=None)
+
+
+def add_heldout_arguments(parser: argparse.ArgumentParser, full: bool = False) -> None:
+    """The options of held-out evaluation (``full``: also camera, depth range, batch size and text
+    guidance, which `research from-truth` leaves at their defaults)."""
+    if full:
+        parser.add_argument("--camera", help="camera to compare (default: the ground truth's first)")
+    else:
+        parser.set_defaults(camera=None)
+    parser.set_defaults(max_depth=None, batch_size=None, text_guidance=None)
+    held = parser.add_argument_group("held-out evaluation of a model" + (" (instead of PRED --gt)" if full else ""))
     held.add_argument("--checkpoint", type=Path, action=_AppendCheckpoint, default=SHIPPED_CHECKPOINT,
                       help="model checkpoint folder (default: the shipped v2-2step); repeat it to score several "
                            "checkpoints side by side with the static world in one report")
     held.add_argument("--heldout", type=Path,
                       help=f"held-out dataset folder (datagen --seed-start {HELDOUT_SEED_START} --instruction-split heldout)")
     held.add_argument("--out", type=Path, help="folder for report.json and report.md")
-    held.add_argument("--steps", type=whole(1),
-                      help="sampler steps of every checkpoint (default: each checkpoint preset's own, e.g. 2 for a "
-                           "distilled student beside 10 for its teacher)")
-    held.add_argument("--text-guidance", type=number(0, above=True, hint=" (1: no guidance)"), metavar="SCALE",
-                      help="text guidance scale of the sampler (default: each checkpoint preset's; 1 = no guidance)")
+    if full:
+        held.add_argument("--steps", type=whole(1),
+                          help="sampler steps of every checkpoint (default: each checkpoint preset's own, e.g. 2 for a "
+                               "distilled student beside 10 for its teacher)")
+    else:
+        parser.set_defaults(steps=None)
     held.add_argument("--sample-seed", type=seed(), nargs="+", default=[0], metavar="SEED",
                       help="diffusion noise seed (default 0); several (e.g. 0 1 2) predict every episode once per "
                            "seed and pool the scores: one noise draw decides much of an instruction's outcome, so "
                            "compare checkpoints on several")
-    held.add_argument("--start-from-truth", type=float, metavar="SIGMA",
-                      help="a diagnostic, not a way to use a model: every checkpoint's sampler starts from the "
-                           "episode's true future (through its codec) noised to its first noise level <= SIGMA, with "
-                           "the scene's noise, and runs only the steps from there: how much of a right future the "
-                           "network keeps (0 < SIGMA <= 1; 1 = from pure noise). Needs one-clip episodes at the "
-                           "model's resolution")
-    held.add_argument("--max-per-task", type=whole(1), metavar="N",
-                      help="episodes per task at most, a counterfactual group kept whole (default: all)")
-    # "default 4" is model/predict.py's DEFAULT_SCENE_BATCH, written out so that --help needs no torch
-    # (tests/test_cli_eval_args.py compares the two).
-    held.add_argument("--batch-size", type=whole(1), metavar="N",
-                      help="scenes predicted together in one network call (default 4; more needs more memory); each "
-                           "scene gets the noise it gets alone, so results do not depend on it beyond float rounding")
-    add_precision_argument(held)
+    if full:
+        held.add_argument("--max-per-task", type=whole(1), metavar="N",
+                          help="episodes per task at most, a counterfactual group kept whole (default: all)")
+    else:
+        parser.set_defaults(max_per_task=None)
+    parser.set_defaults(precision="auto")
     parser.add_argument("--overwrite", action="store_true",
                         help="replace a --json file / write into an --out folder that this command did not write")
 
@@ -142,10 +177,11 @@ def run_heldout(args: argparse.Namespace) -> int:
     output = None if args.out is None else OutputDir(args.out, "evaluate", inputs=[*checkpoints, args.heldout],
                                                      overwrite=args.overwrite)
     seeds = args.sample_seed[0] if len(args.sample_seed) == 1 else args.sample_seed
+    options = _options(args)
     cfg = HeldoutConfig(checkpoint=checkpoints[0] if len(checkpoints) == 1 else checkpoints, data=args.heldout, out=None,
                         camera=args.camera, num_steps=args.steps, sample_seed=seeds, max_episodes=args.max_per_task,
-                        max_depth_m=args.max_depth, precision=args.precision, batch_size=args.batch_size,
-                        text_guidance=args.text_guidance, start_from_truth=args.start_from_truth)
+                        max_depth_m=options.max_depth, precision=options.precision, batch_size=options.batch_size,
+                        text_guidance=options.text_guidance, start_from_truth=args.start_from_truth)
     report = evaluate_heldout(cfg)
     if args.out is not None:
         report["config"]["out"] = str(args.out)  # written through a stage of its own, not by evaluate_heldout
@@ -182,12 +218,12 @@ def run(args: argparse.Namespace) -> int:
     mismatch = scene_mismatch(pred, gt)
     if mismatch:
         print(mismatch, file=sys.stderr)
-    report = evaluate_episode(pred, gt, camera=args.camera, max_depth_m=args.max_depth)
+    report = evaluate_episode(pred, gt, camera=args.camera, max_depth_m=_options(args).max_depth)
     report.update({"pred": str(args.pred), "gt": str(gt_path)})
     if report["pred_frames"] != report["gt_frames"]:
         print(f"note: prediction has {report['pred_frames']} frames, ground truth {report['gt_frames']}; "
               f"evaluated the first {report['num_frames']}")
-    print(format_report(report, per_frame=not args.no_per_frame))
+    print(format_report(report, per_frame=_options(args).per_frame))
     if output is not None:
         with output as tmp:
             tmp.write_text(json.dumps(json_safe(report), indent=2))

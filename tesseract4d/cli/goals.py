@@ -12,7 +12,7 @@ Example:
       --checkpoint tesseract4d/checkpoints/v2-2step --sample-seed 0 1 --out outputs/tabletop
   tesseract4d evaluate --heldout data/heldout_cubegroups128 --max-per-task 8 --checkpoint tesseract4d/checkpoints/v2 \\
       --checkpoint tesseract4d/checkpoints/v2-2step --sample-seed 0 1 --out outputs/cubes
-  tesseract4d goals outputs/tabletop=tabletop outputs/cubes="cube tasks" --references
+  tesseract4d research goals outputs/tabletop=tabletop outputs/cubes="cube tasks" --references
 """
 
 from __future__ import annotations

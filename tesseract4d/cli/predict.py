@@ -30,8 +30,11 @@ from pathlib import Path
 import numpy as np
 
 from tesseract4d.cli.argument_types import number, seed, whole
+from tesseract4d.cli.config_args import PRECISION_MOVED, add_moved_to_set, add_set_option, dataclass_from_args
+from tesseract4d.configs import knob
 from tesseract4d.dataset_format import HELDOUT_SEED_START
 from tesseract4d.errors import UserError
+from tesseract4d.precision import precision_field
 from tesseract4d.model.checkpoint import SHIPPED_CHECKPOINT
 
 
@@ -47,23 +50,23 @@ class PredictConfig:
     K: Path | None = None
     normal: Path | None = None
     out: Path = Path("prediction")
-    num_frames: int | None = None  # None: one clip of the checkpoint's preset
+    num_frames: int | None = knob(None, "frames to predict; more than one clip continues autoregressively "
+                                        "(none: one clip, the checkpoint preset's length)")
     steps: int | None = None  # None: the checkpoint preset's
-    draws: int | None = None  # noise draws per sample, the best kept; None: the checkpoint preset's
+    draws: int | None = knob(None, "noise draws per sample, the one whose objects keep their colours best kept; N "
+                                   "times the sampling (none: the checkpoint preset's; 1 = a single draw)")
     sample_seed: int = 0
-    num_samples: int = 1
+    num_samples: int = knob(1, "samples to draw in one batch")
     text_guidance: float | None = None
-    image_guidance: float | None = None
-    device: str = "cpu"
-    precision: str = "auto"
+    image_guidance: float | None = knob(None, "first-frame guidance scale (none: the checkpoint preset's; 1 = none)")
+    device: str = knob("cpu", "torch device")
+    precision: str = precision_field()
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from tesseract4d.precision import add_precision_argument
-
     d = PredictConfig()
     parser.add_argument("--checkpoint", type=Path, default=d.checkpoint,
-                        help="inference checkpoint folder (RUN/final or --export output; default: the shipped v2-2step; tesseract4d/checkpoints/v2 is its 10-step teacher)")
+                        help="inference checkpoint folder (RUN/final or `checkpoint export` output; default: the shipped v2-2step; tesseract4d/checkpoints/v2 is its 10-step teacher)")
     parser.add_argument("--instruction", help="what should happen (default: the episode's / scene's own instruction)")
     src = parser.add_argument_group("first frame (one of)")
     src.add_argument("--task", help="ManiSkill task id to render, with --seed")
@@ -74,21 +77,17 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     src.add_argument("--K", type=Path, help="3x3 pixel intrinsics: .npy, .txt or .json")
     src.add_argument("--normal", type=Path, help="optional (H, W, 3) .npy unit normals, OpenCV camera frame")
     parser.add_argument("--out", type=Path, default=d.out, help="output folder (default %(default)s)")
-    parser.add_argument("--num-frames", type=whole(1), help="frames to predict; more than one clip continues autoregressively "
-                        "(default: one clip, the checkpoint preset's length)")
     parser.add_argument("--steps", type=whole(1), help="sampler steps (default: the checkpoint preset's)")
-    parser.add_argument("--draws", type=whole(1, hint=" (1: a single draw)"), metavar="N",
-                        help="noise draws per sample; each keeps the one whose objects (named by the first frame's "
-                             "segmentation with --task or --episode, found by their colour in --rgb) keep their "
-                             "colours best; N times the sampling (default: the checkpoint preset's; 1 = a single draw)")
     parser.add_argument("--sample-seed", type=seed(), default=d.sample_seed, help="noise seed (default %(default)s)")
-    parser.add_argument("--num-samples", type=whole(1), default=d.num_samples, help="samples to draw in one batch (default %(default)s)")
     parser.add_argument("--text-guidance", type=number(0, above=True, hint=" (1: no guidance)"), help="text guidance scale (default: the checkpoint preset's)")
-    parser.add_argument("--image-guidance", type=number(0, above=True, hint=" (1: no guidance)"), help="first-frame guidance scale (default: the checkpoint preset's)")
-    parser.add_argument("--device", default=d.device, help="torch device (default %(default)s)")
-    add_precision_argument(parser)
     parser.add_argument("--overwrite", action="store_true",
                         help="write into a folder holding other files (only this command's files are replaced)")
+    add_set_option(parser, PredictConfig)
+    add_moved_to_set(parser, PredictConfig, [
+        ("--num-frames", "num_frames", whole(1)), ("--draws", "draws", whole(1, hint=" (1: a single draw)")),
+        ("--image-guidance", "image_guidance", number(0, above=True, hint=" (1: no guidance)")),
+        ("--device", "device"), ("--num-samples", "num_samples", whole(1)), PRECISION_MOVED,
+    ])
 
 
 def _read_K(path: Path) -> np.ndarray:
@@ -231,7 +230,7 @@ def run(args: argparse.Namespace) -> int:
     from tesseract4d.model.predict import instruction_budget_note, load_pipeline, predict_episodes, write_prediction
     from tesseract4d.outputs import OutputDir
 
-    cfg = PredictConfig(**{f.name: getattr(args, f.name) for f in dataclasses.fields(PredictConfig)})
+    cfg = dataclass_from_args(PredictConfig, args)
     check_device(cfg.device)
     output = OutputDir(cfg.out, "predict", inputs=_input_paths(cfg), overwrite=args.overwrite)
     pipe = load_pipeline(cfg.checkpoint, device=cfg.device, precision=cfg.precision)

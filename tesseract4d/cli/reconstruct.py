@@ -18,44 +18,36 @@ from pathlib import Path
 
 from reconstruction.reconstruct import ReconConfig
 from tesseract4d.cli.argument_types import number, whole
+from tesseract4d.cli.config_args import add_deprecated, add_moved_to_set, add_set_option
+from tesseract4d.configs import with_overrides
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    d = ReconConfig()
     parser.add_argument("input", help="episode .h5, dataset/prediction folder with one episode, or DIR/ENV_ID/SEED")
     parser.add_argument("--out", type=Path, required=True,
                         help="output folder: new, empty, or an earlier reconstruction (whose files are replaced)")
     parser.add_argument("--overwrite", action="store_true",
                         help="write into a folder holding other files (only this command's files are replaced)")
     parser.add_argument("--camera", help="camera of the episode to reconstruct (default: the first)")
-    parser.add_argument("--voxel-size", type=number(0, above=True), default=None, metavar="M",
-                        help="TSDF voxel edge in metres (default: 1.5 pixel footprints at the median depth)")
-    parser.add_argument("--static-weight", type=number(0), default=d.static_weight,
-                        help="weight tying static background to the previous frame (default %(default)s)")
-    parser.add_argument("--dynamic-weight", type=number(0), default=d.dynamic_weight,
-                        help="weight tying moving parts to the previous frame (default %(default)s)")
-    parser.add_argument("--normal-weight", type=number(0), default=d.normal_weight,
-                        help="weight of depth agreeing with the normals (default %(default)s)")
-    parser.add_argument("--reg-weight", type=number(0, above=True, hint=" (it fixes the depth scale)"), default=d.reg_weight,
-                        help="weight pulling toward the input depth (default %(default)s)")
-    parser.add_argument("--iterations", type=whole(1), default=d.iterations,
-                        help="maximum conjugate-gradient iterations (default %(default)s)")
-    parser.add_argument("--flow-threshold", type=number(0, above=True, hint=" pixels"), default=d.flow_threshold_px,
-                        metavar="PX", help="flow in pixels beyond the camera's own motion that marks a pixel dynamic; "
-                                           "keep it above the optical flow's own error, up to about half a pixel, "
-                                           "or static pixels count as moving (default %(default)s)")
-    parser.add_argument("--no-refine", action="store_true", help="plain back-projection of the input depth")
-    parser.add_argument("--no-mesh", action="store_true", help="skip the background mesh")
     parser.add_argument("--no-ply", action="store_true", help="write only manifest.json + recon4d.npz")
     parser.add_argument("--quiet", action="store_true", help="print nothing but errors")
+    add_set_option(parser, ReconConfig)
+    # The solver's weights and thresholds are `--set` options now; the old flags keep working for one release.
+    for old, name, kind in (
+        ("--voxel-size", "voxel_size_m", number(0, above=True)),
+        ("--static-weight", "static_weight", number(0)),
+        ("--dynamic-weight", "dynamic_weight", number(0)),
+        ("--normal-weight", "normal_weight", number(0)),
+        ("--reg-weight", "reg_weight", number(0, above=True, hint=" (it fixes the depth scale)")),
+        ("--iterations", "iterations", whole(1)),
+        ("--flow-threshold", "flow_threshold_px", number(0, above=True, hint=" pixels")),
+    ):
+        add_deprecated(parser, old, use=f"--set {name}=VALUE", set_field=name, config_class=ReconConfig, type=kind)
+    add_moved_to_set(parser, ReconConfig, [("--no-refine", "refine", None, False), ("--no-mesh", "mesh", None, False)])
 
 
 def config_from_args(args: argparse.Namespace) -> ReconConfig:
-    return ReconConfig(
-        refine=not args.no_refine, normal_weight=args.normal_weight, static_weight=args.static_weight,
-        dynamic_weight=args.dynamic_weight, reg_weight=args.reg_weight, iterations=args.iterations,
-        flow_threshold_px=args.flow_threshold, voxel_size_m=args.voxel_size, mesh=not args.no_mesh,
-    )
+    return with_overrides(ReconConfig(), args.set_overrides)
 
 
 def run(args: argparse.Namespace) -> int:

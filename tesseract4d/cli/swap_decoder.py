@@ -1,6 +1,6 @@
 """Put a better decoder into a latent checkpoint, keeping its transformer.
 
-A decoder fine-tuned with `tesseract4d train-autoencoder --init CKPT/autoencoder --decoder-only`
+A decoder fine-tuned with `tesseract4d train-autoencoder --recipe ae-f8c32-decoder --init CKPT/autoencoder`
 decodes the very latents the checkpoint's transformer was trained on (its encoder and latent
 statistics are bit-identical), so it can replace the checkpoint's decoder without retraining the
 transformer. This writes a copy of the checkpoint with the new autoencoder into --to (a new folder;
@@ -8,9 +8,9 @@ the checkpoint itself is never changed) and records both autoencoders' hashes in
 tesseract4d_config.json. An autoencoder whose encoder differs is refused.
 
 Example:
-  tesseract4d train-autoencoder --init tesseract4d/checkpoints/v2/autoencoder --decoder-only \\
+  tesseract4d train-autoencoder --recipe ae-f8c32-decoder --init tesseract4d/checkpoints/v2/autoencoder \\
       --data data/v2_tabletop_240 data/ae128 --heldout data/heldout_groups128 --out runs/dec_ft
-  tesseract4d swap-decoder --checkpoint tesseract4d/checkpoints/v2 --autoencoder runs/dec_ft/autoencoder \\
+  tesseract4d checkpoint swap-decoder --checkpoint tesseract4d/checkpoints/v2 --autoencoder runs/dec_ft/autoencoder \\
       --to runs/v2_dec_ft --half
   tesseract4d evaluate --heldout data/heldout_groups128 --checkpoint tesseract4d/checkpoints/v2 \\
       --checkpoint runs/v2_dec_ft --out outputs/eval_dec_ft

@@ -7,18 +7,23 @@ statistics), measures the fidelity gate on the --heldout frames (RGB PSNR, depth
 angle; all pixels and robot/object pixels), prints it and stores it as RUN/autoencoder/fidelity.json.
 The autoencoder needs hours on a CPU: run it in the background and stop/resume at will. Where torch
 sees a CUDA GPU it trains there (about 15 times the steps/s of a 2-core CPU at batch 8);
-CUDA_VISIBLE_DEVICES= keeps it on the CPU.
+CUDA_VISIBLE_DEVICES= keeps it on the CPU. Every option of the run is a field of AutoencoderTrainConfig
+(`--set list`); the loss weights and the schedule are set with `--set NAME=VALUE`.
 
 Example:
   tesseract4d datagen --tasks PickCube-v1,PushCube-v1 --episodes 40 --resolution 128 --out data/ae128
   tesseract4d datagen --tasks PickCube-v1,PushCube-v1 --episodes 3 --resolution 128 \\
       --seed-start 100000 --instruction-split heldout --out data/ae128_heldout
-  tesseract4d train-autoencoder --data data/ae128 --heldout data/ae128_heldout --out runs/ae
-  tesseract4d train-autoencoder --data data/ae128 --heldout data/ae128_heldout --out runs/ae --resume
-  tesseract4d train-autoencoder --init runs/ae/autoencoder --data data/ae128 data/skills128 --frame-stride 4 \\
-      --lr 1.5e-4 --warmup-steps 50 --max-steps 1500 --heldout data/skills128_heldout --out runs/ae_ft   # fine-tune
-  tesseract4d train-autoencoder --init tesseract4d/checkpoints/v2/autoencoder --decoder-only --data data/skills128 \\
-      --heldout data/skills128_heldout --out runs/dec_ft     # a better decoder for v2's latents (see swap-decoder)
+  tesseract4d train-autoencoder --recipe ae-f8c32 --data data/ae128 --heldout data/ae128_heldout --out runs/ae
+                                                        # the shipped autoencoder's recipe
+  tesseract4d train-autoencoder --recipe ae-f8c32 --data data/ae128 --heldout data/ae128_heldout --out runs/ae --resume
+  tesseract4d train-autoencoder --init runs/ae/autoencoder --data data/ae128 data/skills128 --set frame_stride=4 \\
+      --set lr=1.5e-4 --set warmup_steps=50 --max-steps 1500 --heldout data/skills128_heldout --out runs/ae_ft
+                                                        # fine-tune
+  tesseract4d train-autoencoder --recipe ae-f8c32-decoder --init tesseract4d/checkpoints/v2/autoencoder \\
+      --data data/skills128 --heldout data/skills128_heldout --out runs/dec_ft
+                                                        # a better decoder for v2's latents (then
+                                                        # `tesseract4d checkpoint swap-decoder`)
   tesseract4d train-autoencoder --data data/ae128 --heldout data/ae128_heldout --max-steps auto --max-minutes 8 \\
       --out runs/ae_gpu     # the cosine decay fitted to an 8-minute budget (e.g. a lent GPU)
 """
@@ -26,54 +31,55 @@ Example:
 from __future__ import annotations
 
 import argparse
-from pathlib import Path
 
 from tesseract4d.cli.argument_types import number, seed, whole
+from tesseract4d.cli.config_args import PRECISION_MOVED, add_moved_to_set, add_trainer_options, config_from_args
 from tesseract4d.model.autoencoder import AUTOENCODER_PRESETS
 from tesseract4d.model.autoencoder_trainer import AutoencoderTrainConfig
-from tesseract4d.training.schedule import add_max_steps_argument
-from tesseract4d.precision import add_precision_argument
+from tesseract4d.recipes import AUTOENCODER as RECIPES
+
+FLAGS = ("data", "heldout", "out", "init")
+# Flags of earlier releases whose options are --set fields now, with their old types (one more release).
+MOVED = {"frame_stride": whole(1), "camera": str, "batch_size": whole(1), "lr": number(0, above=True),
+         "warmup_steps": whole(0), "object_weight": number(0), "rgb_weight": number(0), "depth_weight": number(0),
+         "normal_weight": number(0), "kl_weight": number(0), "heldout_frames": whole(1), "seed": seed()}
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    d = AutoencoderTrainConfig()
-    parser.add_argument("--data", type=Path, nargs="+", required=True,
-                        help="training dataset folder(s) (tesseract4d datagen), trained as one set")
-    parser.add_argument("--init", type=Path, default=None,
-                        help="start from this exported autoencoder (RUN/autoencoder) instead of random weights: "
-                             "fine-tune it on new scenes; the latent model must then be trained on the new one")
-    parser.add_argument("--decoder-only", action="store_true",
-                        help="with --init: train only the decoder; the encoder and latent statistics stay exactly as they "
-                             "are, so a latent model trained on them keeps working: put the new decoder into its "
-                             "checkpoint with `tesseract4d swap-decoder`")
-    parser.add_argument("--frame-stride", type=whole(1), default=d.frame_stride,
-                        help="train on every k-th frame of each episode (less memory; default %(default)s)")
-    parser.add_argument("--heldout", type=Path, default=None,
-                        help="held-out dataset folder for the fidelity gate (recommended; e.g. seeds >= 100000)")
-    parser.add_argument("--out", type=Path, required=True, help="run folder (new, or an existing one with --resume)")
-    parser.add_argument("--preset", default=d.preset, choices=list(AUTOENCODER_PRESETS),
-                        help="autoencoder architecture (default %(default)s)")
-    parser.add_argument("--camera", default=None, help="camera of the dataset to train on (default: its first)")
-    add_max_steps_argument(parser, d.max_steps)
-    parser.add_argument("--max-minutes", type=number(0), default=None,
-                        help="stop with a checkpoint after this many minutes")
-    parser.add_argument("--batch-size", type=whole(1), default=d.batch_size, help="frames per step (default %(default)s)")
-    parser.add_argument("--lr", type=number(0, above=True), default=d.lr, help="peak learning rate (default %(default)s)")
-    parser.add_argument("--warmup-steps", type=whole(0), default=d.warmup_steps, help="linear warm-up steps (default %(default)s)")
-    parser.add_argument("--object-weight", type=number(0), default=d.object_weight,
-                        help="loss weight of robot/object pixels relative to scenery (default %(default)s)")
-    parser.add_argument("--rgb-weight", type=number(0), default=d.rgb_weight, help="default %(default)s")
-    parser.add_argument("--depth-weight", type=number(0), default=d.depth_weight, help="default %(default)s")
-    parser.add_argument("--normal-weight", type=number(0), default=d.normal_weight, help="default %(default)s")
-    parser.add_argument("--kl-weight", type=number(0), default=d.kl_weight, help="default %(default)s")
-    add_precision_argument(parser)
-    parser.add_argument("--ckpt-every", type=whole(0, hint=" (0 = only at the end)"), default=d.ckpt_every,
-                        help="steps between checkpoints + fidelity gate (default %(default)s)")
-    parser.add_argument("--heldout-frames", type=whole(1), default=d.heldout_frames,
-                        help="held-out frames in the fidelity gate (default %(default)s)")
-    parser.add_argument("--seed", type=seed(), default=d.seed)
-    parser.add_argument("--resume", action="store_true", help="continue the latest checkpoint in --out exactly")
-    parser.add_argument("--quiet", action="store_true", help="no progress bar")
+    names = add_trainer_options(parser, AutoencoderTrainConfig, FLAGS, RECIPES, required=("data", "out"),
+                                types={"max_minutes": number(0), "ckpt_every": whole(0, hint=" (0 = only at the end)")})
+    parser.set_defaults(flag_fields=names)
+    add_moved_to_set(parser, AutoencoderTrainConfig,
+                     [(f"--{name.replace('_', '-')}", name, kind) for name, kind in MOVED.items()]
+                     + [("--decoder-only", "decoder_only", None, True), PRECISION_MOVED,
+                        ("--preset", "preset", {"choices": list(AUTOENCODER_PRESETS)})])
+
+
+def read_recipe(folder) -> dict:
+    """The options an autoencoder folder (RUN/autoencoder or a checkpoint's autoencoder/) records: its
+    architecture preset, and, beside a run's export, the run's own options (RUN/ae_train_config.json)."""
+    import json
+    from pathlib import Path
+
+    from tesseract4d.errors import UserError
+    from tesseract4d.model.autoencoder_trainer import CONFIG_FILE
+
+    folder = Path(folder)
+    try:
+        saved = json.loads((folder / "config.json").read_text())
+    except (OSError, ValueError) as e:
+        raise UserError(f"--recipe-from {folder}: cannot read its config.json ({e}); pass an autoencoder folder "
+                        f"(RUN/autoencoder, or a checkpoint's autoencoder/)") from None
+    values = {"preset": saved["name"]} if saved.get("name") in AUTOENCODER_PRESETS else {}
+    run_config = folder.parent / CONFIG_FILE
+    if run_config.is_file():
+        import dataclasses
+
+        recorded = json.loads(run_config.read_text())
+        keep = {f.name for f in dataclasses.fields(AutoencoderTrainConfig)} - {"data", "heldout", "out", "init", "resume",
+                                                                              "max_steps_fit", "quiet"}
+        values.update({k: v for k, v in recorded.items() if k in keep})
+    return values
 
 
 def run(args: argparse.Namespace) -> int:
@@ -86,15 +92,10 @@ def run(args: argparse.Namespace) -> int:
     from tesseract4d.evaluation.autoencoder_fidelity import fidelity_metrics, format_fidelity
     from tesseract4d.model.autoencoder_trainer import AutoencoderTrainer, load_heldout_frames
 
-    cfg = AutoencoderTrainConfig(
-        data=args.data, heldout=args.heldout, out=args.out, preset=args.preset, camera=args.camera,
-        init=args.init, decoder_only=args.decoder_only,
-        frame_stride=args.frame_stride, warmup_steps=args.warmup_steps,
-        max_steps=args.max_steps, max_minutes=args.max_minutes, batch_size=args.batch_size, lr=args.lr,
-        object_weight=args.object_weight, rgb_weight=args.rgb_weight, depth_weight=args.depth_weight, normal_weight=args.normal_weight,
-        kl_weight=args.kl_weight, precision=args.precision, ckpt_every=args.ckpt_every,
-        heldout_frames=args.heldout_frames, seed=args.seed, resume=args.resume, quiet=args.quiet,
-    )
+    from tesseract4d.cli.config_args import recipe_from_args
+
+    cfg = config_from_args(AutoencoderTrainConfig, args, args.flag_fields,
+                           recipe=recipe_from_args(args, RECIPES, read_recipe))
     trainer = AutoencoderTrainer(cfg, format_fn=format_fidelity)
     if cfg.heldout is not None:
         heldout = load_heldout_frames(cfg.heldout, trainer.model, cfg.heldout_frames, camera=cfg.camera)

@@ -11,9 +11,13 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from dataclasses import dataclass
+
 from tesseract4d.cli.argument_types import whole
+from tesseract4d.cli.config_args import PRECISION_MOVED, add_moved_to_set, add_set_option, dataclass_from_args
+from tesseract4d.configs import knob
 from tesseract4d.model.checkpoint import SHIPPED_CHECKPOINT
-from tesseract4d.precision import add_precision_argument
+from tesseract4d.precision import precision_field
 from viewer.scene import DEFAULT_MAX_POINTS
 
 
@@ -32,14 +36,22 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="model checkpoint of the served viewer's Generate panel (not used by --export; default: the shipped v2-2step, tesseract4d/checkpoints/v2-2step; tesseract4d/checkpoints/v2 is its 10-step teacher)")
     parser.add_argument("--camera", help="which camera of an episode to show (default: the first)")
     parser.add_argument("--overwrite", action="store_true", help="with --export: replace a file that is not an earlier export")
-    parser.add_argument("--max-points", type=whole(1), default=DEFAULT_MAX_POINTS,
-                        help="point budget per frame sent to the browser (default %(default)s)")
-    add_precision_argument(parser)
+    add_set_option(parser, ViewOptions)
+    add_moved_to_set(parser, ViewOptions, [("--max-points", "max_points", whole(1)), PRECISION_MOVED])
+
+
+@dataclass
+class ViewOptions:
+    """The options of `view` set with ``--set NAME=VALUE``."""
+
+    max_points: int = knob(DEFAULT_MAX_POINTS, "point budget per frame sent to the browser")
+    precision: str = precision_field()  # of the Generate panel's model
 
 
 def run(args: argparse.Namespace) -> int:
     from tesseract4d.errors import UserError
 
+    options = dataclass_from_args(ViewOptions, args)
     if args.export is not None:
         served_only = [flag for flag, value in (("--compare", args.compare), ("--labels", args.labels),
                                                 ("--metrics", args.metrics)) if value is not None]
@@ -60,7 +72,7 @@ def run(args: argparse.Namespace) -> int:
         except UserError:
             pass  # a reconstruction folder or a path load_source reports on
         OutputFile(args.export, inputs=inputs, overwrite=args.overwrite, flag="--export", is_ours=is_export)
-        out = export_html(load_source(args.path, camera=args.camera), args.export, max_points=args.max_points,
+        out = export_html(load_source(args.path, camera=args.camera), args.export, max_points=options.max_points,
                           inputs=tuple(inputs), overwrite=args.overwrite)
         print(f"wrote {out} (open it in a browser; no server needed)")
         return 0
@@ -73,6 +85,7 @@ def run(args: argparse.Namespace) -> int:
                         "the report was made against) too")
     labels = {"labels": tuple(args.labels)} if args.labels else {}
     app = ViewerApp.from_path(args.path, compare=args.compare, metrics=args.metrics, checkpoint=args.checkpoint, **labels,
-                              precision=args.precision, camera=args.camera, host=args.host, port=args.port, max_points=args.max_points)
+                              precision=options.precision, camera=args.camera, host=args.host, port=args.port,
+                              max_points=options.max_points)
     serve_forever(app)
     return 0

@@ -1,6 +1,6 @@
 """The project's held-out goals, read from `evaluate --heldout` reports, as one Markdown table.
 
-`tesseract4d goals` puts the models of one or more held-out reports (report.json, any format
+`tesseract4d research goals` puts the models of one or more held-out reports (report.json, any format
 since the contrast rows, version 5) side by side against the goals a world model here is held to:
 on the moving region RGB PSNR ≥ 22 dB, depth AbsRel ≤ 0.15, normal error ≤ 20° and 4D Chamfer
 ≤ 20 mm; object permanence ≥ 95 %; instruction contrast and right-way following ≥ 70 %; no token

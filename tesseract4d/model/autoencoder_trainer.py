@@ -47,7 +47,7 @@ import torch.nn.functional as F
 from tesseract4d import dataset_format as df
 from tesseract4d.configs import config_dict, folder_list
 from tesseract4d.errors import UserError
-from tesseract4d.precision import announce, resolve_precision
+from tesseract4d.precision import announce, precision_field, resolve_precision
 from tesseract4d.segments import robot_object_mask
 from tesseract4d.training.checkpoints import (list_checkpoints, load_optimizer, resume_newest, save_optimizer,
                                               write_checkpoint)
@@ -96,7 +96,7 @@ class AutoencoderTrainConfig(TrainingLoopConfig):
     object_weight: float = option(5.0, "loss weight of robot/object pixels relative to scenery")
     edge_weight: float = option(2.0, "added loss weight of depth-edge pixels")
     kl_weight: float = option(1e-4, "weight of the KL term")
-    precision: str = option("auto", "auto|fp32|bf16 (auto: bf16 only where the hardware has it natively)")
+    precision: str = precision_field()
     heldout_frames: int = option(96, "held-out frames in the fidelity gate")
 
     @property

@@ -86,11 +86,11 @@ def read_inference_config(checkpoint: str | os.PathLike) -> dict:
     ckpt = Path(checkpoint)
     if not ckpt.is_dir():
         raise UserError(f"checkpoint {ckpt} {'is a file, not a folder' if ckpt.exists() else 'not found'}; pass a folder written by `tesseract4d train` (RUN/final) "
-                        f"or `tesseract4d train --export RUN --to DIR`")
+                        f"or `tesseract4d checkpoint export RUN --to DIR`")
     cfg_path = ckpt / INFERENCE_CONFIG_FILE
     if not cfg_path.is_file() or not (ckpt / TRANSFORMER_DIR / WEIGHTS_FILE).is_file():
         if (ckpt / "trainer_state.json").is_file():
-            hint = " (a training checkpoint: export it with `tesseract4d train --export RUN`)"
+            hint = " (a training checkpoint: export it with `tesseract4d checkpoint export RUN`)"
         elif (ckpt / "final" / INFERENCE_CONFIG_FILE).is_file():
             hint = f"; it is a training run folder: pass its export, --checkpoint {ckpt / 'final'}"
         else:
@@ -120,7 +120,7 @@ def load_scheduler(checkpoint: str | os.PathLike, config: dict):
     if config["version"] == 1:
         return make_scheduler()
     if not (folder / SCHEDULER_CONFIG_FILE).is_file():
-        raise UserError(f"{folder / SCHEDULER_CONFIG_FILE} is missing; re-export the checkpoint with `tesseract4d train --export RUN`")
+        raise UserError(f"{folder / SCHEDULER_CONFIG_FILE} is missing; re-export the checkpoint with `tesseract4d checkpoint export RUN`")
     return FlowMatchEulerDiscreteScheduler.from_pretrained(folder)
 
 
@@ -173,9 +173,9 @@ def check_sampler_settings(settings: dict) -> None:
     """UserError naming the flag when a sampler setting is out of range."""
     import math
 
-    flags = {"num_steps": "--steps", "text_guidance": "--text-guidance", "image_guidance": "--image-guidance",
-             "guidance_min_sigma": "--guidance-min-sigma", "static_tolerance": "--static-tolerance",
-             "draws": "--draws"}
+    flags = {"num_steps": "--steps", "text_guidance": "--text-guidance", "image_guidance": "--set image_guidance",
+             "guidance_min_sigma": "--set guidance_min_sigma", "static_tolerance": "--set static_tolerance",
+             "draws": "--set draws"}
     for name, value in settings.items():
         if name not in SAMPLER_FIELDS:
             raise UserError(f"{name!r} is not a sampler setting (one of {', '.join(SAMPLER_FIELDS)})")

@@ -32,8 +32,8 @@ def write_sampler_copy(checkpoint: str | os.PathLike, to: str | os.PathLike, set
     the source are recorded in INFERENCE_CONFIG_FILE under ``sampler_changed``; a model card is not
     copied (it describes the source)."""
     if not settings:
-        raise UserError("nothing to change: give --steps, --text-guidance, --image-guidance, --guidance-min-sigma, "
-                        "--static-tolerance or --draws")
+        raise UserError("nothing to change: give --steps, --text-guidance or --set NAME=VALUE (image_guidance, "
+                        "guidance_min_sigma, static_tolerance, draws)")
     check_sampler_settings(settings)
     checkpoint = Path(checkpoint)
     config = read_inference_config(checkpoint)
@@ -72,7 +72,7 @@ def replace_decoder(checkpoint: str | os.PathLike, autoencoder: str | os.PathLik
     if diff:
         raise UserError(f"{autoencoder} does not encode like {old_dir} ({'; '.join(diff[:3])}"
                         f"{'; ...' if len(diff) > 3 else ''}); make it with `tesseract4d train-autoencoder "
-                        f"--init {old_dir} --decoder-only`")
+                        f"--recipe ae-f8c32-decoder --init {old_dir}`")
     with OutputDir(to, "swap-decoder", inputs=[checkpoint, autoencoder], overwrite=overwrite, flag="--to") as tmp:
         shutil.copytree(checkpoint / TRANSFORMER_DIR, tmp / TRANSFORMER_DIR)
         shutil.copytree(checkpoint / SCHEDULER_DIR, tmp / SCHEDULER_DIR)

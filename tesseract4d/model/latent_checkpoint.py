@@ -6,7 +6,7 @@ A decoder fine-tuned on the same latents can replace the checkpoint's (``checkpo
 
 Two checkpoints side by side that carry the same autoencoder may store it once, as the shipped
 ``v2-2step`` reads ``v2``'s: the second's config then names its sibling's folder (``dir``:
-``../SIBLING/autoencoder``), and a copy written elsewhere (``set-sampler --to``, ``swap-decoder``)
+``../SIBLING/autoencoder``), and a copy written elsewhere (``checkpoint set-sampler --to``, ``checkpoint swap-decoder``)
 takes its own copy of it again (``own_autoencoder``).
 """
 
@@ -53,11 +53,11 @@ def checkpoint_autoencoder(checkpoint_dir: Path, entry: dict) -> Path:
             raise UserError(f"{checkpoint_dir} shares the autoencoder of the checkpoint beside it ({folder}), which "
                             f"is missing; keep the two folders side by side (copy both), as they were shipped")
         raise UserError(f"{checkpoint_dir} is a latent checkpoint without its autoencoder ({folder} is missing); "
-                        f"re-export it with `tesseract4d train --export RUN --to {checkpoint_dir}`")
+                        f"re-export it with `tesseract4d checkpoint export RUN --to {checkpoint_dir}`")
     found = autoencoder_hash(folder)
     if found != entry["hash"]:
         raise UserError(f"{folder} is autoencoder {found}, but {checkpoint_dir} was trained on {entry['hash']}; "
-                        f"re-export the checkpoint with `tesseract4d train --export RUN` (it copies the right one)")
+                        f"re-export the checkpoint with `tesseract4d checkpoint export RUN` (it copies the right one)")
     return folder
 
 

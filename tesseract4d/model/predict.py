@@ -48,7 +48,7 @@ PREDICTED_CLIP_FPS = 3.3
 
 
 def load_pipeline(checkpoint: str | os.PathLike, device: str = "cpu", precision: str = "auto") -> RGBDNPipeline:
-    """Load an inference checkpoint folder (``tesseract4d train --export``, or RUN/final).
+    """Load an inference checkpoint folder (``tesseract4d checkpoint export``, or RUN/final).
 
     ``precision``: auto|fp32|bf16 (see tesseract4d/precision.py); auto = bf16 only where the
     hardware has native bf16.

@@ -36,10 +36,12 @@ from typing import Callable
 
 import torch
 
+from tesseract4d.configs import knob
 from tesseract4d.errors import UserError
 from tesseract4d.outputs import files_as_created
 from tesseract4d.model.checkpoint import weights_digest
 from tesseract4d.model.trainer import TrainConfig, Trainer
+from tesseract4d.precision import precision_field
 from tesseract4d.training.config import option
 
 MANIFEST = "reflow_pairs.json"
@@ -48,19 +50,21 @@ SHARD_PREFIX = "pairs-"
 
 @dataclass
 class PairsConfig:
-    teacher: Path  # inference checkpoint folder
-    data: Path | list[Path]  # dataset folder(s) the first frames and instructions come from
-    out: Path  # pairs folder
-    num_pairs: int = 512
-    shard_size: int = 32
-    batch_size: int = 4
-    teacher_steps: int | None = None  # None = the teacher preset's
-    text_guidance: float | None = None  # None = the teacher preset's
-    image_guidance: float | None = None
-    seed: int = 0
-    camera: str | None = None
-    precision: str = "auto"
-    groups: bool = False  # whole counterfactual groups per draw, one noise per group
+    teacher: Path = knob(help="inference checkpoint folder of the teacher", metavar="CKPT")
+    data: Path | list[Path] = knob(help="dataset folder(s) the pairs' first frames and instructions come from",
+                                   metavar="DIR")
+    out: Path = knob(help="pairs folder (written, or resumed, from --data)", metavar="PAIRS")
+    num_pairs: int = knob(512, "teacher clips to sample")
+    shard_size: int = knob(32, "pairs per shard file")
+    batch_size: int = knob(4, "teacher clips per sampler call")
+    teacher_steps: int | None = knob(None, "the teacher's sampler steps (none: its preset's)")
+    text_guidance: float | None = knob(None, "the teacher's text guidance scale (none: its preset's; 1 = none)")
+    image_guidance: float | None = knob(None, "the teacher's first-frame guidance scale (none: its preset's)")
+    seed: int = knob(0, "seed of the pairs' noise")
+    camera: str | None = knob(None, "camera of --data (none: the teacher's)")
+    precision: str = precision_field()
+    groups: bool = knob(False, "draw the pairs as whole counterfactual groups of --data (one scene under several "
+                               "instructions), a group's pairs sharing one noise")
 
     def to_dict(self) -> dict:
         from tesseract4d.configs import config_dict
@@ -269,7 +273,7 @@ class ReflowPairs:
         """The pairs of each group (a pair outside a group alone); a UserError for pairs made without groups."""
         if not self.grouped:
             raise UserError(f"{self.folder} holds pairs drawn one by one; the counterfactual swap needs pairs of whole "
-                            f"groups: make them with `tesseract4d distill --group-pairs` in a new --pairs folder")
+                            f"groups: make them with `tesseract4d distill --set groups=true` in a new --pairs folder")
         return self._units
 
     def sample_group_batch(self, batch_size: int, generator: torch.Generator):
@@ -322,7 +326,7 @@ class ReflowTrainer(Trainer):
         if config.teacher is None:
             raise UserError("pass --teacher CKPT (the inference checkpoint to distil)")
         if config.student_steps < 1:
-            raise UserError(f"--student-steps must be at least 1, got {config.student_steps}")
+            raise UserError(f"student_steps must be at least 1, got {config.student_steps}")
         check_not_input(config.out, [config.teacher], "--out")
         self.teacher_config = read_inference_config(config.teacher)
         # The student inherits, for a latent preset, the teacher's autoencoder (the copy inside the

@@ -35,7 +35,7 @@ import torch
 
 from tesseract4d.configs import config_dict, folder_list
 from tesseract4d.errors import UserError
-from tesseract4d.precision import announce, resolve_precision
+from tesseract4d.precision import announce, precision_field, resolve_precision
 from tesseract4d.psnr import rgb_psnr
 from tesseract4d.training.checkpoints import (CHECKPOINT_PREFIX, list_checkpoints, read_state, resume_newest,
                                               write_checkpoint)
@@ -75,7 +75,7 @@ class TrainConfig(TrainingLoopConfig):
                                                "guidance (default: the preset's)")
     loss_weights: dict[str, float] = option(None, "loss weight per modality (rgb, depth, normal)",
                                             default_factory=lambda: {m: 1.0 for m in MODALITIES})
-    precision: str = option("auto", "auto|fp32|bf16 (auto: bf16 only where the hardware has it natively)")
+    precision: str = precision_field()
     val_every: int = option(500, "sample the validation clips every N steps (0: never)")
     val_clips: int = option(2, "validation clips")
     camera: str | None = option(None, "camera of the dataset (default: its first)")

@@ -251,7 +251,7 @@ class IDMTrainer:
 
             if not cfg.use_future:
                 raise UserError("--predicted-futures gives the IDM predicted future frames; behaviour cloning "
-                                "(--no-future) reads no future: drop one of them")
+                                "(use_future=false) reads no future: drop one of them")
             if not 0.0 < cfg.predicted_share <= 1.0:
                 raise UserError(f"--predicted-share must be in (0, 1], got {cfg.predicted_share}")
             predicted = PredictedFutures(cfg.predicted_futures, starts=cfg.predicted_starts,

@@ -28,6 +28,7 @@ import numpy as np
 import torch
 
 from tesseract4d import dataset_format as df
+from tesseract4d.configs import knob
 from tesseract4d.errors import UserError
 from tesseract4d.policy.idm import InverseDynamics, check_compatible, clip_gap, expand_chunk, sentence_embeddings
 from tesseract4d.policy.points import frame_points
@@ -42,17 +43,19 @@ class LoopConfig:
     # better with the shipped tiny model (trained only on clips that start an episode), whose clips
     # predicted from mid-episode frames degrade: world-model arm 3/10 at k = 15 vs 0/10 at k = 4
     # on PushCube + PullCube, 5 held-out seeds each.
-    replan_every: int = 15
-    max_steps: int = 200  # env steps before the episode counts as failed
-    max_chunk_steps: int = 30  # upper bound on the steps one IDM chunk may span
-    num_frames: int = 16  # frames per predicted clip
-    sample_steps: int | None = None  # diffusion steps per prediction; None = the checkpoint preset's
-    draws: int | None = None  # noise draws per prediction, the best kept (draw_choice.py); None = the checkpoint preset's
-    sample_seed: int = 0
-    camera: str = "close"
-    resolution: tuple[int, int] = (64, 64)  # the rendered observation (height, width)
-    instruction_split: str = "heldout"
-    point_seed: int = 0
+    replan_every: int = knob(15, "predicted frames executed per prediction (k, below the clip's length)")
+    max_steps: int = knob(200, "simulator steps before the episode counts as failed (rollout --max-sim-steps)")
+    max_chunk_steps: int = knob(30, "upper bound on the simulator steps one IDM chunk may span")
+    num_frames: int = knob(16, "frames per predicted clip")
+    sample_steps: int | None = knob(None, "sampler steps per prediction (rollout --steps; none: the checkpoint's)")
+    draws: int | None = knob(None, "noise draws per prediction, the one whose objects keep their colours best kept "
+                                   "(none: the checkpoint's)")
+    sample_seed: int = knob(0, "noise seed of the world model")
+    camera: str = knob("close", "camera preset of the rendered observation")
+    resolution: tuple[int, int] = knob((64, 64), "rendered observation (height, width); rollout: the world "
+                                                 "model's with the world_model arm, else the IDM's")
+    instruction_split: str = knob("heldout", "instruction paraphrases (train or heldout)", choices=("train", "heldout"))
+    point_seed: int = knob(0, "seed of the IDM's point sampling")
 
 
 @dataclass

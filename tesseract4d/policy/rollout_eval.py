@@ -27,8 +27,10 @@ from pathlib import Path
 import numpy as np
 
 from tesseract4d import dataset_format as df
+from tesseract4d.configs import knob
 from tesseract4d.errors import UserError
 from tesseract4d.intervals import wilson_interval
+from tesseract4d.precision import precision_field
 from tesseract4d.policy.loop import EpisodeResult, LoopConfig, Trace, observation_episode
 
 DEFAULT_ARMS = ("motion_planner", "oracle_future", "world_model", "behavior_cloning")
@@ -39,17 +41,17 @@ VIDEO_SCALE = 4
 @dataclass
 class RolloutConfig:
     tasks: list[str] = field(default_factory=lambda: ["PushCube-v1", "PullCube-v1", "PickCube-v1", "StackCube-v1"])
-    seed_start: int = 100000
+    seed_start: int = knob(100000, "first held-out seed (never a training seed)")
     episodes: int = 5  # per task and arm
     arms: list[str] = field(default_factory=lambda: list(DEFAULT_ARMS))
     idm: str | None = None
     bc: str | None = None
     checkpoint: str | None = None
     out: str = ""
-    videos: int = 2  # MP4s per arm and task (first seeds)
-    viewer_episodes: int = 1  # viewer folders per future arm and task (first seeds)
+    videos: int = knob(2, "MP4s per arm and task (first seeds)")
+    viewer_episodes: int = knob(1, "episodes per future arm and task written for the viewer (first seeds)")
     loop: LoopConfig = field(default_factory=LoopConfig)
-    precision: str = "auto"  # auto|fp32|bf16 for the world model (tesseract4d/precision.py)
+    precision: str = precision_field()  # of the world model
 
 
 def summarize(rows: list[dict], arms: list[str], tasks: list[str]) -> dict:
@@ -200,10 +202,10 @@ def run_rollouts(cfg: RolloutConfig, progress: bool = True) -> dict:
             raise UserError(f"--idm {cfg.idm} is a behaviour-cloning model (no future input); pass it as --bc")
     if "behavior_cloning" in cfg.arms:
         if not cfg.bc:
-            raise UserError("the behavior_cloning arm needs --bc (a folder from `tesseract4d train-idm --no-future`)")
+            raise UserError("the behavior_cloning arm needs --bc (a folder from `tesseract4d train-idm --recipe bc`)")
         bc = load_idm(cfg.bc)
         if bc.config.use_future:
-            raise UserError(f"--bc {cfg.bc} is an inverse dynamics model (it needs a future); train one with --no-future")
+            raise UserError(f"--bc {cfg.bc} is an inverse dynamics model (it needs a future); train one with `tesseract4d train-idm --recipe bc`")
     for label, model in (("IDM", idm), ("BC policy", bc)):
         if model is None:
             continue

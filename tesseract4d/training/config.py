@@ -9,9 +9,9 @@ means "the model preset's" where a trainer has presets.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
-from tesseract4d.configs import config_dict
+from tesseract4d.configs import config_dict, knob
 from tesseract4d.errors import UserError
 from tesseract4d.training.schedule import AUTO, check_max_steps
 
@@ -19,10 +19,10 @@ from tesseract4d.training.schedule import AUTO, check_max_steps
 def option(default, help: str, *, default_factory=None, internal: bool = False):
     """A config field with its default (or ``default_factory``) and its one-line ``--help`` text;
     ``internal``: set by the program, not an option a user gives."""
-    metadata = {"help": help, **({"internal": True} if internal else {})}
+    extra = {"internal": True} if internal else {}
     if default_factory is not None:
-        return field(default_factory=default_factory, metadata=metadata)
-    return field(default=default, metadata=metadata)
+        return knob(help=help, default_factory=default_factory, **extra)
+    return knob(default, help, **extra)
 
 
 @dataclass

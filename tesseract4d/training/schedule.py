@@ -49,15 +49,6 @@ def max_steps_argument(text: str) -> int | str:
         raise argparse.ArgumentTypeError(f"expected a whole number of steps or 'auto', got {text!r}") from None
 
 
-def add_max_steps_argument(parser: argparse.ArgumentParser, default: int, what: str = "training steps") -> None:
-    """``--max-steps N|auto`` of the training commands, with its help."""
-    parser.add_argument("--max-steps", type=max_steps_argument, default=default, metavar="N|auto",
-                        help=f"{what}; the cosine learning-rate decay ends here. 'auto' (with --max-minutes M) times "
-                             f"the first {PROBE_SKIP_STEPS + PROBE_TIMED_STEPS} steps and sets it so that the decay "
-                             f"ends when the M minutes do; the number is saved with the run, and --resume goes on along "
-                             f"it (default %(default)s)")
-
-
 def check_max_steps(max_steps: int | str, max_minutes: float | None, stop_at_step: int | None = None,
                     resume: bool = False) -> None:
     """One-line UserErrors for a ``--max-steps`` that cannot plan a schedule. A resumed run may leave
@@ -137,4 +128,4 @@ class StepBudget:
                 "margin": self.margin, "max_steps": self.fitted}
 
 
-__all__ = ["AUTO", "StepBudget", "add_max_steps_argument", "check_max_steps", "lr_at", "max_steps_argument", "resumed_max_steps"]
+__all__ = ["AUTO", "StepBudget", "check_max_steps", "lr_at", "max_steps_argument", "resumed_max_steps"]

@@ -9,37 +9,33 @@ the mean motion of the scene's true active futures (the group's episodes whose s
 object; contrast's "active instructions"). ``evaluate --heldout`` judges "keep still" only under
 the one phrasing each group was generated with; this asks every phrasing in every scene.
 
-  .venv/bin/python scripts/still_phrasings.py --heldout data/heldout_groups128 \\
+  tesseract4d research phrasings --heldout data/heldout_groups128 \\
       --checkpoint tesseract4d/checkpoints/v2 tesseract4d/checkpoints/v2-2step --sample-seed 0 1
 """
 
 from __future__ import annotations
 
-import argparse
 import json
 import statistics
-import sys
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+import numpy as np
+
+from datagen.skill_language import TEMPLATES
+from tesseract4d import dataset_format as df
+from tesseract4d.errors import UserError
+from tesseract4d.evaluation.believability import STILL_SHARE
+from tesseract4d.evaluation.heldout import predict_at_data_resolution, scene_noise_seed
+from tesseract4d.evaluation.heldout_believability import GRIPPER_ONLY_SKILLS, clip_motion
 
 
 def keep_still_phrasings() -> list[tuple[str, str]]:
     """(phrase, split) for every keep-still paraphrase of the skill library."""
-    from datagen.skill_language import TEMPLATES
-
     return [(p, split) for split in ("train", "heldout") for p in TEMPLATES["keep_still"][split]]
 
 
 def scenes(heldout: Path, max_scenes: int | None) -> list[dict]:
     """One entry per scene (environment and seed): its first frame, camera and still threshold."""
-    import numpy as np
-
-    from tesseract4d import dataset_format as df
-    from tesseract4d.errors import UserError
-    from tesseract4d.evaluation.believability import STILL_SHARE
-    from tesseract4d.evaluation.heldout_believability import GRIPPER_ONLY_SKILLS, clip_motion
-
     groups: dict[tuple[str, int], list[Path]] = {}
     for path in sorted((heldout / "episodes").glob("*/*.h5")):
         attrs = df.read_episode_attrs(path)
@@ -67,11 +63,7 @@ def scenes(heldout: Path, max_scenes: int | None) -> list[dict]:
 def probe(checkpoint: Path, scene_list: list[dict], phrasings: list[tuple[str, str]], sample_seeds: list[int],
           precision: str = "auto") -> dict:
     """{phrase: {"split", "motion": [...], "limit": [...], "still": n, "clips": n}} for one checkpoint."""
-    import numpy as np
-
-    from tesseract4d.evaluation.heldout import predict_at_data_resolution, scene_noise_seed
-    from tesseract4d.evaluation.heldout_believability import clip_motion
-    from tesseract4d.model.predict import load_pipeline
+    from tesseract4d.model.predict import load_pipeline  # torch and diffusers: only when a model runs
 
     pipeline = load_pipeline(checkpoint, precision=precision)
     result = {}
@@ -91,38 +83,18 @@ def probe(checkpoint: Path, scene_list: list[dict], phrasings: list[tuple[str, s
     return result
 
 
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--heldout", type=Path, required=True, help="held-out dataset of counterfactual groups")
-    parser.add_argument("--checkpoint", type=Path, nargs="+", default=None,
-                        help="inference checkpoint(s) (default: the shipped default)")
-    parser.add_argument("--sample-seed", type=int, nargs="+", default=[0], help="noise seeds, as evaluate's (default 0)")
-    parser.add_argument("--phrase", nargs="+", default=None,
-                        help="phrasings to ask (default: every keep-still paraphrase of the skill library)")
-    parser.add_argument("--max-scenes", type=int, default=None, help="scenes at most (default: all)")
-    parser.add_argument("--precision", choices=["auto", "fp32", "bf16"], default="auto")
-    parser.add_argument("--json", type=Path, default=None, help="also write the per-clip numbers here (a new file)")
-    args = parser.parse_args(argv)
-
-    from tesseract4d import runtime
-    from tesseract4d.errors import UserError
-    from tesseract4d.evaluation.believability import STILL_SHARE
-    from tesseract4d.model.checkpoint import SHIPPED_CHECKPOINT
-
-    runtime.configure()
-    try:
-        if args.json is not None and args.json.exists():
-            raise UserError(f"{args.json} exists; give a new file for --json")
-        if not (args.heldout / "episodes").is_dir():
-            raise UserError(f"{args.heldout} is not a dataset folder (no episodes/); make one with `tesseract4d datagen`")
-        phrasings = [(p, "given") for p in args.phrase] if args.phrase else keep_still_phrasings()
-        scene_list = scenes(args.heldout, args.max_scenes)
-        checkpoints = args.checkpoint or [SHIPPED_CHECKPOINT]
-        report = {str(c): probe(c, scene_list, phrasings, args.sample_seed, args.precision) for c in checkpoints}
-    except UserError as e:
-        print(f"error: {e}", file=sys.stderr)
-        return 2
-    print(f"\n{len(scene_list)} scenes x {len(args.sample_seed)} noise seeds; a clip keeps still at motion <= "
+def run_probe(heldout: Path, checkpoints: list[Path], sample_seeds: list[int], phrases: list[str] | None = None,
+              json_path: Path | None = None, max_scenes: int | None = None, precision: str = "auto") -> dict:
+    """Ask every phrasing (``phrases``, or every keep-still paraphrase) in every scene of ``heldout`` with
+    every checkpoint; print the Markdown table; write the per-clip numbers to ``json_path`` (a new file)."""
+    if json_path is not None and json_path.exists():
+        raise UserError(f"{json_path} exists; give a new file for --json")
+    if not (heldout / "episodes").is_dir():
+        raise UserError(f"{heldout} is not a dataset folder (no episodes/); make one with `tesseract4d datagen`")
+    phrasings = [(p, "given") for p in phrases] if phrases else keep_still_phrasings()
+    scene_list = scenes(heldout, max_scenes)
+    report = {str(c): probe(c, scene_list, phrasings, sample_seeds, precision) for c in checkpoints}
+    print(f"\n{len(scene_list)} scenes x {len(sample_seeds)} noise seeds; a clip keeps still at motion <= "
           f"{STILL_SHARE:.0%} of its scene's true active futures' (limits {min(s['limit'] for s in scene_list):.2f}-"
           f"{max(s['limit'] for s in scene_list):.2f})\n")
     print("| phrasing | split | " + " | ".join(f"{c}: still / median motion" for c in report) + " |")
@@ -131,13 +103,9 @@ def main(argv: list[str] | None = None) -> int:
         cells = [f"{r[phrase]['still']} / {r[phrase]['clips']}, {statistics.median(r[phrase]['motion']):.2f}"
                  for r in report.values()]
         print(f"| {phrase} | {split} | " + " | ".join(cells) + " |")
-    if args.json is not None:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        part = args.json.with_name(args.json.name + ".part")  # never a half-written report
+    if json_path is not None:
+        json_path.parent.mkdir(parents=True, exist_ok=True)
+        part = json_path.with_name(json_path.name + ".part")  # never a half-written report
         part.write_text(json.dumps(report, indent=1))
-        part.replace(args.json)
-    return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())
+        part.replace(json_path)
+    return report
