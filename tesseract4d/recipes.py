@@ -74,7 +74,7 @@ DISTILL: dict[str, dict] = {
     },
 }
 
-# The closed loop's IDM (README "Closed loop"): `train-idm --data data/idm_train128 --max-steps 3000`
+# The closed loop's IDM (docs/closed_loop.md, "The inverse dynamics model"): `train-idm --data data/idm_train128 --max-steps 3000`
 # on 128² renders of every simulator step; `bc` is its behaviour-cloning twin without the future.
 IDM: dict[str, dict] = {
     "idm": {"max_steps": 3000},

@@ -25,7 +25,7 @@
   at least ``SWAP_MIN_T`` is shown the noisy sample of another future of its group (same noise, same
   time) and must still predict its own instruction's future. It trains the network to side with the
   words where the noisy sample points elsewhere, as a sampler's intermediate samples do when they
-  drift back towards the first frame (docs/results_history.md, "Where the instruction is lost"). Below ``SWAP_MIN_T``
+  drift back towards the first frame (docs/research/evaluation.md, "Where a model fails"). Below ``SWAP_MIN_T``
   the noisy sample pins the future, and the swap would ask for the impossible.
 - ``rephrase``: with this probability, a clip's instruction is replaced by another training wording
   of the same meaning (same object, direction and distance; the paraphrases come from the datagen's
