@@ -149,3 +149,40 @@ def test_code_cites_documents_and_headings_that_exist():
             if heading and heading not in {h.replace("`", "") for h in headings(page)}:
                 broken.append(f"{path.relative_to(ROOT)}: {doc}, {heading!r}")
     assert not broken, "citations of missing pages or headings:\n" + "\n".join(broken)
+
+
+def documented_command_lines() -> list[tuple[str, str]]:
+    """(page, command line) of every `tesseract4d ...` line in a shell block of the README, the docs
+    pages (not docs/research: it tells what was run then) and the model cards."""
+    pages = [README, *sorted((ROOT / "docs").glob("*.md")), *MODEL_CARDS]
+    found = []
+    for page in pages:
+        for block in re.findall(r"```(?:bash|sh|console)?\n(.*?)```", page.read_text(), flags=re.S):
+            for line in block.replace("\\\n", " ").splitlines():
+                line = line.split(" #")[0].strip()
+                match = re.search(r"(?:^|\s|/)tesseract4d (\S.*)", line)
+                if match and not line.startswith("#"):
+                    found.append((str(page.relative_to(ROOT)), re.split(r"&&|\||>", match.group(1))[0].strip()))
+    return found
+
+
+def test_every_documented_command_parses_with_todays_cli_without_a_deprecated_spelling(capsys):
+    import shlex
+
+    from tesseract4d.cli import GROUPS, build_parser
+
+    lines = documented_command_lines()
+    assert len(lines) > 30, "the documentation's command lines were not found"
+    bad = []
+    for page, line in lines:
+        words = shlex.split(line)
+        key = tuple(words[:2]) if words[0] in GROUPS else (words[0],)
+        parser, _ = build_parser(key)
+        try:
+            parser.parse_args(words[len(key):])
+        except SystemExit:
+            bad.append(f"{page}: tesseract4d {line}\n    {capsys.readouterr().err.strip().splitlines()[-1]}")
+            continue
+        if "deprecated" in capsys.readouterr().err:
+            bad.append(f"{page}: tesseract4d {line}\n    uses a deprecated spelling")
+    assert not bad, "documented commands today's CLI refuses:\n" + "\n".join(bad)
