@@ -180,7 +180,10 @@ def test_every_documented_command_parses_with_todays_cli_without_a_deprecated_sp
         parser, _ = build_parser(key)
         try:
             parser.parse_args(words[len(key):])
-        except SystemExit:
+        except SystemExit as stop:
+            if stop.code == 0:  # --help or --set list: it prints and ends
+                capsys.readouterr()
+                continue
             bad.append(f"{page}: tesseract4d {line}\n    {capsys.readouterr().err.strip().splitlines()[-1]}")
             continue
         if "deprecated" in capsys.readouterr().err:
