@@ -129,8 +129,7 @@ def main(argv: list[str] | None = None) -> int:
     if not torch.cuda.is_available():
         print("bench_cuda.py: no CUDA device here; run it on a machine with an NVIDIA GPU", file=sys.stderr)
         return 2
-    sys.path.insert(0, str(ROOT / "tests"))
-    from synthetic_scene import write_segmented_dataset
+    from tesseract4d.testing.synthetic_scene import write_segmented_dataset
 
     from tesseract4d.model.predict import load_pipeline
     from tesseract4d.precision import resolve_precision

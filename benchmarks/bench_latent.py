@@ -108,8 +108,7 @@ def main(argv: list[str] | None = None) -> int:
     runtime.configure()
     import torch
 
-    sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
-    from synthetic_scene import write_segmented_dataset, write_synthetic_dataset
+    from tesseract4d.testing.synthetic_scene import write_segmented_dataset, write_synthetic_dataset
 
     from tesseract4d.model.autoencoder import RGBDNAutoencoder, get_autoencoder_preset, save_autoencoder
     from tesseract4d.precision import cpu_flags, has_fast_bf16

@@ -107,8 +107,7 @@ def main(argv: list[str] | None = None) -> int:
     runtime.configure()
     import torch
 
-    sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
-    from synthetic_scene import write_synthetic_dataset
+    from tesseract4d.testing.synthetic_scene import write_synthetic_dataset
 
     from tesseract4d.model.presets import get_preset
 

@@ -16,9 +16,7 @@ from __future__ import annotations
 import argparse
 import json
 import statistics
-import sys
 import time
-from pathlib import Path
 
 
 def main() -> None:
@@ -36,8 +34,7 @@ def main() -> None:
     from tesseract4d.evaluation.episode import evaluate_episode
     from reconstruction.reconstruct import STAGES, ReconConfig, reconstruct_episode
 
-    sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
-    from synthetic_scene import analytic_episode, flickering_depth
+    from tesseract4d.testing.synthetic_scene import analytic_episode, flickering_depth
 
     results = {"frames": args.frames, "sizes": {}}
     first = True

@@ -48,8 +48,7 @@ def main(argv: list[str] | None = None) -> int:
     runtime.configure()
     import torch
 
-    sys.path.insert(0, str(ROOT / "tests"))
-    from synthetic_scene import _segment, synthetic_episode
+    from tesseract4d.testing.synthetic_scene import _segment, synthetic_episode
 
     from tesseract4d.model.pipeline import guidance_passes
     from tesseract4d.model.predict import load_pipeline, predict_scenes

@@ -24,9 +24,7 @@ setting, not something the viewer can choose).
 from __future__ import annotations
 
 import argparse
-import sys
 import time
-from pathlib import Path
 
 TARGET_FPS = 15
 
@@ -62,8 +60,8 @@ ROWS = {
 
 def measure(recon, label: str, window: tuple[int, int], max_points: int, flags: list[str], seconds: float,
             warmup_s: float, play_fps: int) -> dict:
-    import browser  # tests/browser.py, on sys.path since main()
-    from browser import chromium, wait_until_drawn
+    from tesseract4d.testing import browser
+    from tesseract4d.testing.browser import chromium, wait_until_drawn
     from viewer.app import ViewerApp
 
     t_start = time.perf_counter()
@@ -109,8 +107,7 @@ def main() -> None:
     if unknown:
         parser.error(f"unknown rows {unknown}; choose from {', '.join(ROWS)}")
 
-    sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
-    from synthetic_scene import analytic_episode
+    from tesseract4d.testing.synthetic_scene import analytic_episode
 
     from reconstruction.backproject import recon_from_episode
     from viewer.app import MAX_FPS

@@ -178,7 +178,7 @@ class EpisodeSimulator:
         ``seed`` does not depend on what this process simulated before. A plain ``reset(seed=...)``
         keeps ManiSkill's physics scene, and its contact state outlived it: a held-out tabletop
         group generated after another seed diverged at its first contact from the same group
-        generated first (tests/test_skills.py). Costs about 0.1 s."""
+        generated first (tests/datagen/test_skills.py). Costs about 0.1 s."""
         self.env.reset(seed=seed, options={"reconfigure": True})
 
     def run(self, seed: int) -> AttemptResult:

@@ -8,7 +8,7 @@ A recipe holds training options only: the data, the output folder and the weight
 
 Each table maps a recipe name to field values of one trainer's config dataclass:
 ``TRAIN`` (`train`), ``AUTOENCODER`` (`train-autoencoder`), ``DISTILL`` (`distill`) and ``IDM``
-(`train-idm`). ``tests/test_recipes.py`` checks them against what the shipped checkpoints record.
+(`train-idm`). ``tests/model/test_recipes.py`` checks them against what the shipped checkpoints record.
 """
 
 from __future__ import annotations

@@ -25,7 +25,7 @@ def artifacts_dir() -> Path:
 def micro_preset():
     """The micro preset (model_fixtures.MICRO) registered in PRESETS for the whole run, so that
     tests train, export and load it by name."""
-    from model_fixtures import MICRO
+    from tesseract4d.testing.model_fixtures import MICRO
 
     from tesseract4d.model.presets import PRESETS
 
@@ -37,7 +37,7 @@ def micro_preset():
 @pytest.fixture(scope="session")
 def micro_checkpoint(micro_preset, tmp_path_factory) -> Path:
     """A micro checkpoint trained 10 steps on two synthetic episodes, for the tests that only read it."""
-    from synthetic_scene import write_synthetic_dataset
+    from tesseract4d.testing.synthetic_scene import write_synthetic_dataset
 
     from tesseract4d.model.trainer import TrainConfig, Trainer
 

@@ -55,7 +55,7 @@ class EvaluateOptions:
                                          "pixels whose true depth is at most this (none: all pixels; held-out "
                                          "evaluation: the checkpoint's depth range)")
     # "default 4" is model/predict.py's DEFAULT_SCENE_BATCH, written out so that --help needs no torch
-    # (tests/test_cli_eval_args.py compares the two).
+    # (tests/cli/test_cli_eval_args.py compares the two).
     batch_size: int | None = knob(None, "held-out: scenes predicted together in one network call (default 4; more "
                                         "needs more memory); each scene gets the noise it gets alone")
     text_guidance: float | None = knob(None, "held-out: text guidance scale of the sampler (none: each checkpoint "
