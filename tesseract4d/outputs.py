@@ -15,6 +15,12 @@ Rules:
 - An output that is, contains or lies inside one of the command's inputs is refused.
 - Names taken from data (task ids, episode ids, camera names) pass ``safe_name`` before they
   become path components.
+- A symbolic link anywhere below the output folder is refused (before any work and again at the
+  commit), so nothing is ever written or deleted through one; the names listed in an old marker
+  must stay inside the folder.
+- One run at a time writes an output: a run holds an advisory lock (``.NAME.lock`` beside it,
+  ``flock``, so a killed run's lock frees itself) from staging to commit; a second run refuses,
+  naming the first one's pid.
 
 Usage::
 
@@ -154,6 +160,77 @@ def _files_under(folder: Path) -> list[str]:
     return sorted(str(p.relative_to(folder)) for p in folder.rglob("*") if p.is_file() or p.is_symlink())
 
 
+def links_below(folder: str | os.PathLike) -> list[Path]:
+    """Symbolic links anywhere below ``folder`` (not followed; ``folder`` itself is not checked)."""
+    found = []
+    for dirpath, dirnames, filenames in os.walk(folder, followlinks=False):
+        for name in [*dirnames, *filenames]:
+            if os.path.islink(os.path.join(dirpath, name)):
+                found.append(Path(dirpath) / name)
+    return sorted(found)
+
+
+def refuse_links_below(folder: str | os.PathLike, shown: str | os.PathLike, flag: str = "--out") -> None:
+    """UserError if a symbolic link lies below ``folder``: a command writing there could replace or
+    delete files elsewhere through it (``shown`` is the folder as the user named it)."""
+    links = links_below(folder)
+    if links:
+        rel = links[0].relative_to(folder)
+        raise UserError(f"{flag} {shown} holds a symbolic link, {Path(shown) / rel} -> {os.readlink(links[0])}; "
+                        f"tesseract4d never writes or deletes through links below an output folder: replace it with "
+                        f"a real folder or file, or choose another {flag}")
+
+
+def _listed_name(name: object, folder: Path, flag: str) -> str:
+    """A file name read from an old marker: relative, without '..', staying inside ``folder``."""
+    if not isinstance(name, str) or not name or os.path.isabs(name) or ".." in Path(name).parts:
+        raise UserError(f"{flag} {folder}: its {MARKER} lists {name!r}, which is not a file inside it; the marker is "
+                        f"damaged or was crafted: move the folder away or choose another {flag}")
+    return name
+
+
+class _RunLock:
+    """``.NAME.lock`` beside an output, held with ``flock`` by the one run writing it (a killed
+    run's lock frees itself; its file is taken over and removed by the next run)."""
+
+    def __init__(self, target: Path, flag: str):
+        self.path = target.parent / f".{target.name}.lock"
+        self.target, self.flag = target, flag
+        self.fd: int | None = None
+
+    def acquire(self) -> None:
+        import fcntl
+
+        while True:
+            fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                try:
+                    pid = os.read(fd, 32).decode(errors="replace").strip() or "unknown"
+                finally:
+                    os.close(fd)
+                raise UserError(f"{self.flag} {self.target} is being written by another run (pid {pid}); wait for it "
+                                f"to finish, or write to another {self.flag}") from None
+            try:  # the file may have been removed by the run that held it just before we locked it
+                same = os.path.samestat(os.fstat(fd), os.stat(self.path))
+            except FileNotFoundError:
+                same = False
+            if same:
+                os.ftruncate(fd, 0)
+                os.write(fd, f"{os.getpid()}\n".encode())
+                self.fd = fd
+                return
+            os.close(fd)
+
+    def release(self) -> None:
+        if self.fd is not None:
+            with contextlib.suppress(OSError):
+                os.unlink(self.path)  # still locked: no other run can hold this file
+            os.close(self.fd)
+            self.fd = None
+
+
 def note_leftovers(path: str | os.PathLike) -> list[Path]:
     """Name on stderr what killed runs writing ``path`` left beside it: staging siblings
     (``.NAME.tmp-XXXXXXXX``) and earlier results moved aside during a swap (``.NAME.old-XXXXXXXX``).
@@ -191,6 +268,7 @@ class OutputDir:
         self.flag = flag
         self.overwrite = overwrite
         self.stage: Path | None = None
+        self.lock: _RunLock | None = None
         self.legacy_files = set(legacy_files)  # the layout written before markers existed
         check_not_input(self.path, inputs, flag)
         self.previous = self._check_target()
@@ -203,9 +281,10 @@ class OutputDir:
         check_writable(p, self.flag)
         if not p.exists() or not any(p.iterdir()):
             return set()
+        refuse_links_below(p, self.path, self.flag)
         marker = read_marker(p)
         if marker is not None and marker.get("command") == self.command:
-            return set(marker["files"])
+            return {_listed_name(f, p, self.flag) for f in marker["files"]}
         if marker is None and self.legacy_files:
             present = set(_files_under(p))
             if present and present <= self.legacy_files:
@@ -217,10 +296,17 @@ class OutputDir:
         return set()
 
     def __enter__(self) -> Path:
-        parent = _resolve(self.path).parent
-        parent.mkdir(parents=True, exist_ok=True)
-        note_leftovers(self.path)
-        self.stage = _as_created(Path(tempfile.mkdtemp(prefix=f".{self.path.name}.tmp-", dir=parent)), 0o777)
+        target = _resolve(self.path)
+        target.parent.mkdir(parents=True, exist_ok=True)
+        self.lock = _RunLock(target, self.flag)
+        self.lock.acquire()  # before naming leftovers: a live run's stage is never called a killed one's
+        try:
+            note_leftovers(self.path)
+            self.stage = _as_created(Path(tempfile.mkdtemp(prefix=f".{self.path.name}.tmp-", dir=target.parent)),
+                                     0o777)
+        except BaseException:
+            self.lock.release()
+            raise
         return self.stage
 
     def __exit__(self, exc_type, exc, tb) -> bool:
@@ -229,12 +315,18 @@ class OutputDir:
                 with signals_held():  # the swap of folders or files runs whole
                     self._commit()
         finally:
-            if self.stage is not None and self.stage.exists():
-                shutil.rmtree(self.stage, ignore_errors=True)  # only our own staging folder
+            try:
+                if self.stage is not None and self.stage.exists():
+                    shutil.rmtree(self.stage, ignore_errors=True)  # only our own staging folder
+            finally:
+                if self.lock is not None:
+                    self.lock.release()
         return False
 
     def _commit(self) -> None:
         stage, target = self.stage, _resolve(self.path)
+        if target.is_dir():  # made since the start: refused all the same
+            refuse_links_below(target, self.path, self.flag)
         files_as_created(stage)
         new_files = _files_under(stage)
         if not target.exists() or not any(target.iterdir()):
@@ -259,7 +351,8 @@ class OutputDir:
             return
         # Foreign files beside ours: replace our files one by one, the marker last.
         for f in sorted(self.previous - set(new_files)):
-            (target / f).unlink(missing_ok=True)
+            if (target / f).is_file() or (target / f).is_symlink():  # never a folder of the user's
+                (target / f).unlink()
         for f in new_files:
             (target / f).parent.mkdir(parents=True, exist_ok=True)
             os.replace(stage / f, target / f)
