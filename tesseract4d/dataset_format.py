@@ -155,12 +155,15 @@ class CameraFrames:
         if not np.all(np.isfinite(self.depth_m)):
             raise DatasetFormatError(f"{name}: depth_m contains NaN/inf; use 0 for 'no measurement'")
 
-    def check_content(self, name: str = "camera") -> None:
+    def check_content(self, name: str = "camera", zero_normals_anywhere: bool = False) -> None:
         """Raise DatasetFormatError naming the first value that breaks the conventions: depth finite
         and >= 0 (0 = no measurement); normals finite and of unit length (within
-        ``NORMAL_LENGTH_TOLERANCE``), or zero where depth is 0; K finite with positive focal lengths
-        and last row (0, 0, 1); ``T_world_cam`` rigid (rotation orthonormal with determinant +1, last
-        row (0, 0, 0, 1)); every segmentation id named in ``seg_id_to_name``. Call ``validate`` first."""
+        ``NORMAL_LENGTH_TOLERANCE``), or zero where depth is 0 (anywhere with
+        ``zero_normals_anywhere``: a prediction's "no normal" where its length collapsed); K finite
+        with positive focal lengths and last row (0, 0, 1); ``T_world_cam`` rigid (rotation
+        orthonormal with determinant +1, last row (0, 0, 0, 1)); every segmentation id named in
+        ``seg_id_to_name``. Call ``validate`` first."""
+
         def where(mask: np.ndarray) -> str:
             idx = tuple(int(i) for i in np.argwhere(mask)[0])
             return f"{int(mask.sum())} value(s), the first at frame {idx[0]}" + (
@@ -175,7 +178,7 @@ class CameraFrames:
         finite = np.isfinite(normal).all(axis=-1)
         length = np.linalg.norm(np.where(finite[..., None], normal, 0.0), axis=-1)
         unit = np.abs(length - 1.0) <= NORMAL_LENGTH_TOLERANCE
-        zero_ok = (length <= NORMAL_ZERO_TOLERANCE) & (depth == 0)
+        zero_ok = (length <= NORMAL_ZERO_TOLERANCE) & ((depth == 0) | zero_normals_anywhere)
         bad = ~finite | ~(unit | zero_ok)
         if bad.any():
             first = tuple(np.argwhere(bad)[0])
@@ -257,7 +260,7 @@ class Episode:
         read episodes to learn from or predict from (train, predict --episode, reconstruct) apply."""
         self.validate()
         for name, cam in self.cameras.items():
-            cam.check_content(f"{self.episode_id}/{name}")
+            cam.check_content(f"{self.episode_id}/{name}", zero_normals_anywhere=self.source == "prediction")
         if self.qpos.size and self.qpos.shape[0] != self.num_frames:
             raise DatasetFormatError(f"{self.episode_id}: qpos has {self.qpos.shape[0]} rows, expected {self.num_frames}")
         for name, pose in self.object_poses.items():
