@@ -18,9 +18,9 @@ Rules:
 - A symbolic link anywhere below the output folder is refused (before any work and again at the
   commit), so nothing is ever written or deleted through one; the names listed in an old marker
   must stay inside the folder.
-- One run at a time writes an output: a run holds an advisory lock (``.NAME.lock`` beside it,
-  ``flock``, so a killed run's lock frees itself) from staging to commit; a second run refuses,
-  naming the first one's pid.
+- One run at a time writes an output: a run holds its staging folder locked (``flock``, so a
+  killed run's lock ends with it) until it has committed; a second run writing the same output
+  refuses, naming the first one's pid, and never calls a live run's stage "killed".
 
 Usage::
 
@@ -189,57 +189,54 @@ def _listed_name(name: object, folder: Path, flag: str) -> str:
     return name
 
 
-class _RunLock:
-    """``.NAME.lock`` beside an output, held with ``flock`` by the one run writing it (a killed
-    run's lock frees itself; its file is taken over and removed by the next run)."""
+def _flock(path: Path) -> int | None:
+    """An open descriptor of ``path`` holding an exclusive ``flock``, or None when another process
+    holds one (a live run's staging folder)."""
+    import fcntl
 
-    def __init__(self, target: Path, flag: str):
-        self.path = target.parent / f".{target.name}.lock"
-        self.target, self.flag = target, flag
-        self.fd: int | None = None
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        os.close(fd)
+        return None
+    return fd
 
-    def acquire(self) -> None:
-        import fcntl
 
-        while True:
-            fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
-            try:
-                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-            except BlockingIOError:
-                try:
-                    pid = os.read(fd, 32).decode(errors="replace").strip() or "unknown"
-                finally:
-                    os.close(fd)
-                raise UserError(f"{self.flag} {self.target} is being written by another run (pid {pid}); wait for it "
-                                f"to finish, or write to another {self.flag}") from None
-            try:  # the file may have been removed by the run that held it just before we locked it
-                same = os.path.samestat(os.fstat(fd), os.stat(self.path))
-            except FileNotFoundError:
-                same = False
-            if same:
-                os.ftruncate(fd, 0)
-                os.write(fd, f"{os.getpid()}\n".encode())
-                self.fd = fd
-                return
-            os.close(fd)
+def _is_live_stage(path: Path) -> bool:
+    """Whether a staging sibling belongs to a run still writing (it holds the folder's lock)."""
+    try:
+        fd = _flock(path)
+    except OSError:
+        return False
+    if fd is None:
+        return True
+    os.close(fd)  # closing drops the lock we took to look
+    return False
 
-    def release(self) -> None:
-        if self.fd is not None:
-            with contextlib.suppress(OSError):
-                os.unlink(self.path)  # still locked: no other run can hold this file
-            os.close(self.fd)
-            self.fd = None
+
+def _lock_holder(path: Path) -> str:
+    """The pid holding a flock on ``path`` (Linux's /proc/locks), or 'unknown'."""
+    try:
+        inode = os.stat(path).st_ino
+        for line in Path("/proc/locks").read_text().splitlines():
+            parts = line.split()
+            if len(parts) > 5 and parts[1] == "FLOCK" and parts[5].rsplit(":", 1)[-1] == str(inode):
+                return parts[4]
+    except (OSError, ValueError):
+        pass
+    return "unknown"
 
 
 def note_leftovers(path: str | os.PathLike) -> list[Path]:
     """Name on stderr what killed runs writing ``path`` left beside it: staging siblings
     (``.NAME.tmp-XXXXXXXX``) and earlier results moved aside during a swap (``.NAME.old-XXXXXXXX``).
-    Nothing is removed: another run may be writing a stage now, and a moved-aside result may be
-    the only copy of it. Returns the leftovers."""
+    A stage a live run holds locked (see ``OutputDir``) is not a leftover and is not named. Nothing
+    is removed: a moved-aside result may be the only copy of it. Returns the leftovers."""
     target = _resolve(path)
     ours = re.compile(rf"^\.{re.escape(target.name)}\.(tmp|old)-[A-Za-z0-9_]{{8}}$")
     found = sorted((p, m.group(1)) for p in target.parent.glob(glob.escape(f".{target.name}.") + "*")
-                   if (m := ours.match(p.name)))
+                   if (m := ours.match(p.name)) and not (m.group(1) == "tmp" and p.is_dir() and _is_live_stage(p)))
     for p, kind in found:
         if kind == "tmp":
             print(f"note: {p} is a staging {'folder' if p.is_dir() else 'file'} of a run writing {target} that was "
@@ -268,7 +265,7 @@ class OutputDir:
         self.flag = flag
         self.overwrite = overwrite
         self.stage: Path | None = None
-        self.lock: _RunLock | None = None
+        self.lock_fd: int | None = None
         self.legacy_files = set(legacy_files)  # the layout written before markers existed
         check_not_input(self.path, inputs, flag)
         self.previous = self._check_target()
@@ -298,16 +295,29 @@ class OutputDir:
     def __enter__(self) -> Path:
         target = _resolve(self.path)
         target.parent.mkdir(parents=True, exist_ok=True)
-        self.lock = _RunLock(target, self.flag)
-        self.lock.acquire()  # before naming leftovers: a live run's stage is never called a killed one's
-        try:
-            note_leftovers(self.path)
-            self.stage = _as_created(Path(tempfile.mkdtemp(prefix=f".{self.path.name}.tmp-", dir=target.parent)),
-                                     0o777)
-        except BaseException:
-            self.lock.release()
-            raise
+        self.stage = _as_created(Path(tempfile.mkdtemp(prefix=f".{self.path.name}.tmp-", dir=target.parent)), 0o777)
+        # The run holds its stage locked until it ends (a killed run's lock ends with it): another run
+        # writing the same output sees it live and refuses, instead of mixing results or calling it killed.
+        self.lock_fd = _flock(self.stage)
+        ours = re.compile(rf"^\.{re.escape(target.name)}\.tmp-[A-Za-z0-9_]{{8}}$")
+        live = [p for p in target.parent.glob(glob.escape(f".{target.name}.tmp-") + "*")
+                if p != self.stage and ours.match(p.name) and p.is_dir() and _is_live_stage(p)]
+        if live:
+            pid = _lock_holder(live[0])
+            self._release()
+            raise UserError(f"{self.flag} {self.path} is being written by another run (pid {pid}); wait for it to "
+                            f"finish, or write to another {self.flag}")
+        note_leftovers(self.path)
         return self.stage
+
+    def _release(self) -> None:
+        try:
+            if self.stage is not None and self.stage.exists():
+                shutil.rmtree(self.stage, ignore_errors=True)  # only our own staging folder
+        finally:
+            if self.lock_fd is not None:
+                os.close(self.lock_fd)
+                self.lock_fd = None
 
     def __exit__(self, exc_type, exc, tb) -> bool:
         try:
@@ -315,12 +325,7 @@ class OutputDir:
                 with signals_held():  # the swap of folders or files runs whole
                     self._commit()
         finally:
-            try:
-                if self.stage is not None and self.stage.exists():
-                    shutil.rmtree(self.stage, ignore_errors=True)  # only our own staging folder
-            finally:
-                if self.lock is not None:
-                    self.lock.release()
+            self._release()
         return False
 
     def _commit(self) -> None:
