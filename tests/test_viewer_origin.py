@@ -53,3 +53,36 @@ def test_the_allow_list():
     assert origin_allowed("http://10.0.0.5:8080", "10.0.0.5", ("10.0.0.5", 8080))
     assert not origin_allowed("http://localhost:8080", "10.0.0.5", ("10.0.0.5", 8080))
     assert not origin_allowed("http://[::1", "127.0.0.1", ("127.0.0.1", 8080))
+
+
+@pytest.mark.browser
+def test_in_a_real_browser_the_viewer_page_connects_and_a_foreign_page_cannot(app, tmp_path):
+    """Chromium: the viewer's own page connects and draws the scene; a page served from another
+    origin (another port of the same host) that opens a websocket to the viewer is refused."""
+    import functools
+    import http.server
+    import threading
+
+    import viser
+    from browser import chromium, wait_until_drawn
+
+    (tmp_path / "index.html").write_text("<html><body>a page from another origin</body></html>")
+    handler = functools.partial(http.server.SimpleHTTPRequestHandler, directory=str(tmp_path))
+    other = http.server.ThreadingHTTPServer(("127.0.0.1", 0), handler)
+    threading.Thread(target=other.serve_forever, daemon=True).start()
+    probe = """(url) => new Promise((resolve) => {
+        const ws = new WebSocket(url, [PROTOCOL]);
+        ws.onopen = () => { resolve("open"); ws.close(); };
+        ws.onerror = () => resolve("refused");
+        setTimeout(() => resolve("timeout"), 15000);
+    })""".replace("PROTOCOL", repr(f"viser-v{viser.__version__}"))
+    ws_url = app.url.replace("http://", "ws://")
+    try:
+        with chromium() as page:
+            page.goto(f"http://127.0.0.1:{other.server_address[1]}/index.html")
+            assert page.evaluate(probe, ws_url) == "refused"
+            page.goto(app.url)
+            wait_until_drawn(page, timeout_s=90)  # the served page's own connection works
+            assert page.evaluate(probe, ws_url) == "open"
+    finally:
+        other.shutdown()
