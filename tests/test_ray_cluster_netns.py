@@ -165,8 +165,12 @@ def _datagen(cluster: NetnsCluster, out: Path, workers: int, env: dict | None = 
                             stderr=subprocess.PIPE, text=True)
 
 
+WALL_CLOCK = ("plan_seconds",)  # metadata that measures time, not the episode
+
+
 def _contents(path: Path) -> dict:
-    """Every array (bytes and dtype) and attribute of an episode file."""
+    """Every array (bytes and dtype) and attribute of an episode file, but the wall-clock durations
+    in its metadata."""
     found = {}
     with h5py.File(path, "r") as f:
         f.visititems(lambda name, obj: found.__setitem__(name, (obj[()].dtype.str, obj[()].tobytes()))
@@ -176,6 +180,8 @@ def _contents(path: Path) -> dict:
             found[f"{name}@attrs"] = {k: (v.tobytes() if isinstance(v, np.ndarray) else v) for k, v in obj.attrs.items()}
         for g in f["cameras"].values():
             found[f"{g.name}@attrs"] = dict(g.attrs)
+    metadata = json.loads(found["@attrs"].pop("metadata"))
+    found["metadata"] = {k: v for k, v in metadata.items() if k not in WALL_CLOCK}
     return found
 
 
