@@ -415,6 +415,13 @@ def check_ray_cluster(address: str, timeout_s: float = 5.0) -> None:
         from ray.exceptions import AuthenticationError
     except ImportError:
         return  # another Ray version: ray.init() reports on its own
+    try:  # as ray.init() will: with RAY_AUTH_MODE unset, a token in ~/.ray/auth_token turns token mode on
+        from ray._private.authentication.authentication_token_setup import maybe_enable_token_auth_if_token_available
+
+        maybe_enable_token_auth_if_token_available(warn_if_disabled=False)
+    except ImportError:
+        pass
+    with_token = os.environ.get("RAY_AUTH_MODE", "").lower() == "token"
     saved_stderr, devnull = os.dup(2), os.open(os.devnull, os.O_WRONLY)
     os.dup2(devnull, 2)  # Ray's C++ client logs the refusal itself; our error below says it with the fix
     try:
@@ -427,6 +434,10 @@ def check_ray_cluster(address: str, timeout_s: float = 5.0) -> None:
         os.dup2(saved_stderr, 2)
         os.close(saved_stderr)
         os.close(devnull)
+    if not with_token:  # it answered a client that sent no token: it asks for none
+        print(f"warning: the Ray cluster at {address} does not ask for an authentication token, so anyone who can "
+              f"reach it can run code on its machines; start its nodes with RAY_AUTH_MODE=token and a token "
+              f"(docs/ray_cluster.md)", file=sys.stderr)
 
 
 # --------------------------------------------------------------------------- bookkeeping

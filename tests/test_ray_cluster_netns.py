@@ -278,7 +278,10 @@ def test_a_machine_killed_mid_run_loses_no_finished_episode(cluster, reference, 
         finished = {p: hashlib.sha256(p.read_bytes()).hexdigest() for p in list_episode_files(out)}
         cluster.kill_node(2)
         _, err = proc.communicate(timeout=1800)
-        if proc.returncode != 0:  # stopped: the same command resumes it on the machines left
+        if proc.returncode == 0:  # the attempt running on the lost machine went to another one
+            assert "a Ray worker was lost" in err, err[-2000:]
+            assert cluster.addresses[2] not in _attempt_nodes(out)[len(finished):]
+        else:  # stopped: the same command resumes it on the machines left
             resumed = _datagen(cluster, out, 2)
             _, err2 = resumed.communicate(timeout=1800)
             assert resumed.returncode == 0, err[-2000:] + err2[-2000:]
