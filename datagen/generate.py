@@ -416,9 +416,16 @@ def check_ray_cluster(address: str, timeout_s: float = 5.0) -> None:
     except ImportError:
         return  # another Ray version: ray.init() reports on its own
     try:  # as ray.init() will: with RAY_AUTH_MODE unset, a token in ~/.ray/auth_token turns token mode on
-        from ray._private.authentication.authentication_token_setup import maybe_enable_token_auth_if_token_available
+        import logging
 
-        maybe_enable_token_auth_if_token_available(warn_if_disabled=False)
+        from ray._private.authentication import authentication_token_setup as setup
+
+        quiet = logging.getLogger(setup.__name__)
+        level, quiet.level = quiet.level, logging.ERROR  # its notice would be a second line; ray.init() repeats it
+        try:
+            setup.maybe_enable_token_auth_if_token_available(warn_if_disabled=False)
+        finally:
+            quiet.setLevel(level)
     except ImportError:
         pass
     with_token = os.environ.get("RAY_AUTH_MODE", "").lower() == "token"
@@ -427,6 +434,10 @@ def check_ray_cluster(address: str, timeout_s: float = 5.0) -> None:
     try:
         GcsClient(address=f"{host}:{port}")
     except AuthenticationError:
+        if with_token:
+            raise UserError(f"the Ray cluster at {address} refused this shell's authentication token (RAY_AUTH_TOKEN, "
+                            f"RAY_AUTH_TOKEN_PATH or ~/.ray/auth_token): use the head's token (print it on the head "
+                            f"with `ray get-auth-token`), then rerun") from None
         raise UserError(f"the Ray cluster at {address} requires an authentication token: export RAY_AUTH_MODE=token "
                         f"and RAY_AUTH_TOKEN=<the token> (print it on the head with `ray get-auth-token`), then rerun"
                         ) from None
