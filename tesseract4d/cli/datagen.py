@@ -51,9 +51,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--max-attempts", type=int, default=None,
                         help="seeds tried per task at most (default 4 * episodes + 4)")
     parser.add_argument("--workers", type=int, default=1,
-                        help="parallel workers; more than 1 runs Ray actors (default %(default)s)")
+                        help="parallel workers: local processes, or Ray workers with --ray-address (default %(default)s)")
     parser.add_argument("--ray-address", default=None,
-                        help="address of a running Ray cluster (default: a local Ray instance when --workers > 1)")
+                        help="HEAD:PORT of a Ray cluster spanning machines, token authentication on "
+                             "(docs/ray_cluster.md); default: this machine only")
     parser.add_argument("--randomize-lighting", action="store_true", help="random ambient/directional light per episode")
     parser.add_argument("--randomize-colors", action="store_true",
                         help="random named colour of the task's cubes per episode (the instruction says it; "
