@@ -211,13 +211,13 @@ class _LocalPool:
         self.worker.close()
 
 
-def _worker_process(conn, out: str, sim: dict, previews: bool, render_threads: int, instructions_per_scene: int,
-                    skills: list[str] | None) -> None:
+def _worker_process(conn, parent_pid: int, out: str, sim: dict, previews: bool, render_threads: int,
+                    instructions_per_scene: int, skills: list[str] | None) -> None:
     """Main of one local worker process: attempts in, outcomes out, over ``conn`` until None."""
     import signal
     import traceback
 
-    _die_with_parent()
+    _die_with_parent(parent_pid)
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C reaches the whole group: the driver decides
     worker = Worker(out, sim, previews, render_threads, instructions_per_scene, skills)
     try:
@@ -234,7 +234,7 @@ def _worker_process(conn, out: str, sim: dict, previews: bool, render_threads: i
         worker.close()
 
 
-def _die_with_parent() -> None:
+def _die_with_parent(parent_pid: int) -> None:
     """Ask Linux to end this process when the process that started it ends, even by SIGKILL
     (PR_SET_PDEATHSIG); elsewhere nothing (the pipe's EOF still ends an idle worker)."""
     import ctypes
@@ -245,7 +245,7 @@ def _die_with_parent() -> None:
         libc.prctl(1, int(signal.SIGKILL), 0, 0, 0)  # 1 = PR_SET_PDEATHSIG
     except (OSError, AttributeError):
         pass
-    if os.getppid() == 1:  # the parent ended before the request took effect
+    if os.getppid() != parent_pid:  # the parent ended before the request took effect
         os._exit(1)
 
 
@@ -263,8 +263,8 @@ class _ProcessPool:
         for _ in range(cfg.workers):
             here, there = ctx.Pipe()
             proc = ctx.Process(target=_worker_process, name="datagen-worker", daemon=True,
-                               args=(there, str(cfg.out), dataclasses.asdict(cfg.sim), cfg.previews, threads,
-                                     cfg.instructions_per_scene, cfg.skills))
+                               args=(there, os.getpid(), str(cfg.out), dataclasses.asdict(cfg.sim), cfg.previews,
+                                     threads, cfg.instructions_per_scene, cfg.skills))
             proc.start()
             there.close()
             self.procs.append(proc)
