@@ -9,9 +9,13 @@ Semantics
   attempt's outcome to ``DIR/datagen_attempts.jsonl``, so a rerun skips seeds that failed before
   as well as episodes already on disk. A killed run leaves at most ``*.partial.*`` files, which
   never count and are removed by the next run.
-- ``workers == 1`` without a Ray address runs in this process. Otherwise Ray actors (one CPU
-  each) do the work: a local Ray instance by default, or the cluster at ``ray_address``
-  (every node then needs this package installed and ``out`` on a shared file system).
+- ``workers == 1`` without a Ray address runs in this process; ``workers > 1`` starts that many
+  local worker processes (no server, no open port; they end with the driver, even when it is
+  killed). With ``ray_address``, Ray actors (one CPU each) on that cluster do the work: every
+  node needs this package installed and ``out`` on a shared file system, and a token-authenticated
+  cluster the token (docs/ray_cluster.md). An actor lost with its machine is replaced by another
+  actor for its attempt; every attempt's record names the machine (``node``) that ran it. A
+  local Ray instance is never started: Ray 2.60 binds its services to every interface.
 - Skill mode (the project's tabletop scene always; other tasks with ``skills`` or
   ``instructions_per_scene`` > 1): a job is a counterfactual group, K = ``instructions_per_scene``
   futures of one seed's initial state (``datagen/counterfactual.py``), written as
@@ -26,6 +30,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import os
+import sys
 import time
 from collections import Counter
 from dataclasses import dataclass, field
@@ -181,6 +186,12 @@ class Worker:
             self._sim.close()
             self._sim = None
 
+    def node_address(self) -> str:
+        """The address of the machine this worker runs on, as its Ray cluster knows it (Ray workers only)."""
+        import ray  # imported lazily: only the Ray path has it loaded
+
+        return ray.util.get_node_ip_address()
+
 
 class _LocalPool:
     """One in-process worker: submit() runs the attempt right away."""
@@ -201,8 +212,118 @@ class _LocalPool:
         self.worker.close()
 
 
+def _worker_process(conn, parent_pid: int, out: str, sim: dict, previews: bool, render_threads: int,
+                    instructions_per_scene: int, skills: list[str] | None) -> None:
+    """Main of one local worker process: attempts in, outcomes out, over ``conn`` until None."""
+    import signal
+    import traceback
+
+    _die_with_parent(parent_pid)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C reaches the whole group: the driver decides
+    worker = Worker(out, sim, previews, render_threads, instructions_per_scene, skills)
+    try:
+        while (job := conn.recv()) is not None:
+            try:
+                conn.send(("ok", worker.attempt(*job)))
+            except UserError as e:
+                conn.send(("user_error", str(e)))
+            except Exception as e:  # reported by the driver with this traceback
+                conn.send(("error", f"{type(e).__name__}: {e}\n{traceback.format_exc()}"))
+    except (EOFError, OSError):
+        pass  # the driver is gone
+    finally:
+        worker.close()
+
+
+def _die_with_parent(parent_pid: int) -> None:
+    """Ask Linux to end this process when the process that started it ends, even by SIGKILL
+    (PR_SET_PDEATHSIG); elsewhere nothing (the pipe's EOF still ends an idle worker)."""
+    import ctypes
+    import signal
+
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        libc.prctl(1, int(signal.SIGKILL), 0, 0, 0)  # 1 = PR_SET_PDEATHSIG
+    except (OSError, AttributeError):
+        pass
+    if os.getppid() != parent_pid:  # the parent ended before the request took effect
+        os._exit(1)
+
+
+class _ProcessPool:
+    """``workers`` local processes of this machine (no server, no port: nothing listens), each
+    keeping its env alive between attempts. They end with the driver, even when it is killed."""
+
+    def __init__(self, cfg: DatagenConfig):
+        import multiprocessing as mp
+
+        ctx = mp.get_context("spawn")  # a fresh interpreter: no state (threads, renderer) inherited
+        threads = max(1, (os.cpu_count() or 1) // cfg.workers)
+        self.procs, self.conns, self.free = [], [], []
+        self.pending: dict = {}  # conn -> key
+        for _ in range(cfg.workers):
+            here, there = ctx.Pipe()
+            proc = ctx.Process(target=_worker_process, name="datagen-worker", daemon=True,
+                               args=(there, os.getpid(), str(cfg.out), dataclasses.asdict(cfg.sim), cfg.previews,
+                                     threads, cfg.instructions_per_scene, cfg.skills))
+            proc.start()
+            there.close()
+            self.procs.append(proc)
+            self.conns.append(here)
+            self.free.append(here)
+        self.capacity = cfg.workers
+
+    def submit(self, key, env_id: str, seed: int) -> None:
+        conn = self.free.pop()
+        conn.send((env_id, seed))
+        self.pending[conn] = key
+
+    def wait_one(self) -> tuple[object, dict]:
+        from multiprocessing.connection import wait
+
+        busy = list(self.pending)
+        sentinels = {self.procs[self.conns.index(c)].sentinel: c for c in busy}
+        ready = wait(busy + list(sentinels))
+        conn = next((r for r in ready if r in self.pending), None)
+        try:
+            kind, value = conn.recv() if conn is not None else (None, None)
+        except (EOFError, OSError):
+            kind = None
+        if kind is None:  # a worker process died mid-attempt (killed, out of memory)
+            dead = conn or sentinels[next(r for r in ready if r in sentinels)]
+            code = self.procs[self.conns.index(dead)].exitcode
+            raise UserError(f"a datagen worker process ended unexpectedly (exit status {code}) while simulating "
+                            f"{self.pending[dead]}; finished episodes are kept: rerun the same command to resume")
+        key = self.pending.pop(conn)
+        self.free.append(conn)
+        if kind == "user_error":
+            raise UserError(value)
+        if kind == "error":
+            raise RuntimeError(f"datagen worker failed on {key}: {value}")
+        return key, value
+
+    def shutdown(self) -> None:
+        for conn, proc in zip(self.conns, self.procs):
+            if conn not in self.pending and proc.is_alive():
+                try:
+                    conn.send(None)  # idle: close its env and leave
+                except OSError:
+                    pass
+            else:
+                proc.terminate()  # mid-attempt (an error or a stop): a shard being written is finished first
+        for proc in self.procs:
+            proc.join(timeout=30)
+            if proc.is_alive():
+                proc.kill()
+                proc.join()
+        for conn in self.conns:
+            conn.close()
+
+
 class _RayPool:
-    """K Ray actors, one CPU each; attempts go to whichever actor is free."""
+    """One Ray actor per worker (one CPU each) on the cluster at ``cfg.ray_address``; attempts go
+    to whichever actor is free. An actor lost with its machine is dropped and its attempt given to
+    another; with none left the run stops (rerunning the command resumes)."""
 
     def __init__(self, cfg: DatagenConfig):
         import ray
@@ -213,37 +334,58 @@ class _RayPool:
 
             # ray.init() installs its own SIGTERM handler: the command line's stays (SIGTERM ends datagen with 143).
             with handlers_kept():
-                if cfg.ray_address:
-                    ray.init(address=cfg.ray_address, log_to_driver=False)
-                else:
-                    # "local": always a fresh instance of our own, whatever cluster file an earlier
-                    # `ray start --head` left behind (ray.init() would try to join it).
-                    ray.init(address="local", num_cpus=cfg.workers, include_dashboard=False, log_to_driver=False,
-                             configure_logging=False)
-        threads = max(1, (os.cpu_count() or 1) // cfg.workers)
-        actor_cls = ray.remote(num_cpus=1)(Worker)
-        self.actors = [actor_cls.remote(str(cfg.out), dataclasses.asdict(cfg.sim), cfg.previews, threads,
+                ray.init(address=cfg.ray_address, log_to_driver=False)
+        actor_cls = ray.remote(num_cpus=1, max_restarts=0)(Worker)
+        self.actors = [actor_cls.remote(str(cfg.out), dataclasses.asdict(cfg.sim), cfg.previews, 1,
                                         cfg.instructions_per_scene, cfg.skills)
                        for _ in range(cfg.workers)]
         self.free = list(self.actors)
         self.capacity = len(self.actors)
-        self.pending: dict = {}  # ObjectRef -> (key, actor)
+        self.pending: dict = {}  # ObjectRef -> (key, actor, job)
+        self.retry: list = []  # (key, job) whose actor was lost
+        self.nodes: dict = {}  # actor -> the address of the machine it runs on
 
     def submit(self, key, env_id: str, seed: int) -> None:
         actor = self.free.pop()
-        self.pending[actor.attempt.remote(env_id, seed)] = (key, actor)
+        self.pending[actor.attempt.remote(env_id, seed)] = (key, actor, (env_id, seed))
 
     def wait_one(self) -> tuple[object, dict]:
-        ready, _ = self.ray.wait(list(self.pending), num_returns=1)
-        key, actor = self.pending.pop(ready[0])
-        self.free.append(actor)
-        try:
-            return key, self.ray.get(ready[0])
-        except self.ray.exceptions.RayTaskError as e:
-            cause = getattr(e, "cause", None)
-            if isinstance(cause, UserError):
-                raise UserError(str(cause)) from e
-            raise
+        while True:
+            while self.retry and self.free:
+                key, job = self.retry.pop(0)
+                self.submit(key, *job)
+            if not self.pending:
+                raise UserError(f"every Ray worker of the cluster was lost ({len(self.actors)} started); finished "
+                                f"episodes are kept: check the cluster (`ray status`) and rerun the same command to "
+                                f"resume")
+            ready, _ = self.ray.wait(list(self.pending), num_returns=1)
+            key, actor, job = self.pending.pop(ready[0])
+            try:
+                result = self.ray.get(ready[0])
+            except self.ray.exceptions.RayTaskError as e:
+                self.free.append(actor)
+                cause = getattr(e, "cause", None)
+                if isinstance(cause, UserError):
+                    raise UserError(str(cause)) from e
+                raise
+            except self.ray.exceptions.RayActorError:  # its machine or process is gone: another one redoes it
+                print(f"note: a Ray worker was lost while simulating {key[0]} seed {key[1]}; giving it to another "
+                      f"worker", file=sys.stderr)
+                self.actors.remove(actor)
+                self.capacity = max(1, len(self.actors))
+                self.retry.append((key, job))
+                continue
+            self.free.append(actor)
+            result["node"] = self._node(actor)
+            return key, result
+
+    def _node(self, actor) -> str | None:
+        if actor not in self.nodes:
+            try:
+                self.nodes[actor] = self.ray.get(actor.node_address.remote(), timeout=30)
+            except Exception:  # lost since: the record goes without it
+                return None
+        return self.nodes[actor]
 
     def shutdown(self) -> None:
         for a in self.actors:
@@ -274,11 +416,29 @@ def check_ray_cluster(address: str, timeout_s: float = 5.0) -> None:
         from ray.exceptions import AuthenticationError
     except ImportError:
         return  # another Ray version: ray.init() reports on its own
+    try:  # as ray.init() will: with RAY_AUTH_MODE unset, a token in ~/.ray/auth_token turns token mode on
+        import logging
+
+        from ray._private.authentication import authentication_token_setup as setup
+
+        quiet = logging.getLogger(setup.__name__)
+        level, quiet.level = quiet.level, logging.ERROR  # its notice would be a second line; ray.init() repeats it
+        try:
+            setup.maybe_enable_token_auth_if_token_available(warn_if_disabled=False)
+        finally:
+            quiet.setLevel(level)
+    except ImportError:
+        pass
+    with_token = os.environ.get("RAY_AUTH_MODE", "").lower() == "token"
     saved_stderr, devnull = os.dup(2), os.open(os.devnull, os.O_WRONLY)
     os.dup2(devnull, 2)  # Ray's C++ client logs the refusal itself; our error below says it with the fix
     try:
         GcsClient(address=f"{host}:{port}")
     except AuthenticationError:
+        if with_token:
+            raise UserError(f"the Ray cluster at {address} refused this shell's authentication token (RAY_AUTH_TOKEN, "
+                            f"RAY_AUTH_TOKEN_PATH or ~/.ray/auth_token): use the head's token (print it on the head "
+                            f"with `ray get-auth-token`), then rerun") from None
         raise UserError(f"the Ray cluster at {address} requires an authentication token: export RAY_AUTH_MODE=token "
                         f"and RAY_AUTH_TOKEN=<the token> (print it on the head with `ray get-auth-token`), then rerun"
                         ) from None
@@ -286,6 +446,10 @@ def check_ray_cluster(address: str, timeout_s: float = 5.0) -> None:
         os.dup2(saved_stderr, 2)
         os.close(saved_stderr)
         os.close(devnull)
+    if not with_token:  # it answered a client that sent no token: it asks for none
+        print(f"warning: the Ray cluster at {address} does not ask for an authentication token, so anyone who can "
+              f"reach it can run code on its machines; start its nodes with RAY_AUTH_MODE=token and a token "
+              f"(docs/ray_cluster.md)", file=sys.stderr)
 
 
 # --------------------------------------------------------------------------- bookkeeping
@@ -482,7 +646,7 @@ def _generate(cfg: DatagenConfig, progress: bool) -> dict:
     bar = tqdm(total=total, initial=done_before, desc="datagen", unit="ep", disable=not progress, dynamic_ncols=True)
     run_attempts = run_successes = run_frames = run_episodes = 0
     t_start = time.perf_counter()
-    pool = _RayPool(cfg) if (cfg.workers > 1 or cfg.ray_address) else _LocalPool(cfg)
+    pool = _RayPool(cfg) if cfg.ray_address else _ProcessPool(cfg) if cfg.workers > 1 else _LocalPool(cfg)
     try:
         while True:
             while sum(in_flight.values()) < pool.capacity and (job := next_job()) is not None:
@@ -496,6 +660,8 @@ def _generate(cfg: DatagenConfig, progress: bool) -> dict:
             record = {k: res[k] for k in ("env_id", "seed", "success", "num_steps", "num_frames", "error",
                                           "plan_s", "render_s", "write_s")}
             record["time"] = time.time()
+            if res.get("node"):
+                record["node"] = res["node"]
             if "tries" in res:
                 record["tries"] = res["tries"]
             _append_attempt(root, record)

@@ -79,6 +79,11 @@ LOCK_FILE = ".datagen.lock"  # the pid of the datagen writing the folder
 DEPTH_ENCODING = "float32 metres along the OpenCV camera +z axis; 0 = no measurement"
 NORMAL_CONVENTION = "float16 unit vectors in the OpenCV camera frame (x right, y down, z forward); 0 = no measurement"
 POSE_CONVENTION = "T_world_cam: 4x4 camera-to-world, OpenCV camera axes"
+# Content checks (CameraFrames.check_content): float16 storage and the renderer's interpolated
+# normals stay well within these.
+NORMAL_LENGTH_TOLERANCE = 0.05
+NORMAL_ZERO_TOLERANCE = 1e-3
+RIGID_TOLERANCE = 1e-4
 
 
 class DatasetFormatError(UserError):
@@ -126,11 +131,13 @@ class CameraFrames:
         return int(self.rgb.shape[0])
 
     def validate(self, name: str = "camera") -> None:
-        """Raise DatasetFormatError if shapes/dtypes break the contract."""
-        if self.rgb.ndim != 4 or self.rgb.shape[-1] != 3 or self.rgb.dtype != np.uint8:
-            raise DatasetFormatError(f"{name}: rgb must be (T, H, W, 3) uint8, got {self.rgb.shape} {self.rgb.dtype}")
-        T, H, W, _ = self.rgb.shape
+        """Raise DatasetFormatError if shapes/dtypes break the contract (content: ``check_content``)."""
+        images = {"rgb": (self.rgb, 4), "depth_m": (self.depth_m, 3), "normal_cam": (self.normal_cam, 4)}
+        # Frames x height x width, taken from whichever two image arrays agree, so the odd one is named.
+        sizes = [tuple(a.shape[:3]) for a, ndim in images.values() if a is not None and a.ndim == ndim]
+        T, H, W = max(sizes, key=sizes.count) if sizes else (0, 0, 0)
         expect = {
+            "rgb": (T, H, W, 3),
             "depth_m": (T, H, W),
             "normal_cam": (T, H, W, 3),
             "K": (T, 3, 3),
@@ -141,10 +148,67 @@ class CameraFrames:
             if arr is None or tuple(arr.shape) != shape:
                 got = None if arr is None else tuple(arr.shape)
                 raise DatasetFormatError(f"{name}: {key} must have shape {shape}, got {got}")
+        if self.rgb.dtype != np.uint8:
+            raise DatasetFormatError(f"{name}: rgb must be uint8, got {self.rgb.dtype}")
         if self.segmentation is not None and tuple(self.segmentation.shape) != (T, H, W):
             raise DatasetFormatError(f"{name}: segmentation must have shape {(T, H, W)}, got {self.segmentation.shape}")
         if not np.all(np.isfinite(self.depth_m)):
             raise DatasetFormatError(f"{name}: depth_m contains NaN/inf; use 0 for 'no measurement'")
+
+    def check_content(self, name: str = "camera", zero_normals_anywhere: bool = False) -> None:
+        """Raise DatasetFormatError naming the first value that breaks the conventions: depth finite
+        and >= 0 (0 = no measurement); normals finite and of unit length (within
+        ``NORMAL_LENGTH_TOLERANCE``), or zero where depth is 0 (anywhere with
+        ``zero_normals_anywhere``: a prediction's "no normal" where its length collapsed); K finite
+        with positive focal lengths and last row (0, 0, 1); ``T_world_cam`` rigid (rotation
+        orthonormal with determinant +1, last row (0, 0, 0, 1)); every segmentation id named in
+        ``seg_id_to_name``. Call ``validate`` first."""
+
+        def where(mask: np.ndarray) -> str:
+            idx = tuple(int(i) for i in np.argwhere(mask)[0])
+            return f"{int(mask.sum())} value(s), the first at frame {idx[0]}" + (
+                f" pixel (row {idx[1]}, column {idx[2]})" if len(idx) >= 3 else "")
+
+        depth = np.asarray(self.depth_m, np.float32)
+        bad = ~np.isfinite(depth) | (depth < 0)
+        if bad.any():
+            raise DatasetFormatError(f"{name}: depth_m must be finite and >= 0 metres (0 = no measurement); "
+                                     f"{where(bad)} is {float(depth[tuple(np.argwhere(bad)[0])])}")
+        normal = np.asarray(self.normal_cam, np.float32)
+        finite = np.isfinite(normal).all(axis=-1)
+        length = np.linalg.norm(np.where(finite[..., None], normal, 0.0), axis=-1)
+        unit = np.abs(length - 1.0) <= NORMAL_LENGTH_TOLERANCE
+        zero_ok = (length <= NORMAL_ZERO_TOLERANCE) & ((depth == 0) | zero_normals_anywhere)
+        bad = ~finite | ~(unit | zero_ok)
+        if bad.any():
+            first = tuple(np.argwhere(bad)[0])
+            got = "NaN/inf" if not finite[first] else f"of length {float(length[first]):.3f}"
+            raise DatasetFormatError(f"{name}: normal_cam must hold unit vectors (length 1 +- {NORMAL_LENGTH_TOLERANCE}), "
+                                     f"or zero where depth_m is 0; {where(bad)} is {got}")
+        K = np.asarray(self.K, np.float64)
+        bad = ~np.isfinite(K).all(axis=(1, 2)) | ~(K[:, 0, 0] > 0) | ~(K[:, 1, 1] > 0)
+        bad |= np.abs(K[:, 2] - [0.0, 0.0, 1.0]).max(axis=1) > 1e-9
+        if bad.any():
+            t = int(np.argwhere(bad)[0][0])
+            raise DatasetFormatError(f"{name}: K must be finite pixel intrinsics with positive focal lengths and last row "
+                                     f"(0, 0, 1); frame {t} has {K[t].tolist()}")
+        T = np.asarray(self.T_world_cam, np.float64)
+        R = T[:, :3, :3]
+        with np.errstate(invalid="ignore"):
+            bad = ~np.isfinite(T).all(axis=(1, 2))
+            bad |= np.abs(T[:, 3] - [0.0, 0.0, 0.0, 1.0]).max(axis=1) > 1e-6
+            bad |= np.abs(np.einsum("tji,tjk->tik", R, R) - np.eye(3)).max(axis=(1, 2)) > RIGID_TOLERANCE
+            bad |= np.abs(np.linalg.det(np.where(np.isfinite(R), R, 0.0)) - 1.0) > RIGID_TOLERANCE
+        if bad.any():
+            t = int(np.argwhere(bad)[0][0])
+            raise DatasetFormatError(f"{name}: T_world_cam must be a rigid camera-to-world pose (orthonormal rotation "
+                                     f"with determinant +1, last row 0 0 0 1); frame {t} has {T[t].tolist()}")
+        if self.segmentation is not None:
+            ids = np.unique(self.segmentation)
+            unknown = sorted(set(ids.tolist()) - set(self.seg_id_to_name))
+            if unknown:
+                raise DatasetFormatError(f"{name}: segmentation ids {unknown[:5]} have no name in seg_id_to_name "
+                                         f"(it names {sorted(self.seg_id_to_name)[:10]})")
 
 
 @dataclass
@@ -190,6 +254,13 @@ class Episode:
                 raise DatasetFormatError(
                     f"{self.episode_id}/{name}: {cam.num_frames} frames but frame_steps has {self.num_frames}"
                 )
+
+    def check_content(self) -> None:
+        """``validate`` and every camera's ``check_content``: what `dataset check` and the commands that
+        read episodes to learn from or predict from (train, predict --episode, reconstruct) apply."""
+        self.validate()
+        for name, cam in self.cameras.items():
+            cam.check_content(f"{self.episode_id}/{name}", zero_normals_anywhere=self.source == "prediction")
         if self.qpos.size and self.qpos.shape[0] != self.num_frames:
             raise DatasetFormatError(f"{self.episode_id}: qpos has {self.qpos.shape[0]} rows, expected {self.num_frames}")
         for name, pose in self.object_poses.items():
@@ -396,8 +467,22 @@ def read_episode(
     path: str | os.PathLike,
     cameras: list[str] | None = None,
     frames: slice | np.ndarray | None = None,
+    check: bool = False,
 ) -> Episode:
-    """Read an episode file (optionally only some cameras and a frame slice/index array)."""
+    """Read an episode file (optionally only some cameras and a frame slice/index array). With
+    ``check``, its shapes and content are validated too (``Episode.check_content``), and a failure
+    names the file and `tesseract4d dataset check`."""
+    episode = _read_episode(path, cameras, frames)
+    if check:
+        try:
+            episode.check_content()
+        except DatasetFormatError as e:
+            raise DatasetFormatError(f"{path} is not a valid episode ({e}); regenerate it, or list every such file of "
+                                     f"its dataset with `tesseract4d dataset check`") from None
+    return episode
+
+
+def _read_episode(path, cameras, frames) -> Episode:
     import h5py
 
     path = Path(path)

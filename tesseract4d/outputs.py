@@ -15,6 +15,12 @@ Rules:
 - An output that is, contains or lies inside one of the command's inputs is refused.
 - Names taken from data (task ids, episode ids, camera names) pass ``safe_name`` before they
   become path components.
+- A symbolic link anywhere below the output folder is refused (before any work and again at the
+  commit), so nothing is ever written or deleted through one; the names listed in an old marker
+  must stay inside the folder.
+- One run at a time writes an output: a run holds its staging folder locked (``flock``, so a
+  killed run's lock ends with it) until it has committed; a second run writing the same output
+  refuses, naming the first one's pid, and never calls a live run's stage "killed".
 
 Usage::
 
@@ -154,15 +160,83 @@ def _files_under(folder: Path) -> list[str]:
     return sorted(str(p.relative_to(folder)) for p in folder.rglob("*") if p.is_file() or p.is_symlink())
 
 
+def links_below(folder: str | os.PathLike) -> list[Path]:
+    """Symbolic links anywhere below ``folder`` (not followed; ``folder`` itself is not checked)."""
+    found = []
+    for dirpath, dirnames, filenames in os.walk(folder, followlinks=False):
+        for name in [*dirnames, *filenames]:
+            if os.path.islink(os.path.join(dirpath, name)):
+                found.append(Path(dirpath) / name)
+    return sorted(found)
+
+
+def refuse_links_below(folder: str | os.PathLike, shown: str | os.PathLike, flag: str = "--out") -> None:
+    """UserError if a symbolic link lies below ``folder``: a command writing there could replace or
+    delete files elsewhere through it (``shown`` is the folder as the user named it)."""
+    links = links_below(folder)
+    if links:
+        rel = links[0].relative_to(folder)
+        raise UserError(f"{flag} {shown} holds a symbolic link, {Path(shown) / rel} -> {os.readlink(links[0])}; "
+                        f"tesseract4d never writes or deletes through links below an output folder: replace it with "
+                        f"a real folder or file, or choose another {flag}")
+
+
+def _listed_name(name: object, folder: Path, flag: str) -> str:
+    """A file name read from an old marker: relative, without '..', staying inside ``folder``."""
+    if not isinstance(name, str) or not name or os.path.isabs(name) or ".." in Path(name).parts:
+        raise UserError(f"{flag} {folder}: its {MARKER} lists {name!r}, which is not a file inside it; the marker is "
+                        f"damaged or was crafted: move the folder away or choose another {flag}")
+    return name
+
+
+def _flock(path: Path) -> int | None:
+    """An open descriptor of ``path`` holding an exclusive ``flock``, or None when another process
+    holds one (a live run's staging folder)."""
+    import fcntl
+
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        os.close(fd)
+        return None
+    return fd
+
+
+def _is_live_stage(path: Path) -> bool:
+    """Whether a staging sibling belongs to a run still writing (it holds the folder's lock)."""
+    try:
+        fd = _flock(path)
+    except OSError:
+        return False
+    if fd is None:
+        return True
+    os.close(fd)  # closing drops the lock we took to look
+    return False
+
+
+def _lock_holder(path: Path) -> str:
+    """The pid holding a flock on ``path`` (Linux's /proc/locks), or 'unknown'."""
+    try:
+        inode = os.stat(path).st_ino
+        for line in Path("/proc/locks").read_text().splitlines():
+            parts = line.split()
+            if len(parts) > 5 and parts[1] == "FLOCK" and parts[5].rsplit(":", 1)[-1] == str(inode):
+                return parts[4]
+    except (OSError, ValueError):
+        pass
+    return "unknown"
+
+
 def note_leftovers(path: str | os.PathLike) -> list[Path]:
     """Name on stderr what killed runs writing ``path`` left beside it: staging siblings
     (``.NAME.tmp-XXXXXXXX``) and earlier results moved aside during a swap (``.NAME.old-XXXXXXXX``).
-    Nothing is removed: another run may be writing a stage now, and a moved-aside result may be
-    the only copy of it. Returns the leftovers."""
+    A stage a live run holds locked (see ``OutputDir``) is not a leftover and is not named. Nothing
+    is removed: a moved-aside result may be the only copy of it. Returns the leftovers."""
     target = _resolve(path)
     ours = re.compile(rf"^\.{re.escape(target.name)}\.(tmp|old)-[A-Za-z0-9_]{{8}}$")
     found = sorted((p, m.group(1)) for p in target.parent.glob(glob.escape(f".{target.name}.") + "*")
-                   if (m := ours.match(p.name)))
+                   if (m := ours.match(p.name)) and not (m.group(1) == "tmp" and p.is_dir() and _is_live_stage(p)))
     for p, kind in found:
         if kind == "tmp":
             print(f"note: {p} is a staging {'folder' if p.is_dir() else 'file'} of a run writing {target} that was "
@@ -191,6 +265,7 @@ class OutputDir:
         self.flag = flag
         self.overwrite = overwrite
         self.stage: Path | None = None
+        self.lock_fd: int | None = None
         self.legacy_files = set(legacy_files)  # the layout written before markers existed
         check_not_input(self.path, inputs, flag)
         self.previous = self._check_target()
@@ -203,9 +278,10 @@ class OutputDir:
         check_writable(p, self.flag)
         if not p.exists() or not any(p.iterdir()):
             return set()
+        refuse_links_below(p, self.path, self.flag)
         marker = read_marker(p)
         if marker is not None and marker.get("command") == self.command:
-            return set(marker["files"])
+            return {_listed_name(f, p, self.flag) for f in marker["files"]}
         if marker is None and self.legacy_files:
             present = set(_files_under(p))
             if present and present <= self.legacy_files:
@@ -217,11 +293,31 @@ class OutputDir:
         return set()
 
     def __enter__(self) -> Path:
-        parent = _resolve(self.path).parent
-        parent.mkdir(parents=True, exist_ok=True)
+        target = _resolve(self.path)
+        target.parent.mkdir(parents=True, exist_ok=True)
+        self.stage = _as_created(Path(tempfile.mkdtemp(prefix=f".{self.path.name}.tmp-", dir=target.parent)), 0o777)
+        # The run holds its stage locked until it ends (a killed run's lock ends with it): another run
+        # writing the same output sees it live and refuses, instead of mixing results or calling it killed.
+        self.lock_fd = _flock(self.stage)
+        ours = re.compile(rf"^\.{re.escape(target.name)}\.tmp-[A-Za-z0-9_]{{8}}$")
+        live = [p for p in target.parent.glob(glob.escape(f".{target.name}.tmp-") + "*")
+                if p != self.stage and ours.match(p.name) and p.is_dir() and _is_live_stage(p)]
+        if live:
+            pid = _lock_holder(live[0])
+            self._release()
+            raise UserError(f"{self.flag} {self.path} is being written by another run (pid {pid}); wait for it to "
+                            f"finish, or write to another {self.flag}")
         note_leftovers(self.path)
-        self.stage = _as_created(Path(tempfile.mkdtemp(prefix=f".{self.path.name}.tmp-", dir=parent)), 0o777)
         return self.stage
+
+    def _release(self) -> None:
+        try:
+            if self.stage is not None and self.stage.exists():
+                shutil.rmtree(self.stage, ignore_errors=True)  # only our own staging folder
+        finally:
+            if self.lock_fd is not None:
+                os.close(self.lock_fd)
+                self.lock_fd = None
 
     def __exit__(self, exc_type, exc, tb) -> bool:
         try:
@@ -229,12 +325,13 @@ class OutputDir:
                 with signals_held():  # the swap of folders or files runs whole
                     self._commit()
         finally:
-            if self.stage is not None and self.stage.exists():
-                shutil.rmtree(self.stage, ignore_errors=True)  # only our own staging folder
+            self._release()
         return False
 
     def _commit(self) -> None:
         stage, target = self.stage, _resolve(self.path)
+        if target.is_dir():  # made since the start: refused all the same
+            refuse_links_below(target, self.path, self.flag)
         files_as_created(stage)
         new_files = _files_under(stage)
         if not target.exists() or not any(target.iterdir()):
@@ -259,7 +356,8 @@ class OutputDir:
             return
         # Foreign files beside ours: replace our files one by one, the marker last.
         for f in sorted(self.previous - set(new_files)):
-            (target / f).unlink(missing_ok=True)
+            if (target / f).is_file() or (target / f).is_symlink():  # never a folder of the user's
+                (target / f).unlink()
         for f in new_files:
             (target / f).parent.mkdir(parents=True, exist_ok=True)
             os.replace(stage / f, target / f)

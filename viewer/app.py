@@ -29,6 +29,7 @@ import numpy as np
 from reconstruction.recon4d import Recon4D
 from tesseract4d.errors import Terminated, UserError
 from tesseract4d.colors import COLOR_MODES, colorize_depth, colorize_normals
+from viewer.origin import own_origin_only
 from viewer.scene import DEFAULT_MAX_POINTS, POINT_MODES, SceneLayer, configure_rendering, initial_view, make_server, stop_server
 
 # generate(instruction, seed, steps, progress(fraction in [0, 1], message)) -> a new source.
@@ -163,7 +164,8 @@ class ViewerApp:
         """Start serving in background threads; returns the URL."""
         _one_line_handshake_errors()
         check_address(self.host, self.port)
-        self.server = make_server(self.host, self.port)
+        with own_origin_only(self.host):  # a web page from elsewhere cannot connect (viewer/origin.py)
+            self.server = make_server(self.host, self.port)
         if self.port and self.server.get_port() != self.port:  # lost a race for the port
             got = self.server.get_port()
             stop_server(self.server)

@@ -55,7 +55,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "(default %(default)s)")
     parser.add_argument("--seed-start", type=int, default=0, help="first seed tried per task (default %(default)s)")
     parser.add_argument("--workers", type=int, default=1,
-                        help="parallel workers; more than 1 runs Ray actors (default %(default)s)")
+                        help="parallel workers: local processes, or Ray workers with `--set ray_address=HEAD:PORT` "
+                             "(a Ray cluster across machines, docs/ray_cluster.md) (default %(default)s)")
     parser.add_argument("--instruction-split", choices=SPLITS, default=d.instruction_split,
                         help="instruction paraphrases to draw from (default %(default)s; 'heldout' is kept for evaluation)")
     from datagen.skills import VARIANTS

@@ -2,8 +2,9 @@
 
   tesseract4d dataset info DIR    episodes, tasks, frames, resolution, size on disk, success;
                                   for skill data also groups and per-skill counts and planner rates
-  tesseract4d dataset check DIR   reads every episode shard completely with the reader; lists the
-                                  corrupt or truncated ones and exits non-zero if there are any
+  tesseract4d dataset check DIR   reads every episode shard completely with the reader and checks
+                                  its content (depth >= 0, unit normals, K, rigid poses, named
+                                  segmentation ids); lists the bad ones and exits non-zero if any
 """
 
 from __future__ import annotations
@@ -116,7 +117,7 @@ def _check(root: Path) -> int:
     for path in files:
         try:
             episode = read_episode(path)
-            episode.validate()
+            episode.check_content()
             if path.relative_to(root).as_posix() != f"episodes/{episode.episode_id}.h5":
                 raise DatasetFormatError(f"holds episode {episode.episode_id}, which belongs elsewhere")
             if episode.source != info.source:

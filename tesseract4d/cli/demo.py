@@ -137,12 +137,14 @@ def run_demo(cfg: DemoConfig) -> dict[str, Path]:
 def _check_config(cfg: DemoConfig) -> None:
     """Refuse contradicting options before anything is loaded or rendered."""
     from datagen import skills as sk
+    from tesseract4d.model.text_encoder import check_instruction
 
     if not cfg.contrast and cfg.contrast_instruction is not None:
         raise UserError("--set contrast=false and --contrast-instruction contradict each other; drop one")
     if cfg.instruction is not None and cfg.skill is not None:
         raise UserError("--instruction and --skill both set the main instruction; drop one")
     for flag, text in (("--instruction", cfg.instruction), ("--contrast-instruction", cfg.contrast_instruction)):
+        check_instruction(text, flag)
         if text is not None and not text.strip():
             raise UserError(f"{flag} is empty; say what should happen, e.g. {flag} \"push the red cube to the left\"")
     if cfg.skill is not None:

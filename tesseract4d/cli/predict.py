@@ -195,7 +195,7 @@ def load_first_frame(cfg: PredictConfig, resolution: tuple[int, int], camera: st
     if cfg.episode is not None:
         from tesseract4d import dataset_format as df
 
-        return df.read_episode(df.resolve_episode(cfg.episode), frames=slice(0, 1))
+        return df.read_episode(df.resolve_episode(cfg.episode), frames=slice(0, 1), check=True)
     return first_frame_from_files(cfg.rgb, cfg.depth, cfg.K, cfg.normal)
 
 
@@ -228,9 +228,11 @@ def run(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
     from tesseract4d.model.predict import instruction_budget_note, load_pipeline, predict_episodes, write_prediction
+    from tesseract4d.model.text_encoder import check_instruction
     from tesseract4d.outputs import OutputDir
 
     cfg = dataclass_from_args(PredictConfig, args)
+    check_instruction(cfg.instruction)
     check_device(cfg.device)
     output = OutputDir(cfg.out, "predict", inputs=_input_paths(cfg), overwrite=args.overwrite)
     pipe = load_pipeline(cfg.checkpoint, device=cfg.device, precision=cfg.precision)

@@ -59,7 +59,7 @@ def run(args: argparse.Namespace) -> int:
     config.validate()
     path = resolve_episode(args.input)
     output = OutputDir(args.out, "reconstruct", inputs=[path, args.input], overwrite=args.overwrite)
-    episode = read_episode(path, cameras=[args.camera] if args.camera else None)
+    episode = read_episode(path, cameras=[args.camera] if args.camera else None, check=True)
     recon = reconstruct_episode(episode, camera=args.camera, config=config)
     recon.metadata["episode_path"] = str(path)
     with output as stage:

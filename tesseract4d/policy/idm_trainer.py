@@ -131,7 +131,7 @@ def load_pairs(data: str | Path, *, camera: str | None, num_points: int, chunk_l
     meta: dict = {}
     offset = 0
     for path in tqdm(chosen, desc="load pairs", unit="ep", disable=not progress):
-        ep = df.read_episode(path, cameras=[camera] if camera else None)
+        ep = df.read_episode(path, cameras=[camera] if camera else None, check=True)
         cam_name = camera or next(iter(ep.cameras))
         cam = ep.cameras[cam_name]
         info = dict(control_mode=ep.control_mode, action_dim=int(ep.actions.shape[1]), camera=cam_name,

@@ -685,3 +685,240 @@ def test_viewer_on_all_interfaces_warns(sandbox):
     err = proc.stderr.read()
     assert "reachable from the network" in err and "0.0.0.0" in err
 
+
+
+# --------------------------------------------------------------------------- links below an output
+
+
+def test_reconstruct_never_writes_or_deletes_through_a_linked_subfolder(sandbox, capsys):
+    """`out/frames -> elsewhere/`: a rerun (with or without --no-ply) is refused before any work, and
+    the linked folder's files stay as they were."""
+    rc, _, err = run_cli(capsys, "reconstruct", "data/Synthetic-v0/0", "--out", "out", "--no-refine", "--no-mesh", "--quiet")
+    assert rc == 0, err
+    elsewhere = sandbox / "elsewhere"
+    elsewhere.mkdir()
+    for p in (sandbox / "out" / "frames").iterdir():
+        (elsewhere / p.name).write_text(f"the user's own {p.name}")
+    shutil.rmtree(sandbox / "out" / "frames")
+    (sandbox / "out" / "frames").symlink_to(elsewhere, target_is_directory=True)
+    before = snapshot(sandbox / "elsewhere")
+    for extra in ([], ["--no-ply"], ["--overwrite"]):
+        rc, _, err = run_cli(capsys, "reconstruct", "data/Synthetic-v0/1", "--out", "out", "--no-refine", "--no-mesh",
+                             "--quiet", *extra)
+        assert_one_line_error(rc, err, "out/frames", "symbolic link")
+        assert snapshot(sandbox / "elsewhere") == before
+        assert (sandbox / "out" / "frames").is_symlink()
+
+
+def test_output_policy_refuses_a_link_made_below_the_output_while_the_command_runs(tmp_path):
+    from tesseract4d.errors import UserError
+    from tesseract4d.outputs import OutputDir
+
+    out, elsewhere = tmp_path / "out", tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    (elsewhere / "a.txt").write_text("foreign")
+    with OutputDir(out, "demo") as stage:
+        (stage / "sub").mkdir()
+        (stage / "sub" / "a.txt").write_text("ours")
+    with pytest.raises(UserError, match="symbolic link"):
+        with OutputDir(out, "demo") as stage:  # passes the start; the link appears before the commit
+            shutil.rmtree(out / "sub")
+            (out / "sub").symlink_to(elsewhere, target_is_directory=True)
+            (stage / "b.txt").write_text("ours")
+    assert (elsewhere / "a.txt").read_text() == "foreign" and not (elsewhere / "b.txt").exists()
+
+
+def test_a_crafted_marker_cannot_name_files_outside_the_output(tmp_path):
+    from tesseract4d.errors import UserError
+    from tesseract4d.outputs import OutputDir
+
+    victim = tmp_path / "victim.txt"
+    victim.write_text("keep me")
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "mine.txt").write_text("a foreign file, so the commit goes file by file")
+    (out / MARKER).write_text(json.dumps({"command": "demo", "version": 1, "files": ["../victim.txt"]}))
+    with pytest.raises(UserError, match="not a file inside it"):
+        with OutputDir(out, "demo") as stage:
+            (stage / "new.txt").write_text("x")
+    assert victim.read_text() == "keep me"
+
+
+# --------------------------------------------------------------------------- two runs on one output
+
+
+def test_a_second_run_on_an_output_being_written_refuses_and_names_the_first(sandbox, capsys):
+    """While one run stages `out`, another run writing it refuses (naming the first's pid); neither
+    calls the other's files foreign nor its live stage "killed"."""
+    script = ("import sys, time\nfrom tesseract4d.outputs import OutputDir\n"
+              "with OutputDir('out', 'reconstruct') as stage:\n"
+              "    (stage / 'recon4d.npz').write_text('first')\n    print('staged', flush=True)\n"
+              "    sys.stdin.readline()\n")
+    first = subprocess.Popen([sys.executable, "-c", script], cwd=sandbox, stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                             text=True, env=dict(os.environ, PYTHONPATH=f"{REPO}{os.pathsep}{os.environ.get('PYTHONPATH', '')}"))
+    try:
+        assert first.stdout.readline().strip() == "staged"
+        rc, _, err = run_cli(capsys, "reconstruct", "data/Synthetic-v0/0", "--out", "out", "--no-refine", "--no-mesh",
+                             "--quiet")
+        assert_one_line_error(rc, err, "out", "another run", f"pid {first.pid}")
+        assert "killed" not in err
+    finally:
+        first.communicate("\n", timeout=60)
+    assert first.returncode == 0
+    assert (sandbox / "out" / "recon4d.npz").read_text() == "first"
+    assert not list(sandbox.glob(".out.*"))  # no stage left behind
+    rc, _, err = run_cli(capsys, "reconstruct", "data/Synthetic-v0/0", "--out", "out", "--no-refine", "--no-mesh", "--quiet")
+    assert rc == 0, err  # the next run takes over
+
+
+def test_a_killed_runs_stage_does_not_block_the_next_run(sandbox, capsys):
+    """A run killed outright holds no lock any more: the next run names its stage as a killed run's
+    leftover and writes the output."""
+    script = ("import os\nfrom tesseract4d.outputs import OutputDir\n"
+              "with OutputDir('out', 'reconstruct') as stage:\n    os.kill(os.getpid(), 9)\n")
+    proc = subprocess.run([sys.executable, "-c", script], cwd=sandbox,
+                          env=dict(os.environ, PYTHONPATH=f"{REPO}{os.pathsep}{os.environ.get('PYTHONPATH', '')}"))
+    assert proc.returncode == -9
+    (left,) = sandbox.glob(".out.tmp-*")
+    rc, _, err = run_cli(capsys, "reconstruct", "data/Synthetic-v0/0", "--out", "out", "--no-refine", "--no-mesh", "--quiet")
+    assert rc == 0, err
+    assert f"{left.name} is a staging folder" in err and "killed" in err and left.is_dir()
+
+
+# --------------------------------------------------------------------------- episode content
+
+
+def _set_array(path: Path, name: str, edit) -> None:
+    """Rewrite one array of an episode file in place (h5py recomputes its checksums)."""
+    import numpy as np
+
+    with h5py.File(path, "r+") as f:
+        data = f[name][()]
+        data = edit(np.array(data))
+        f[name][...] = data
+
+
+BAD_CONTENT = {
+    "depth-negative": ("cameras/close/depth_m", lambda a: a * 0 - 0.5, ["depth_m", ">= 0"]),
+    "normal-short": ("cameras/close/normal_cam", lambda a: a * 0.5, ["normal_cam", "unit", "0.500"]),
+    "normal-nan": ("cameras/close/normal_cam", lambda a: a * float("nan"), ["normal_cam", "NaN"]),
+    "K-zero": ("cameras/close/K", lambda a: a * 0, ["K", "positive focal lengths"]),
+    "pose-not-rigid": ("cameras/close/T_world_cam", lambda a: a * 2, ["T_world_cam", "rigid"]),
+}
+
+
+def _bad_episode(sb: Path, how: str) -> Path:
+    path = episode_file(sb)
+    if how == "segmentation-unknown-id":
+        with h5py.File(path, "r+") as f:
+            g = f["cameras/close"]
+            g.create_dataset("segmentation", data=g["depth_m"][()].astype("int32") * 0 + 99)
+            g.attrs["seg_id_to_name"] = json.dumps({"0": "background", "17": "ground"})
+    else:
+        name, edit, _ = BAD_CONTENT[how]
+        _set_array(path, name, edit)
+    return path
+
+
+CONTENT_WORDS = {**{k: v[2] for k, v in BAD_CONTENT.items()}, "segmentation-unknown-id": ["segmentation ids [99]"]}
+
+
+@pytest.mark.parametrize("how", list(CONTENT_WORDS))
+def test_dataset_check_validates_content(sandbox, capsys, how):
+    path = _bad_episode(sandbox, how)
+    rc, out, err = run_cli(capsys, "dataset", "check", "data")
+    assert rc == 1, out + err
+    bad = [line for line in out.splitlines() if line.startswith("BAD")]
+    assert len(bad) == 1 and path.name in bad[0], out
+    for w in CONTENT_WORDS[how]:
+        assert w in bad[0], (w, bad[0])
+    assert "1 ok, 1 bad" in out
+
+
+@pytest.mark.parametrize("how", ["K-zero", "normal-nan", "depth-negative"])
+@pytest.mark.parametrize("command", ["predict", "reconstruct", "train"])
+def test_commands_that_read_episodes_refuse_bad_content(sandbox, capsys, how, command):
+    """predict --episode, reconstruct and train apply `dataset check`'s validation when they read, so a
+    NaN normal never reaches a training step and K = 0 never reaches a prediction."""
+    path = _bad_episode(sandbox, how)
+    argv = {"predict": ["predict", "--checkpoint", "ckpt", "--episode", "data/Synthetic-v0/0", "--out", "pred", "--steps", "1"],
+            "reconstruct": ["reconstruct", "data/Synthetic-v0/0", "--out", "recon", "--no-refine", "--no-mesh", "--quiet"],
+            "train": ["train", "--preset", MICRO.name, "--data", "data", "--out", "newrun", "--no-progress", "--max-steps",
+                      "1", "--val-every", "0"]}[command]
+    before = snapshot(sandbox)
+    rc, _, err = run_cli(capsys, *argv)
+    assert_one_line_error(rc, err, path.name, "dataset check", *CONTENT_WORDS[how][:1])
+    assert changed(before, snapshot(sandbox)) == set()
+
+
+def test_a_wrongly_shaped_rgb_is_named_as_rgb():
+    import numpy as np
+
+    ep = synthetic_episode(0)
+    cam = ep.cameras["close"]
+    cam.rgb = np.zeros((cam.rgb.shape[0], cam.rgb.shape[1], cam.rgb.shape[2] + 1, 3), np.uint8)
+    with pytest.raises(df.DatasetFormatError, match=r"close: rgb must have shape \(8, 32, 32, 3\)"):
+        ep.validate()
+    ep = synthetic_episode(0)
+    ep.cameras["close"].normal_cam = ep.cameras["close"].normal_cam[:, :-1]
+    with pytest.raises(df.DatasetFormatError, match="normal_cam must have shape"):
+        ep.validate()
+
+
+# --------------------------------------------------------------------------- autoencoder file
+
+
+def test_a_truncated_autoencoder_is_called_corrupt_not_another_one(tmp_path):
+    import torch
+
+    from tesseract4d.errors import UserError
+    from tesseract4d.model.autoencoder import (
+        RGBDNAutoencoder, autoencoder_hash, get_autoencoder_preset, save_autoencoder,
+    )
+    from tesseract4d.model.latent_checkpoint import AUTOENCODER_DIR, checkpoint_autoencoder
+
+    torch.manual_seed(0)
+    folder = tmp_path / "ckpt" / AUTOENCODER_DIR
+    save_autoencoder(RGBDNAutoencoder(get_autoencoder_preset("ae-test")), folder)
+    entry = {"hash": autoencoder_hash(folder), "dir": AUTOENCODER_DIR}
+    assert checkpoint_autoencoder(tmp_path / "ckpt", entry) == folder
+    weights = folder / "model.safetensors"
+    whole = weights.read_bytes()
+    for cut in (len(whole) - 1, len(whole) // 2, 100, 4):
+        weights.write_bytes(whole[:cut])
+        with pytest.raises(UserError, match="corrupt or truncated") as e:
+            checkpoint_autoencoder(tmp_path / "ckpt", entry)
+        assert "trained on" not in str(e.value) and "model.safetensors" in str(e.value)
+
+
+# --------------------------------------------------------------------------- instructions
+
+
+INVALID_UTF8 = b"push the \xff\xfe cube".decode("utf-8", "surrogateescape")  # what Python makes of such argv bytes
+
+
+def test_predict_refuses_an_instruction_that_is_not_utf8(sandbox, capsys):
+    before = snapshot(sandbox)
+    rc, _, err = run_cli(capsys, "predict", "--checkpoint", "ckpt", "--episode", "data/Synthetic-v0/0", "--out", "pred",
+                         "--steps", "1", "--instruction", INVALID_UTF8)
+    assert_one_line_error(rc, err, "--instruction", "not valid UTF-8")
+    assert changed(before, snapshot(sandbox)) == set()
+
+
+def test_predict_refuses_invalid_utf8_from_a_real_shell(sandbox):
+    """The bytes as a shell passes them, in a process of its own: one line, exit 2."""
+    proc = subprocess.run([sys.executable, "-m", "tesseract4d.cli", "predict", "--checkpoint", "ckpt", "--episode",
+                           "data/Synthetic-v0/0", "--out", "pred", "--steps", "1", "--instruction",
+                           b"push the \xff cube"], cwd=sandbox, capture_output=True, timeout=300,
+                          env=dict(os.environ, PYTHONPATH=f"{REPO}{os.pathsep}{os.environ.get('PYTHONPATH', '')}"))
+    err = proc.stderr.decode(errors="replace")
+    assert proc.returncode == 2 and "not valid UTF-8" in err and "Traceback" not in err, err
+    assert not (sandbox / "pred").exists()
+
+
+@pytest.mark.parametrize("flag", ["--instruction", "--contrast-instruction"])
+def test_demo_refuses_an_instruction_that_is_not_utf8_before_rendering(tmp_path, capsys, flag):
+    t0 = time.monotonic()
+    rc, _, err = run_cli(capsys, "demo", "--out", tmp_path / "demo", flag, INVALID_UTF8)
+    assert_one_line_error(rc, err, flag, "not valid UTF-8")
+    assert time.monotonic() - t0 < 10 and not (tmp_path / "demo").exists()  # refused before the scene is rendered
