@@ -16,7 +16,7 @@ from pathlib import Path
 
 import pytest
 
-REPO = str(Path(__file__).resolve().parent.parent)
+REPO = str(Path(__file__).resolve().parents[2])
 RAY = str(Path(sys.executable).with_name("ray"))
 
 

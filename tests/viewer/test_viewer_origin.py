@@ -4,7 +4,7 @@ origin open in the same browser cannot read the scene or press Generate."""
 from __future__ import annotations
 
 import pytest
-from synthetic_scene import analytic_episode
+from tesseract4d.testing.synthetic_scene import analytic_episode
 
 from reconstruction.backproject import recon_from_episode
 from viewer.app import ViewerApp
@@ -64,7 +64,7 @@ def test_in_a_real_browser_the_viewer_page_connects_and_a_foreign_page_cannot(ap
     import threading
 
     import viser
-    from browser import chromium, wait_until_drawn
+    from tesseract4d.testing.browser import chromium, wait_until_drawn
 
     (tmp_path / "index.html").write_text("<html><body>a page from another origin</body></html>")
     handler = functools.partial(http.server.SimpleHTTPRequestHandler, directory=str(tmp_path))

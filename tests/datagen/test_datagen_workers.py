@@ -13,7 +13,7 @@ from pathlib import Path
 import psutil
 import pytest
 
-REPO = Path(__file__).resolve().parent.parent
+REPO = Path(__file__).resolve().parents[2]
 DATAGEN = [sys.executable, "-m", "tesseract4d.cli", "datagen", "--tasks", "PushCube-v1", "--resolution", "32",
            "--frames", "4", "--no-previews", "--quiet", "--workers", "2"]
 

@@ -30,7 +30,7 @@ import pytest
 
 from tesseract4d.dataset_format import list_episode_files
 
-REPO = Path(__file__).resolve().parent.parent
+REPO = Path(__file__).resolve().parents[2]
 RAY = str(Path(sys.executable).with_name("ray"))
 SUBNET = "10.213.77"  # /24 inside the namespaces only
 PORT = 6379
