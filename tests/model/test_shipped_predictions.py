@@ -3,13 +3,16 @@
 A change that is meant to leave the shipped sampler alone (deleting an unused option, moving code)
 must keep these digests. Each is the sha256 of a predicted episode's RGB, depth and normal arrays
 (one fixed synthetic first frame, one instruction, seed 0, fp32, one thread). Floating-point
-kernels differ between CPU kinds and thread counts, so the digests are recorded per CPU kind; on a
-kind without a record the test says how to record one instead of comparing.
+kernels differ between CPU kinds and thread counts, so the digests are recorded per CPU kind. Every
+kind, recorded or not, also compares the clip's per-frame channel means (shipped_fingerprints.json,
+recorded with the digests) within a tolerance far below what a change of the sampler moves.
 """
 
 from __future__ import annotations
 
 import hashlib
+import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -19,6 +22,7 @@ from tesseract4d.testing.synthetic_scene import group_episode
 from tesseract4d.model.checkpoint import CHECKPOINTS_DIR
 from tesseract4d.model.predict import load_pipeline, predict_episode
 
+FINGERPRINTS = Path(__file__).with_name("shipped_fingerprints.json")
 INSTRUCTION = "push the red cube to the right"
 # (checkpoint, noise draws): v2-2step with its own sampler (two draws, the draw choice included); v2
 # with its own 10 guided steps and guidance interval, one draw (to keep the test short).
@@ -40,6 +44,14 @@ def cpu_kind() -> tuple[str, str]:
     except OSError:
         pass
     return model, torch.backends.cpu.get_cpu_capability()
+
+
+def clip_fingerprint(episode) -> np.ndarray:
+    """(frames, 7): per frame the mean RGB (0-255), depth (m) and normal components of the clip."""
+    cam = next(iter(episode.cameras.values()))
+    t = len(cam.rgb)
+    return np.concatenate([cam.rgb.reshape(t, -1, 3).mean(1), cam.depth_m.reshape(t, -1).mean(1, keepdims=True),
+                           cam.normal_cam.reshape(t, -1, 3).mean(1)], 1)
 
 
 def clip_digest(episode) -> str:
@@ -65,6 +77,11 @@ def test_shipped_checkpoint_predicts_its_recorded_clip(name, draws, one_thread):
     episode = predict_episode(pipe, first, INSTRUCTION, seed=0, draws=draws)
     digest = clip_digest(episode)
     kind = cpu_kind()
-    if kind not in DIGESTS:
-        pytest.skip(f"no digests recorded for CPU {kind}; record them from the unchanged code ({name}: {digest})")
-    assert digest == DIGESTS[kind][name], f"{name} predicts a different clip than recorded on {kind}"
+    recorded = np.asarray(json.loads(FINGERPRINTS.read_text())[name])
+    found = clip_fingerprint(episode)
+    # (frames, 7): RGB means in 0-255, depth in metres, normal components; tolerances per column group.
+    for columns, tolerance in ((slice(0, 3), 0.5), (slice(3, 4), 1e-3), (slice(4, 7), 2e-3)):
+        worst = float(np.abs(found[:, columns] - recorded[:, columns]).max())
+        assert worst <= tolerance, f"{name} predicts another clip than recorded (channel means off by {worst})"
+    if kind in DIGESTS:  # bit for bit where the CPU kind's digest is recorded
+        assert digest == DIGESTS[kind][name], f"{name} predicts a different clip than recorded on {kind}"
