@@ -218,6 +218,7 @@ def test_evaluate_scores_several_checkpoints_side_by_side(two_checkpoints, tmp_p
     assert "| keep_still | 1 |" in md and "| Synthetic-v0 | 3 |" in md
 
 
+@pytest.mark.slow
 def test_several_noise_seeds_pool_the_single_seed_scores(two_checkpoints, tmp_path):
     """`--sample-seed 0 1` scores one row per episode and seed: its means are the means of the two
     single-seed runs, its contrast counts are their sums, and the static world is the same in both."""
@@ -251,6 +252,7 @@ def test_several_noise_seeds_pool_the_single_seed_scores(two_checkpoints, tmp_pa
     assert cli.main(["evaluate", "--heldout", str(heldout), "--checkpoint", str(a), "--sample-seed", "1", "1"]) == 2
 
 
+@pytest.mark.slow
 def test_each_checkpoint_samples_with_its_own_steps(two_checkpoints, tmp_path):
     # A 2-step student listed before its 10-step teacher: each keeps its own sampler, so the teacher
     # scores exactly as it does alone (up to 1e-6: rounding of the batched maths).
@@ -418,6 +420,7 @@ def _finite(report: dict, method: str) -> None:
         assert summary[key] is not None and np.isfinite(summary[key]), (method, key, summary[key])
 
 
+@pytest.mark.slow
 def test_checkpoints_of_two_resolutions_are_scored_on_one_heldout_set(two_checkpoints, checkpoint_64, tmp_path):
     """A 32x32 model beside a 64x64 one on 64x64 data: the 32x32 prediction is upsampled, every metric
     is taken at 64x64 against the untouched ground truth, and the report says so."""

@@ -87,6 +87,7 @@ def _psnr(a: torch.Tensor, b: torch.Tensor) -> float:
     return float(10 * torch.log10(4.0 / ((a - b) ** 2).mean()))  # values in [-1, 1]
 
 
+@pytest.mark.slow
 def test_micro_latent_model_overfits_one_clip(tmp_path):
     from tesseract4d.model.pipeline import RGBDNPipeline, make_scheduler
     from tesseract4d.model.trainer import Trainer
@@ -346,6 +347,7 @@ def test_init_fine_tunes_a_checkpoint_in_its_own_latent_space(tmp_path):
     assert not (tmp_path / "r1").exists() and not (ckpt / "inside").exists()
 
 
+@pytest.mark.slow
 def test_a_latent_teacher_distils_into_a_few_step_student_that_carries_its_autoencoder(tmp_path):
     """`distill` of a latent checkpoint: the student trains in the teacher's latent space with the
     autoencoder copied inside the teacher (hash-checked), sees clean first

@@ -148,6 +148,7 @@ def test_several_datasets_train_as_one_set(dataset, tmp_path):
         Trainer(_config([dataset, dataset], tmp_path / "twice"))
 
 
+@pytest.mark.slow
 def test_overfit_one_clip(tmp_path):
     """300 steps on one clip: the loss falls and a sample reproduces the clip far better than the
     static world (first frame repeated) and noise."""

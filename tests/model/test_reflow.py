@@ -41,6 +41,7 @@ def _pairs_cfg(teacher, data, out, n):
                        teacher_steps=TEACHER_STEPS, text_guidance=TEACHER_GUIDANCE)
 
 
+@pytest.mark.slow
 def test_pairs_are_deterministic_and_resume(teacher, tmp_path):
     ckpt, data = teacher
     whole = ReflowPairs(generate_pairs(_pairs_cfg(ckpt, data, tmp_path / "a", 4), progress=False))
@@ -63,6 +64,7 @@ def test_pairs_are_deterministic_and_resume(teacher, tmp_path):
         generate_pairs(_pairs_cfg(interval, data, tmp_path / "a", 4), progress=False)
 
 
+@pytest.mark.slow
 def test_distill_student_follows_teacher_in_few_steps(teacher, tmp_path, capsys):
     """The distill command's student loads as a pipeline whose preset samples in STUDENT_STEPS
     unguided steps, and its samples from new noise are closer to the guided TEACHER_STEPS-step
