@@ -177,3 +177,113 @@ def test_an_import_circle_through_a_lazy_import_is_found(tmp_path):
     (tmp_path / "datagen" / "c.py").write_text("from datagen import a\nC = 1\n")
     (tmp_path / "datagen" / "d.py").write_text("from datagen.a import A\n")
     assert import_cycles(import_graph(tmp_path)) == [["datagen.a", "datagen.b", "datagen.c"]]
+
+
+# Dependencies whose import costs seconds or pulls a native runtime: the only reason a module of the
+# project may import another inside a function (outside the command line, which loads per subcommand).
+HEAVY_DEPENDENCIES = {"torch", "sapien", "mani_skill", "open3d", "ray", "viser", "diffusers", "transformers",
+                      "safetensors", "playwright", "gymnasium", "mplib"}
+
+
+def module_files(root: Path = ROOT) -> dict[str, Path]:
+    return {module_name(p, root): p for pkg in PACKAGES if (root / pkg).is_dir() for p in (root / pkg).rglob("*.py")}
+
+
+def heavy_dependencies(root: Path = ROOT) -> dict[str, set[str]]:
+    """Module -> the heavy dependencies importing it loads (its module-level imports, followed
+    through the project's modules and their packages)."""
+    files = module_files(root)
+
+    def resolve(name: str) -> str:
+        while name and name not in files:
+            name = name.rpartition(".")[0]
+        return name
+
+    def top_level(module: str) -> list[str]:
+        names = []
+        for node in ast.parse(files[module].read_text()).body:
+            body = node.body + node.orelse if isinstance(node, ast.If) else node.body if isinstance(node, ast.Try) else [node]
+            for stmt in body:
+                if isinstance(stmt, ast.Import):
+                    names += [a.name for a in stmt.names]
+                elif isinstance(stmt, ast.ImportFrom) and stmt.module and not stmt.level:
+                    names += [stmt.module] + [f"{stmt.module}.{a.name}" for a in stmt.names]
+        parts = module.split(".")
+        return names + [".".join(parts[:i]) for i in range(1, len(parts))]
+
+    found: dict[str, set[str]] = {}
+
+    def visit(module: str, path: tuple[str, ...] = ()) -> set[str]:
+        if module in found:
+            return found[module]
+        out = set()
+        for name in top_level(module):
+            first = name.split(".")[0]
+            if first in HEAVY_DEPENDENCIES:
+                out.add(first)
+            elif first in PACKAGES and (target := resolve(name)) and target != module and target not in path:
+                out |= visit(target, path + (module,))
+        if not path:
+            found[module] = out
+        return out
+
+    return {m: visit(m) for m in files}
+
+
+def lazy_import_problems(root: Path = ROOT) -> list[str]:
+    """One line per function-local import of a project module (outside the command line) that
+    defers nothing heavy, or defers without a ``# deferred: ...`` comment on it or just above it."""
+    files, heavy = module_files(root), heavy_dependencies(root)
+    problems = []
+    for module, path in sorted(files.items()):
+        if module.startswith("tesseract4d.cli"):
+            continue
+        lines = path.read_text().splitlines()
+        tree = ast.parse("\n".join(lines))
+        local = {id(n): n for f in ast.walk(tree) if isinstance(f, (ast.FunctionDef, ast.AsyncFunctionDef))
+                 for n in ast.walk(f) if isinstance(n, (ast.Import, ast.ImportFrom))}
+        for node in sorted(local.values(), key=lambda n: n.lineno):
+            if isinstance(node, ast.ImportFrom):
+                names = [] if node.level or not node.module else [node.module] + [f"{node.module}.{a.name}" for a in node.names]
+            else:
+                names = [a.name for a in node.names]
+            targets = set()
+            for name in names:
+                if name.split(".")[0] in PACKAGES:
+                    while name and name not in files:
+                        name = name.rpartition(".")[0]
+                    targets.add(name)
+            targets.discard("")
+            if not targets:
+                continue
+            deferred = set().union(*(heavy[t] for t in targets)) - heavy[module]
+            where = f"{path.relative_to(root)}:{node.lineno}"
+            if not deferred:
+                problems.append(f"{where} imports {sorted(targets)[0]} inside a function but defers nothing heavy: "
+                                f"import it at the top of the module")
+                continue
+            above = node.lineno - 2  # index of the line above; step over the imports of the same group
+            while above >= 0 and lines[above].strip().startswith(("from ", "import ")):
+                above -= 1
+            if "# deferred" not in lines[node.lineno - 1] and not (above >= 0 and lines[above].strip().startswith("# deferred")):
+                problems.append(f"{where} defers {', '.join(sorted(deferred))} without saying so (# deferred: ...)")
+    return problems
+
+
+def test_a_lazy_project_import_defers_a_heavy_dependency_and_says_so():
+    problems = lazy_import_problems()
+    assert not problems, "\n".join(problems)
+
+
+def test_a_lazy_import_that_defers_nothing_or_says_nothing_is_reported(tmp_path):
+    (tmp_path / "datagen").mkdir()
+    (tmp_path / "datagen" / "light.py").write_text("X = 1\n")
+    (tmp_path / "datagen" / "heavy.py").write_text("import torch\nY = 1\n")
+    (tmp_path / "datagen" / "user.py").write_text(
+        "def a():\n    from datagen.light import X\n    return X\n\n\n"
+        "def b():\n    from datagen.heavy import Y\n    return Y\n\n\n"
+        "def c():\n    # deferred: imports torch\n    from datagen.heavy import Y\n    return Y\n")
+    problems = lazy_import_problems(tmp_path)
+    assert len(problems) == 2, problems
+    assert "user.py:2" in problems[0] and "defers nothing heavy" in problems[0]
+    assert "user.py:7" in problems[1] and "without saying so" in problems[1]
