@@ -54,15 +54,19 @@ TRAJECTORIES_VERSION = 1
 # The share of the object's expected visible surface (in pixels) that must be seen to fit it.
 MIN_VISIBLE_SHARE = 0.2
 # ICP: iterations, the share of nearest-point pairs kept (the closest), the largest pair distance kept.
-ICP_ITERATIONS = 20
+ICP_ITERATIONS = 30
 TRIM_SHARE = 0.8
 MAX_PAIR_M = 0.02
 # A fit whose kept pairs are farther apart than this (root mean square) did not find the object.
 MAX_FIT_RMS_M = 0.01
+# The largest turn of an object between two frames a fit may make (beyond it: a flip onto a look-alike face).
+MAX_TURN_DEG = 25.0
 # Where to look for an object in the next frame: this far beyond its own radius from its predicted place.
 SEARCH_M = 0.05
 # ... and this many times as far when it is not found there.
 WIDE_SEARCH = 3.0
+# ... and this many times as far once it is lost.
+LOST_SEARCH = 5.0
 # Depth difference beyond which a surface is in front of / behind another (metres).
 DEPTH_TOL_M = 0.01
 # An unseen object counts as covered when at least this share of its expected surface has something in front.
@@ -235,6 +239,41 @@ def rigid_fit(model: np.ndarray, observed: np.ndarray, up: np.ndarray | None) ->
     return T
 
 
+def plane_step(src: np.ndarray, dst: np.ndarray, normals: np.ndarray, up: np.ndarray | None) -> np.ndarray:
+    """(4, 4) one Gauss-Newton step of point-to-plane alignment: the small rigid motion that moves the
+    points ``src`` (N, 3) toward the planes through ``dst`` (N, 3) with unit ``normals`` (N, 3), rotating
+    about ``up`` only (a yaw) when given, any axis when None; pairs whose normal is zero count point to
+    point; a zero ``up`` allows no rotation (translation only). Flat faces converge in a few steps where
+    point-to-point pairs slide along them."""
+    c = src.mean(0)
+    arm = src - c
+    has_n = np.linalg.norm(normals, axis=1) > 0.5
+    rows, rhs = [], []
+    # Point-to-plane rows: r = (p - q) . n; d r / d t = n; d r / d w = (p - c) x n.
+    rot = np.cross(arm[has_n], normals[has_n])
+    rows.append(np.concatenate([rot @ up[:, None] if up is not None else rot, normals[has_n]], 1))
+    rhs.append(-np.einsum("ij,ij->i", src[has_n] - dst[has_n], normals[has_n]))
+    for axis in np.eye(3):  # point-to-point rows for pairs without a normal
+        a = arm[~has_n]
+        # d (p . e) / d w = (w x (p - c)) . e = w . ((p - c) x e)
+        rot = np.cross(a, np.broadcast_to(axis, a.shape)) if len(a) else np.zeros((0, 3))
+        rows.append(np.concatenate([rot @ up[:, None] if up is not None else rot, np.broadcast_to(axis, (len(a), 3))], 1))
+        rhs.append(-(src[~has_n] - dst[~has_n]) @ axis)
+    A, b = np.concatenate(rows), np.concatenate(rhs)
+    n_rot = 1 if up is not None else 3
+    damping = 1e-9 * np.eye(A.shape[1])
+    x = np.linalg.solve(A.T @ A + damping, A.T @ b)
+    if up is not None:
+        R = rotation_about(up, float(x[0]))
+    else:
+        angle = float(np.linalg.norm(x[:3]))
+        R = rotation_about(x[:3] / angle, angle) if angle > 1e-12 else np.eye(3)
+    T = np.eye(4)
+    T[:3, :3] = R
+    T[:3, 3] = c - R @ c + x[n_rot:]
+    return T
+
+
 # ---------------------------------------------------------------------- objects from the first frame
 
 
@@ -401,7 +440,8 @@ def _icp(model_tree, model: "_Model", observed: np.ndarray, T_init: np.ndarray, 
             return T, np.inf, kept
         src = np.concatenate([model_world[idx[kept]], model_world[facing][back_kept]])
         dst = np.concatenate([observed[kept], observed[back_idx[back_kept]]])
-        step = rigid_fit(src, dst, up)
+        nrm = np.concatenate([normals_world[idx[kept]], normals_world[facing][back_kept]])
+        step = plane_step(src, dst, nrm, up)
         T = step @ T
         if np.linalg.norm(step[:3, 3]) < 1e-5 and np.allclose(step[:3, :3], np.eye(3), atol=1e-6):
             break
@@ -409,6 +449,30 @@ def _icp(model_tree, model: "_Model", observed: np.ndarray, T_init: np.ndarray, 
     kept = trim(dist)
     rms = float(np.sqrt(np.mean(dist[kept] ** 2))) if kept.any() else np.inf
     return T, rms, kept
+
+
+def _best_fit(model_tree, model: "_Model", observed: np.ndarray, guess: np.ndarray, expected: np.ndarray,
+              T_prev: np.ndarray, up: np.ndarray | None, depth_m: np.ndarray, K: np.ndarray, T_world_cam: np.ndarray):
+    """The best of :func:`_icp` from two starts: the guess, and the guess moved so that the model's
+    expected visible points' centroid meets the observed points' (a fast motion leaves the guess
+    far behind); a fit that turns more than ``MAX_TURN_DEG`` from the last pose (a flip onto a look-alike
+    face of a symmetric object) is redone without rotation. Returns (T, rms, kept) of the lowest rms."""
+    starts = [guess]
+    shown = transform_points(guess, model.points[expected]) if expected.any() else transform_points(guess, model.points)
+    shift = np.median(observed, axis=0) - shown.mean(0)
+    if np.linalg.norm(shift) > 0.25 * model.radius_m:
+        moved = guess.copy()
+        moved[:3, 3] += shift
+        starts.append(moved)
+    best = (guess, np.inf, np.zeros(len(observed), bool))
+    for start in starts:
+        fit = _icp(model_tree, model, observed, start, up, depth_m, K, T_world_cam)
+        turn = np.degrees(np.arccos(np.clip((np.trace(fit[0][:3, :3] @ T_prev[:3, :3].T) - 1) / 2, -1, 1)))
+        if turn > MAX_TURN_DEG:
+            fit = _icp(model_tree, model, observed, start, np.zeros(3), depth_m, K, T_world_cam)
+        if fit[1] < best[1]:
+            best = fit
+    return best
 
 
 def _translation_icp(source: np.ndarray, target: np.ndarray) -> np.ndarray | None:
@@ -502,7 +566,7 @@ def track_objects(rgb: np.ndarray, depth_m: np.ndarray, normal_cam: np.ndarray, 
             found, seen_share = False, 0.0
             reaches = [model.radius_m + config.search_m, model.radius_m + WIDE_SEARCH * config.search_m]
             if state[k, t - 1] == LOST:
-                reaches = [np.inf]
+                reaches = [model.radius_m + LOST_SEARCH * config.search_m]
             for reach in reaches:
                 rs, cs = (slice(0, H), slice(0, W)) if not np.isfinite(reach) else _window(guess[:3, 3], reach, K[t], T_world_cam[t], H, W)
                 win_rgb = rgb[t][rs, cs].reshape(-1, 3)
@@ -513,11 +577,8 @@ def track_objects(rgb: np.ndarray, depth_m: np.ndarray, normal_cam: np.ndarray, 
                 seen_share = max(seen_share, len(observed) / n_expected)
                 if len(observed) < MIN_OBJECT_PIXELS or len(observed) / n_expected < config.min_visible_share:
                     continue
-                start = guess.copy()
-                centroid = np.median(observed, axis=0)
-                if np.linalg.norm(centroid - guess[:3, 3]) > model.radius_m:  # far from the guess: start there
-                    start[:3, 3] = centroid
-                T_fit, rms, kept = _icp(trees[k], model, observed, start, up, depth[t], K[t], T_world_cam[t])
+                T_fit, rms, kept = _best_fit(trees[k], model, observed, guess, expected, T_prev, up,
+                                             depth[t], K[t], T_world_cam[t])
                 if rms > MAX_FIT_RMS_M:
                     continue
                 found = True
