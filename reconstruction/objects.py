@@ -76,6 +76,9 @@ HELD_SPEED_M = 0.003
 HELD_LIFT_M = 0.01
 # The arm's points that carry a held object: within this distance of the object's surface.
 ARM_RADIUS_M = 0.04
+# The arm touches an object when at least this many of its points lie this close to the object's surface.
+CONTACT_M = 0.01
+MIN_CONTACT_POINTS = 3
 MIN_ARM_POINTS = 8
 # Confidence of a fit: visibility times exp(-rms / CONFIDENCE_RMS_M); an occluded/held object's decays by this per frame.
 CONFIDENCE_RMS_M = 0.004
@@ -451,32 +454,55 @@ def _icp(model_tree, model: "_Model", observed: np.ndarray, T_init: np.ndarray, 
     return T, rms, kept
 
 
+def _fit_score(model: "_Model", observed: np.ndarray, T: np.ndarray, model_tree, depth_m: np.ndarray, K: np.ndarray,
+               T_world_cam: np.ndarray) -> float:
+    """How badly a pose explains the frame, both ways and untrimmed (pair distances capped at
+    ``MAX_PAIR_M``): every observed point's distance to the model and every model point's that should be
+    seen (facing the camera, nothing in front) to the observed points. Used to choose between fits: a
+    partial view fits many places on a face one way, only the right one both ways."""
+    from scipy.spatial import cKDTree  # scipy loads with the tracker only
+
+    forward = np.minimum(model_tree.query(transform_points(invert_pose(T), observed))[0], MAX_PAIR_M)
+    model_world = transform_points(T, model.points)
+    normals_world = model.normals @ T[:3, :3].T
+    has_normal = np.linalg.norm(model.normals, axis=1) >= 0.5
+    seen = ~has_normal | (np.einsum("ij,ij->i", normals_world, model_world - T_world_cam[:3, 3]) < 0)
+    rows, cols, z, inside = _project(model_world, K, T_world_cam, *depth_m.shape)
+    d = depth_m[rows, cols]
+    seen &= inside & ~((d > 0) & (d < z - DEPTH_TOL_M))
+    back = np.minimum(cKDTree(observed).query(model_world[seen])[0], MAX_PAIR_M) if seen.any() else np.zeros(0)
+    return float(np.mean(np.concatenate([forward, back]) ** 2))
+
+
 def _best_fit(model_tree, model: "_Model", observed: np.ndarray, guess: np.ndarray, expected: np.ndarray,
               T_prev: np.ndarray, up: np.ndarray | None, depth_m: np.ndarray, K: np.ndarray, T_world_cam: np.ndarray):
-    """The best of :func:`_icp` from two starts: the guess, and the guess moved so that the model's
-    expected visible points' centroid meets the observed points' (a fast motion leaves the guess
-    far behind); a fit that turns more than ``MAX_TURN_DEG`` from the last pose (a flip onto a look-alike
-    face of a symmetric object) is redone without rotation. Returns (T, rms, kept) of the lowest rms."""
-    starts = [guess]
+    """The best of :func:`_icp` from up to three starts: the guess, the last pose (when the guess moved
+    on at the last velocity), and the guess moved so that the model's expected visible points' centroid
+    meets the observed points' (a fast motion leaves the guess far behind); a fit that turns more than ``MAX_TURN_DEG`` from the last pose (a flip onto a look-alike
+    face of a symmetric object) is redone without rotation. Returns (T, rms, kept) of the fit that best
+    explains the frame both ways (:func:`_fit_score`)."""
+    starts = [guess] if np.allclose(guess, T_prev) else [guess, T_prev]
     shown = transform_points(guess, model.points[expected]) if expected.any() else transform_points(guess, model.points)
     shift = np.median(observed, axis=0) - shown.mean(0)
     if np.linalg.norm(shift) > 0.25 * model.radius_m:
         moved = guess.copy()
         moved[:3, 3] += shift
         starts.append(moved)
-    best = (guess, np.inf, np.zeros(len(observed), bool))
+    best, best_score = (guess, np.inf, np.zeros(len(observed), bool)), np.inf
     for start in starts:
         fit = _icp(model_tree, model, observed, start, up, depth_m, K, T_world_cam)
         turn = np.degrees(np.arccos(np.clip((np.trace(fit[0][:3, :3] @ T_prev[:3, :3].T) - 1) / 2, -1, 1)))
         if turn > MAX_TURN_DEG:
             fit = _icp(model_tree, model, observed, start, np.zeros(3), depth_m, K, T_world_cam)
-        if fit[1] < best[1]:
-            best = fit
+        score = _fit_score(model, observed, fit[0], model_tree, depth_m, K, T_world_cam) if len(starts) > 1 else 0.0
+        if np.isfinite(fit[1]) and score < best_score:
+            best, best_score = fit, score
     return best
 
 
-def _translation_icp(source: np.ndarray, target: np.ndarray) -> np.ndarray | None:
-    """(3,) the translation that best lays ``source`` points onto ``target`` (trimmed nearest points)."""
+def _translation_icp(source: np.ndarray, target: np.ndarray, target_normals: np.ndarray) -> np.ndarray | None:
+    """(3,) the translation that best lays ``source`` points onto the surface of ``target`` points
+    (N, 3) with their normals (point-to-plane; trimmed nearest points)."""
     from scipy.spatial import cKDTree  # scipy loads only when an object is carried
 
     tree = cKDTree(target)
@@ -486,7 +512,7 @@ def _translation_icp(source: np.ndarray, target: np.ndarray) -> np.ndarray | Non
         keep = dist <= np.quantile(dist, TRIM_SHARE)
         if keep.sum() < 3:
             return None
-        step = (target[idx[keep]] - (source[keep] + shift)).mean(0)
+        step = plane_step(source[keep] + shift, target[idx[keep]], target_normals[idx[keep]], np.zeros(3))[:3, 3]
         shift += step
         if np.linalg.norm(step) < 1e-5:
             break
@@ -604,22 +630,27 @@ def track_objects(rgb: np.ndarray, depth_m: np.ndarray, normal_cam: np.ndarray, 
             else:
                 covered = 1.0  # out of view: nothing says it is gone
             T_all[k][t] = T_prev
-            if covered < COVERED_SHARE:
+            # Held: the arm touches it and it was moving or lifted when last seen (or already held); the
+            # arm's motion around it then carries it. A still object the arm passes over stays put.
+            moving = t >= 2 and np.linalg.norm(T_prev[:3, 3] - T_all[k][t - 2][:3, 3]) >= HELD_SPEED_M
+            lifted = float(T_prev[:3, 3] @ up_axis) - start_height[k] >= HELD_LIFT_M
+            carried = None
+            if static is not None and (moving or lifted or state[k, t - 1] == HELD):
+                normals_t = np.asarray(normal_cam[t], np.float64) @ T_world_cam[t, :3, :3].T  # camera -> world
+                arm = _arm_shift(pts_prev, pts_t, normals_t, depth, static, valid, labels, t,
+                                 transform_points(T_prev, model.points))
+                if arm is not None and arm[1] and np.linalg.norm(arm[0]) <= config.search_m:
+                    carried = arm[0]
+            if carried is not None:
+                T_all[k][t] = T_prev.copy()
+                T_all[k][t][:3, 3] += carried
+                state[k, t] = HELD
+            elif covered >= COVERED_SHARE:
+                state[k, t] = OCCLUDED
+            else:
                 state[k, t] = LOST
                 confidence[k, t] = 0.0
                 continue
-            moving = t >= 2 and np.linalg.norm(T_prev[:3, 3] - T_all[k][t - 2][:3, 3]) >= HELD_SPEED_M
-            lifted = float(T_prev[:3, 3] @ up_axis) - start_height[k] >= HELD_LIFT_M
-            shift = None
-            if (moving or lifted or state[k, t - 1] == HELD) and static is not None:
-                shift = _arm_shift(pts_prev, pts_t, depth, static, valid, labels, t,
-                                   transform_points(T_prev, model.points))
-            if shift is not None:
-                T_all[k][t] = T_prev.copy()
-                T_all[k][t][:3, 3] += shift
-                state[k, t] = HELD
-            else:
-                state[k, t] = OCCLUDED
             confidence[k, t] = UNSEEN_DECAY * confidence[k, t - 1]
         pts_prev = pts_t
 
@@ -635,11 +666,12 @@ def track_objects(rgb: np.ndarray, depth_m: np.ndarray, normal_cam: np.ndarray, 
                        point_object=[labels[t][valid[t]] for t in range(T_frames)])
 
 
-def _arm_shift(pts_prev: np.ndarray, pts_t: np.ndarray, depth: np.ndarray, static: np.ndarray, valid: np.ndarray,
-               labels: np.ndarray, t: int, object_world: np.ndarray) -> np.ndarray | None:
-    """(3,) how the arm's points around an object moved from frame t-1 to t, or None when too few
-    arm points are near it. The arm: pixels nearer than the clip's farthest depth there (moving
-    things), not labelled as an object."""
+def _arm_shift(pts_prev: np.ndarray, pts_t: np.ndarray, normals_t: np.ndarray, depth: np.ndarray, static: np.ndarray,
+               valid: np.ndarray, labels: np.ndarray, t: int, object_world: np.ndarray) -> tuple[np.ndarray, bool] | None:
+    """How the arm's points around an object moved from frame t-1 to t ((3,) metres), and whether the
+    arm touches the object (points within ``CONTACT_M`` of its surface at t-1); None when too few arm
+    points are near it. The arm: pixels nearer than the clip's farthest depth there (moving things),
+    not labelled as an object."""
     from scipy.spatial import cKDTree  # scipy loads only when an object is carried
 
     tree = cKDTree(object_world)
@@ -647,15 +679,17 @@ def _arm_shift(pts_prev: np.ndarray, pts_t: np.ndarray, depth: np.ndarray, stati
     def arm_near(pts, f, reach):
         moving = valid[f] & (depth[f] < static - DEPTH_TOL_M) & (labels[f] < 0)
         p = pts[moving]
-        if len(p) == 0:
-            return p
-        return p[tree.query(p, distance_upper_bound=reach)[0] <= reach]
+        dist = tree.query(p, distance_upper_bound=reach)[0] if len(p) else np.zeros(0)
+        return moving, dist <= reach, dist
 
-    before = arm_near(pts_prev, t - 1, ARM_RADIUS_M)
-    after = arm_near(pts_t, t, ARM_RADIUS_M + SEARCH_M)
+    moving, near, dist = arm_near(pts_prev, t - 1, ARM_RADIUS_M)
+    before, dist = pts_prev[moving][near], dist[near]
+    moving, near, _ = arm_near(pts_t, t, ARM_RADIUS_M + SEARCH_M)
+    after, after_normals = pts_t[moving][near], normals_t[moving][near]
     if len(before) < MIN_ARM_POINTS or len(after) < MIN_ARM_POINTS:
         return None
-    return _translation_icp(before, after)
+    shift = _translation_icp(before, after, after_normals)
+    return None if shift is None else (shift, int((dist <= CONTACT_M).sum()) >= MIN_CONTACT_POINTS)
 
 
 def truth_layer(first: ObjectLayer, object_poses: dict[str, np.ndarray]) -> ObjectLayer:
