@@ -78,6 +78,10 @@ HELD_LIFT_M = 0.01
 ARM_RADIUS_M = 0.04
 # The arm touches an object when at least this many of its points lie this close to the object's surface.
 CONTACT_M = 0.01
+# The arm's points moved by a shift must lie this close to its surface in the next frame (median), or the shift is not trusted.
+ARM_FIT_M = 0.003
+# ... nor when the arm's points around the object grew by more than this factor from one frame to the next.
+ARM_GROWTH = 1.5
 MIN_CONTACT_POINTS = 3
 MIN_ARM_POINTS = 8
 # Confidence of a fit: visibility times exp(-rms / CONFIDENCE_RMS_M); an occluded/held object's decays by this per frame.
@@ -516,7 +520,11 @@ def _translation_icp(source: np.ndarray, target: np.ndarray, target_normals: np.
         shift += step
         if np.linalg.norm(step) < 1e-5:
             break
-    return shift
+    # The arm's points must land on its surface: where they do not (its visible shape changed, e.g. the
+    # hand came into view), the shift is not measured.
+    dist, idx = tree.query(source + shift)
+    off_plane = np.abs(np.einsum("ij,ij->i", source + shift - target[idx], target_normals[idx]))
+    return shift if np.median(np.where(np.linalg.norm(target_normals[idx], axis=1) > 0.5, off_plane, dist)) <= ARM_FIT_M else None
 
 
 def track_objects(rgb: np.ndarray, depth_m: np.ndarray, normal_cam: np.ndarray, K: np.ndarray,
@@ -569,6 +577,7 @@ def track_objects(rgb: np.ndarray, depth_m: np.ndarray, normal_cam: np.ndarray, 
     visibility[:, 0] = 1.0
     confidence[:, 0] = 1.0
     start_height = [float(T[0, :3, 3] @ up_axis) for T in T_all]
+    was_moving = [False] * n_obj  # moving when last seen
     pts_prev = pts0
     for t in range(1, T_frames):
         pts_t = world_points(t)
@@ -612,6 +621,7 @@ def track_objects(rgb: np.ndarray, depth_m: np.ndarray, normal_cam: np.ndarray, 
                 visibility[k, t] = min(1.0, seen_share)
                 confidence[k, t] = min(1.0, seen_share) * float(np.exp(-rms / CONFIDENCE_RMS_M))
                 state[k, t] = TRACKED
+                was_moving[k] = np.linalg.norm(T_fit[:3, 3] - T_prev[:3, 3]) >= HELD_SPEED_M
                 lab = labels[t][rs, cs]  # a view: rows and columns are slices
                 win_lab = lab.reshape(-1).copy()
                 win_lab[np.flatnonzero(cand)[kept]] = k
@@ -630,9 +640,9 @@ def track_objects(rgb: np.ndarray, depth_m: np.ndarray, normal_cam: np.ndarray, 
             else:
                 covered = 1.0  # out of view: nothing says it is gone
             T_all[k][t] = T_prev
-            # Held: the arm touches it and it was moving or lifted when last seen (or already held); the
+            # Held: the arm touches it and it was moving or lifted when last seen (or is already held); the
             # arm's motion around it then carries it. A still object the arm passes over stays put.
-            moving = t >= 2 and np.linalg.norm(T_prev[:3, 3] - T_all[k][t - 2][:3, 3]) >= HELD_SPEED_M
+            moving = was_moving[k]
             lifted = float(T_prev[:3, 3] @ up_axis) - start_height[k] >= HELD_LIFT_M
             carried = None
             if static is not None and (moving or lifted or state[k, t - 1] == HELD):
@@ -641,6 +651,8 @@ def track_objects(rgb: np.ndarray, depth_m: np.ndarray, normal_cam: np.ndarray, 
                                  transform_points(T_prev, model.points))
                 if arm is not None and arm[1] and np.linalg.norm(arm[0]) <= config.search_m:
                     carried = arm[0]
+                elif arm is None and state[k, t - 1] == HELD and covered >= COVERED_SHARE:
+                    carried = np.zeros(3)  # still in the hand; how the hand moved is not measured this frame
             if carried is not None:
                 T_all[k][t] = T_prev.copy()
                 T_all[k][t][:3, 3] += carried
@@ -684,9 +696,13 @@ def _arm_shift(pts_prev: np.ndarray, pts_t: np.ndarray, normals_t: np.ndarray, d
 
     moving, near, dist = arm_near(pts_prev, t - 1, ARM_RADIUS_M)
     before, dist = pts_prev[moving][near], dist[near]
-    moving, near, _ = arm_near(pts_t, t, ARM_RADIUS_M + SEARCH_M)
+    moving, near, dist_t = arm_near(pts_t, t, ARM_RADIUS_M + SEARCH_M)
     after, after_normals = pts_t[moving][near], normals_t[moving][near]
     if len(before) < MIN_ARM_POINTS or len(after) < MIN_ARM_POINTS:
+        return None
+    # As much arm around it as before: where much more arm came into view (the hand closing over it),
+    # its points cannot be matched to the last frame's.
+    if (dist_t[near] <= ARM_RADIUS_M).sum() > ARM_GROWTH * len(before):
         return None
     shift = _translation_icp(before, after, after_normals)
     return None if shift is None else (shift, int((dist <= CONTACT_M).sum()) >= MIN_CONTACT_POINTS)
