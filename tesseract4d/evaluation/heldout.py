@@ -407,6 +407,7 @@ def evaluate_heldout(cfg: HeldoutConfig, progress: bool = True) -> dict:
     from tesseract4d.evaluation.metrics import moving_region_mask
     from reconstruction.reconstruct import ReconConfig, reconstruct_episode
     from tesseract4d.evaluation.instruction_following import TARGET_OBJECT, direction_score
+    from tesseract4d.evaluation.object_tracks import episode_object_report, object_summary
     from tesseract4d.model.predict import DEFAULT_SCENE_BATCH, load_pipeline
 
     data = Path(cfg.data)
@@ -495,6 +496,7 @@ def evaluate_heldout(cfg: HeldoutConfig, progress: bool = True) -> dict:
                 believe = episode_believability(gt, camera, rgb, method_patch[method], token_rgb=token_rgb,
                                                 pred_depth_m=frames.depth_m, first_scored_frame=1)
                 metrics.update(believe["metrics"])
+                metrics.update(object_summary(episode_object_report(output, gt, camera)))
                 sc = None
                 if gt.env_id in TARGET_OBJECT and gt_cam.segmentation is not None:
                     sc = direction_score(gt.env_id, gt_cam.rgb, gt_cam.segmentation, gt_cam.seg_id_to_name,
@@ -509,11 +511,14 @@ def evaluate_heldout(cfg: HeldoutConfig, progress: bool = True) -> dict:
             gt_believe = episode_believability(gt, camera, gt_cam.rgb, static_patch_px, pred_depth_m=gt_cam.depth_m,
                                                first_scored_frame=1)
             skill = (gt.intent or {}).get("skill") or "task"
+            # The tracker on the truth itself (its frames, not its recorded poses): the object rows' ceiling.
+            tracker_on_truth = episode_object_report(gt, gt, camera)
             for k, seed in enumerate(seeds):
                 scored = {}
                 for (with_c, raw), preds in zip(keys, predictions):
                     pred, token_rgb = preds[k][j]
-                    scored[with_c] = score(with_c, reconstruct_episode(pred, config=ReconConfig()), token_rgb)
+                    scored[with_c] = score(with_c, reconstruct_episode(pred, config=ReconConfig(), objects_from=gt),
+                                           token_rgb)
                     scored[raw] = score(raw, pred, token_rgb)
                 scored.update(shared_scores)
                 # Each seed's futures of a group are judged together (contrast is relative within a group).
@@ -522,7 +527,8 @@ def evaluate_heldout(cfg: HeldoutConfig, progress: bool = True) -> dict:
                        "sample_seed": seed, "group_id": gt.group_id, "skill": skill,
                        "variant": (gt.intent or {}).get("variant"), "instruction": gt.instruction,
                        "target": (gt.intent or {}).get("target"), "metrics": {}, "direction": {}, "objects": {},
-                       "token_grid_ratio_gt": gt_believe["metrics"]["token_grid_ratio"]}
+                       "token_grid_ratio_gt": gt_believe["metrics"]["token_grid_ratio"],
+                       "object_tracks_truth": None if tracker_on_truth is None else tracker_on_truth["summary"]}
                 if gt_believe["contrast_entry"] is not None:
                     contrast_entries["ground_truth"].append((group, gt_believe["contrast_entry"]))
                 for method in methods:
@@ -559,6 +565,7 @@ def build_report(cfg, rows: list[dict], methods: list[str], labels: dict, scores
     ``discrimination``: per checkpoint method, its network's instruction discrimination."""
     from tesseract4d.evaluation.heldout_believability import breakdown, contrast_by_group, counts, direction_breakdown
     from tesseract4d.evaluation.instruction_following import summarize
+    from tesseract4d.evaluation.object_tracks import truth_tracker_summary
 
     summary = {}
     for method in methods:
@@ -581,6 +588,7 @@ def build_report(cfg, rows: list[dict], methods: list[str], labels: dict, scores
         "summary": summary, "per_task": breakdown(rows, methods, "task"), "per_skill": breakdown(rows, methods, "skill"),
         "episodes_per_task": counts(rows, "task"), "episodes_per_skill": counts(rows, "skill"),
         "token_grid_ratio_gt": _finite_mean(r["token_grid_ratio_gt"] for r in rows),
+        "object_tracks_truth": truth_tracker_summary(rows),
         "instruction_following": {m: summarize(scores[m]) for m in methods},
         "instruction_following_per_task": direction_breakdown(rows, methods, "task"),
         "instruction_following_per_skill": direction_breakdown(rows, methods, "skill"),
@@ -719,6 +727,9 @@ def format_markdown(report: dict) -> str:
             if any(contrast.get(m, {}).get("arm_judged") for m in methods):
                 lines.append("| where the arm goes: the instructed object | active instructions | "
                              + " | ".join(_arm_of(contrast.get(m)) for m in methods) + " |")
+    from tesseract4d.evaluation.object_tracks import markdown_rows
+
+    lines += markdown_rows(summary, methods, report.get("object_tracks_truth"))
     discrimination = report.get("discrimination") or {}
     if any(discrimination.get(m, {}).get("episodes") for m in methods):
         lines.append("| instruction discrimination: the network's one-step prediction from its own instruction "
