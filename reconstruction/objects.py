@@ -748,13 +748,15 @@ def truth_layer(first: ObjectLayer, object_poses: dict[str, np.ndarray]) -> Obje
 
 def instructed_object(names: list[str], colour_names: list[str], intent: dict | None, instruction: str | None) -> str | None:
     """The object the instruction is about: the episode's intent target when it names one of ``names``;
-    else the one object whose colour word the instruction says; else None."""
+    else the one object whose colour word the instruction says; else the scene's only object; else None."""
     target = (intent or {}).get("target")
     if target in names:
         return target
     words = set(str(instruction or "").lower().replace(",", " ").split())
     hits = [n for n, c in zip(names, colour_names) if c in words]
-    return hits[0] if len(hits) == 1 else None
+    if len(hits) == 1:
+        return hits[0]
+    return names[0] if len(names) == 1 else None
 
 
 def episode_objects(episode, camera: str, depth_m: np.ndarray | None = None, objects_from=None,
