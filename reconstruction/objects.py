@@ -36,8 +36,11 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from tesseract4d.errors import UserError
 from tesseract4d.geometry import invert_pose, scene_up_axis, transform_points, unproject_depth
 from tesseract4d.object_colours import MIN_OBJECT_PIXELS, OBJECT_COLOUR_TOL, distinctive, min_colour_distance
+from tesseract4d.object_finder import find_objects
+from tesseract4d.segments import scene_object_ids
 
 # Per-frame states of an object (stored as their index, int8).
 STATES = ("tracked", "occluded", "held", "lost")
@@ -231,26 +234,6 @@ def yaw_about(R: np.ndarray, up: np.ndarray) -> float:
     return float(np.arctan2(np.dot(up, np.cross(a, b)), np.dot(a, b)))
 
 
-def rigid_fit(model: np.ndarray, observed: np.ndarray, up: np.ndarray | None) -> np.ndarray:
-    """(4, 4) T minimising sum |T model_i - observed_i|^2 over rigid motions: rotations about ``up``
-    only (a yaw) when ``up`` is given, any rotation (Kabsch) when None. model, observed: (N, 3)."""
-    mc, oc = model.mean(0), observed.mean(0)
-    a, b = model - mc, observed - oc
-    if up is None:
-        U, _, Vt = np.linalg.svd(a.T @ b)
-        d = np.sign(np.linalg.det(Vt.T @ U.T)) or 1.0
-        R = Vt.T @ np.diag([1.0, 1.0, d]) @ U.T
-    else:
-        a_p = a - np.outer(a @ up, up)
-        b_p = b - np.outer(b @ up, up)
-        angle = np.arctan2(np.sum(np.cross(a_p, b_p) @ up), np.sum(a_p * b_p))
-        R = rotation_about(up, angle)
-    T = np.eye(4)
-    T[:3, :3] = R
-    T[:3, 3] = oc - R @ mc
-    return T
-
-
 def plane_step(src: np.ndarray, dst: np.ndarray, normals: np.ndarray, up: np.ndarray | None) -> np.ndarray:
     """(4, 4) one Gauss-Newton step of point-to-plane alignment: the small rigid motion that moves the
     points ``src`` (N, 3) toward the planes through ``dst`` (N, 3) with unit ``normals`` (N, 3), rotating
@@ -305,8 +288,6 @@ def first_frame_masks(rgb0: np.ndarray, segmentation0: np.ndarray | None, seg_id
     """The scene's objects in the first frame as (name, (H, W) mask) pairs, and where they came from:
     the segmentation's scene objects when there is one, else the colour object finder's (named by
     colour: "red object", "red object 2", ...)."""
-    from tesseract4d.segments import scene_object_ids
-
     if segmentation0 is not None and seg_id_to_name:
         seg = np.asarray(segmentation0)
         out = []
@@ -315,8 +296,6 @@ def first_frame_masks(rgb0: np.ndarray, segmentation0: np.ndarray | None, seg_id
             if mask.sum() >= MIN_OBJECT_PIXELS:
                 out.append((str(seg_id_to_name[i]), mask))
         return out, "segmentation"
-    from tesseract4d.object_finder import find_objects
-
     out, seen = [], {}
     for mask in find_objects(rgb0):
         word = colour_name(np.median(np.asarray(rgb0)[mask], axis=0))
@@ -380,8 +359,6 @@ class TrackConfig:
     colour_tol: float = OBJECT_COLOUR_TOL
 
     def validate(self) -> None:
-        from tesseract4d.errors import UserError
-
         if self.rotation not in ("yaw", "full"):
             raise UserError(f"TrackConfig.rotation is 'yaw' or 'full', got {self.rotation!r}")
         if not self.search_m > 0:
@@ -770,8 +747,6 @@ def episode_objects(episode, camera: str, depth_m: np.ndarray | None = None, obj
     episode's recorded ``object_poses`` instead of tracking (:func:`truth_layer`), the raw points labelled
     by the segmentation of every frame.
     """
-    from tesseract4d.errors import UserError
-
     cam = episode.cameras[camera]
     ref = episode if objects_from is None else objects_from
     ref_cam = ref.cameras.get(camera) or next(iter(ref.cameras.values()))

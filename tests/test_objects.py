@@ -8,9 +8,8 @@ import json
 from pathlib import Path
 
 import numpy as np
-import pytest
 
-from reconstruction.objects import LOST, OCCLUDED, STATES, ObjectLayer, episode_objects, matrix_from_wxyz, quaternion_wxyz, yaw_about
+from reconstruction.objects import LOST, STATES, ObjectLayer, episode_objects, matrix_from_wxyz, quaternion_wxyz, yaw_about
 from reconstruction.recon4d import Recon4D
 from synthetic_objects import Box, box_episode, moving, still
 

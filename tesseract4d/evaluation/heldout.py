@@ -75,6 +75,8 @@ import numpy as np
 from tesseract4d import dataset_format as df
 from tesseract4d.errors import UserError
 from tesseract4d.evaluation.instruction_following import RIGHT_WAY_COSINE
+from tesseract4d.evaluation.object_tracks import (episode_object_report, markdown_rows, object_summary,
+                                                  truth_tracker_summary)
 from tesseract4d.resize import episode_at_resolution, resize_factor
 
 METHODS = ("model", "model_raw", "static")
@@ -407,7 +409,6 @@ def evaluate_heldout(cfg: HeldoutConfig, progress: bool = True) -> dict:
     from tesseract4d.evaluation.metrics import moving_region_mask
     from reconstruction.reconstruct import ReconConfig, reconstruct_episode
     from tesseract4d.evaluation.instruction_following import TARGET_OBJECT, direction_score
-    from tesseract4d.evaluation.object_tracks import episode_object_report, object_summary
     from tesseract4d.model.predict import DEFAULT_SCENE_BATCH, load_pipeline
 
     data = Path(cfg.data)
@@ -565,7 +566,6 @@ def build_report(cfg, rows: list[dict], methods: list[str], labels: dict, scores
     ``discrimination``: per checkpoint method, its network's instruction discrimination."""
     from tesseract4d.evaluation.heldout_believability import breakdown, contrast_by_group, counts, direction_breakdown
     from tesseract4d.evaluation.instruction_following import summarize
-    from tesseract4d.evaluation.object_tracks import truth_tracker_summary
 
     summary = {}
     for method in methods:
@@ -727,8 +727,6 @@ def format_markdown(report: dict) -> str:
             if any(contrast.get(m, {}).get("arm_judged") for m in methods):
                 lines.append("| where the arm goes: the instructed object | active instructions | "
                              + " | ".join(_arm_of(contrast.get(m)) for m in methods) + " |")
-    from tesseract4d.evaluation.object_tracks import markdown_rows
-
     lines += markdown_rows(summary, methods, report.get("object_tracks_truth"))
     discrimination = report.get("discrimination") or {}
     if any(discrimination.get(m, {}).get("episodes") for m in methods):

@@ -25,8 +25,10 @@ import math
 
 import numpy as np
 
-from reconstruction.objects import ObjectLayer, matrix_from_wxyz, yaw_about
-from tesseract4d.dataset_format import Episode
+from reconstruction.objects import ObjectLayer, episode_objects, matrix_from_wxyz, yaw_about
+from reconstruction.recon4d import Recon4D
+from tesseract4d.dataset_format import CameraFrames, Episode
+from tesseract4d.evaluation.instruction_following import TARGET_OBJECT
 from tesseract4d.geometry import scene_up_axis
 from tesseract4d.segments import NOT_OBJECTS
 
@@ -53,8 +55,6 @@ DEFINITIONS = {
 
 def instructed_object(gt: Episode) -> str | None:
     """The recorded name of the object the episode's instruction is about, or None."""
-    from tesseract4d.evaluation.instruction_following import TARGET_OBJECT
-
     intent = gt.intent or {}
     if intent.get("skill") in NO_OBJECT_SKILLS:
         return None
@@ -206,9 +206,6 @@ def format_rows(result: dict) -> str:
 def layer_of(output, gt: Episode, camera: str) -> ObjectLayer:
     """The object layer of a scored output: a reconstruction's own, else the objects of the ground truth's
     first frame tracked through the output's frames (a predicted or static episode)."""
-    from reconstruction.objects import episode_objects
-    from reconstruction.recon4d import Recon4D
-
     if isinstance(output, Recon4D) and output.objects is not None:
         return output.objects
     if isinstance(output, Recon4D):  # a reconstruction made without objects: track them in its depth
@@ -219,9 +216,7 @@ def layer_of(output, gt: Episode, camera: str) -> ObjectLayer:
     return episode_objects(output, name, objects_from=gt)
 
 
-def _recon_frames(recon):
-    from tesseract4d.dataset_format import CameraFrames
-
+def _recon_frames(recon: Recon4D) -> CameraFrames:
     return CameraFrames(rgb=recon.rgb, depth_m=recon.depth_m, normal_cam=recon.normal_cam, K=recon.K, T_world_cam=recon.T_world_cam)
 
 
