@@ -269,7 +269,7 @@ def markdown_rows(summary: dict, methods: list[str], truth: dict | None) -> list
     def cell(key, v):
         if v is None or (isinstance(v, float) and math.isnan(v)):
             return "–"
-        return f"{1000 * v:.1f}" if key.endswith("_m") else f"{v:.3f}" if abs(v) < 10 else f"{v:.1f}"
+        return f"{1000 * v:.1f}" if key.endswith("_m") else f"{v:.1f}" if key.endswith("_deg") else f"{v:.3f}"
 
     lines = []
     for key, (label, region) in SUMMARY_KEYS.items():
