@@ -18,7 +18,9 @@ counterfactual groups, instruction discrimination (does each network's one-step 
 the scene's noise pick its own instruction's true future among its group's: the words used by the
 network, whatever its sampler makes of them) and words over the noisy sample (shown another
 instruction's future noised to t = 0.5, does the prediction from its own words still land nearer its
-own future?), token grid and edge sharpness, per skill and per task. Several
+own future?), token grid and edge sharpness, the object layer against the recorded object poses
+(instructed object within 2 cm, still objects within 1 cm; the tracker on the truth's own frames as
+the ceiling), per skill and per task. Several
 --checkpoint options score several models side by side in the same run, also when their
 resolutions differ from the data's by a whole factor (the first frame is resized to each model's
 resolution and its prediction back; every metric is taken at the data's resolution). Several
