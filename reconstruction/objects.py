@@ -63,6 +63,9 @@ CONVERGED_M = 1e-4
 CONVERGED_RAD = 1e-4
 # A fit whose two-way score (root mean square, metres) is this good ends the search among starts.
 GOOD_SCORE_M = 0.0015
+# The last pose is kept when its two-way score (mean square) is at most this factor of the best fit's plus this floor squared.
+STAY_FACTOR = 1.25
+STAY_FLOOR_M = 0.0005
 TRIM_SHARE = 0.8
 MAX_PAIR_M = 0.02
 # A fit whose kept pairs are farther apart than this (root mean square) did not find the object.
@@ -433,10 +436,15 @@ def _icp(model_tree, model: "_Model", observed: np.ndarray, T_init: np.ndarray, 
         T = step @ T
         if np.linalg.norm(step[:3, 3]) < CONVERGED_M and np.abs(step[:3, :3] - np.eye(3)).max() < CONVERGED_RAD:
             break
+    return (T, *_residual(model_tree, observed, T))
+
+
+def _residual(model_tree, observed: np.ndarray, T: np.ndarray) -> tuple[float, np.ndarray]:
+    """(rms, kept) of the observed points' nearest model points at pose T, the worst pairs dropped as in ICP."""
     dist = model_tree.query(transform_points(invert_pose(T), observed))[0]
-    kept = trim(dist)
+    kept = dist <= min(_quantile(dist, TRIM_SHARE), MAX_PAIR_M) if len(dist) > 4 else dist <= MAX_PAIR_M
     rms = float(np.sqrt(np.mean(dist[kept] ** 2))) if kept.any() else np.inf
-    return T, rms, kept
+    return rms, kept
 
 
 def _quantile(x: np.ndarray, q: float) -> float:
@@ -485,11 +493,17 @@ def _best_fit(model_tree, model: "_Model", observed: np.ndarray, guess: np.ndarr
         turn = np.degrees(np.arccos(np.clip((np.trace(fit[0][:3, :3] @ T_prev[:3, :3].T) - 1) / 2, -1, 1)))
         if turn > MAX_TURN_DEG:
             fit = _icp(model_tree, model, observed, start, np.zeros(3), depth_m, K, T_world_cam)
-        score = _fit_score(model, observed, fit[0], model_tree, depth_m, K, T_world_cam) if len(starts) > 1 else 0.0
+        score = _fit_score(model, observed, fit[0], model_tree, depth_m, K, T_world_cam)
         if np.isfinite(fit[1]) and score < best_score:
             best, best_score = fit, score
         if best_score <= GOOD_SCORE_M ** 2:  # explained both ways to a millimetre or so: no need to look further
             break
+    # Objects stay put unless the frame says otherwise: the last pose wins when it explains the frame
+    # nearly as well as the best fit (a blurred or partly covered still object otherwise creeps).
+    if best[0] is not T_prev and np.isfinite(best_score):
+        stay = _fit_score(model, observed, T_prev, model_tree, depth_m, K, T_world_cam)
+        if stay <= STAY_FACTOR * best_score + STAY_FLOOR_M ** 2:
+            return (T_prev.copy(), *_residual(model_tree, observed, T_prev))
     return best
 
 
