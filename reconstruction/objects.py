@@ -32,8 +32,9 @@ How it is made (:func:`track_objects`):
 Chosen by measurement against the simulator's stored poses (``tesseract4d/evaluation/object_tracks.py``):
 on the recorded frames of 32 held-out episodes at 128² (PickCube, PushCube, PullCube, StackCube and the
 tabletop; 64 objects) every object ends within 5 mm of the truth, with "yaw" as with "full" (mean
-largest error along the track 7.4 vs 7.6 mm); point-to-point pairs one way only ended 1 in 24 objects
-1-8 cm off. Objects are tracked in the input depth (see ``reconstruct.py``). Not done: completing an
+largest error along the track 7.4 vs 7.6 mm). A first version (point-to-point pairs one way, one search
+sphere) ended 7 of the first 24 objects 7-12 cm off (objects moving faster than the sphere, fits sliding
+along a face). Objects are tracked in the input depth (see ``reconstruct.py``). Not done: completing an
 object's hidden faces from its normals; flow + RANSAC fits (AVDC) were not tried.
 """
 
