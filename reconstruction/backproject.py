@@ -4,7 +4,9 @@ depth images into the per-frame point lists of a :class:`Recon4D`.
 * :func:`frame_points` is the step shared by the refined reconstruction (``reconstruct.py``) and
   the plain one below;
 * :func:`recon_from_episode` is the plain one: the input depth as is, no refinement, what the
-  viewer shows for a dataset episode or a prediction.
+  viewer shows for a dataset episode or a prediction, with its object layer (``objects.py``): the
+  simulator's own object poses for a recorded episode that has them, else the tracked objects;
+* :func:`select_camera`: which camera of an episode both reconstructions read.
 """
 
 from __future__ import annotations
@@ -12,10 +14,22 @@ from __future__ import annotations
 import numpy as np
 
 from reconstruction.flow import camera_is_static
+from reconstruction.objects import ObjectLayer, episode_objects
 from reconstruction.recon4d import Recon4D
-from tesseract4d.dataset_format import Episode
+from tesseract4d.dataset_format import CameraFrames, Episode
+from tesseract4d.errors import UserError
 from tesseract4d.geometry import rotate_vectors, transform_points, unproject_depth
 from tesseract4d.motion import depth_tolerance_m
+
+
+def select_camera(episode: Episode, camera: str | None) -> tuple[str, CameraFrames]:
+    """(name, frames) of the camera ``camera`` of the episode; None = its first camera."""
+    if not episode.cameras:
+        raise UserError(f"episode {episode.episode_id} has no cameras; nothing to reconstruct")
+    name = next(iter(episode.cameras)) if camera is None else camera
+    if name not in episode.cameras:
+        raise UserError(f"episode {episode.episode_id} has no camera {name!r}; it has {sorted(episode.cameras)}")
+    return name, episode.cameras[name]
 
 
 def frame_points(rgb: np.ndarray, depth_m: np.ndarray, normal_cam: np.ndarray, valid: np.ndarray, K: np.ndarray,
@@ -36,15 +50,13 @@ def frame_points(rgb: np.ndarray, depth_m: np.ndarray, normal_cam: np.ndarray, v
     return points, colors, normals, dyn
 
 
-def recon_from_episode(episode: Episode, camera: str | None = None) -> Recon4D:
+def recon_from_episode(episode: Episode, camera: str | None = None, objects: bool = True) -> Recon4D:
     """Back-project every frame of one camera of an episode to world points (no refinement).
 
-    Moving points and the static background come from the per-pixel farthest depth over
+    ``objects``: also make the object layer (:func:`episode_object_layer`). Moving points and the static background come from the per-pixel farthest depth over
     time when the camera is static (moving things occlude the background; where something never
     moves away it counts as background). A moving camera gives no background and no moving points.
     """
-    from reconstruction.reconstruct import select_camera
-
     camera, cam = select_camera(episode, camera)
     T = cam.num_frames
     depth = np.asarray(cam.depth_m, np.float32)  # (T, H, W)
@@ -71,8 +83,19 @@ def recon_from_episode(episode: Episode, camera: str | None = None) -> Recon4D:
         rgb=np.asarray(cam.rgb, np.uint8), depth_m=depth, normal_cam=np.asarray(cam.normal_cam, np.float32),
         K=np.asarray(cam.K, np.float64), T_world_cam=np.asarray(cam.T_world_cam, np.float64), fps=float(episode.fps),
         background_points=background[0], background_colors=background[1], background_normals=background[2],
+        objects=episode_object_layer(episode, camera) if objects else None,
         metadata={
             "source": f"episode ({episode.source}), back-projected without refinement",
             "env_id": episode.env_id, "seed": episode.seed, "instruction": episode.instruction, "camera": camera,
         },
     )
+
+
+def episode_object_layer(episode: Episode, camera: str) -> ObjectLayer:
+    """The object layer of an episode as it is: the simulator's recorded object poses where a recorded
+    episode has them and a segmentation that names its objects (the truth's own tracks), else the
+    objects tracked through its frames (a prediction, a user's video)."""
+    cam = episode.cameras[camera]
+    truth = (episode.source != "prediction" and bool(episode.object_poses) and cam.segmentation is not None
+             and bool(cam.seg_id_to_name))
+    return episode_objects(episode, camera, truth=truth)

@@ -9,6 +9,12 @@ Folder layout written by :meth:`Recon4D.save`::
     DIR/background.ply              fused static background points (if any)
     DIR/background_mesh.ply/.glb    fused static background mesh (if any); the PLY in the world frame,
                                     the GLB turned so the scene's up is glTF's +y
+    DIR/trajectories.json           the object layer's tracks as plain JSON (if it has one; see objects.py)
+    DIR/objects/<name>.ply          each object's rigid point set in its own frame (if it has an object layer)
+    DIR/objects/frames/frame_0000.ply ...  every object placed at that frame, world frame
+
+Format versions: 2 added the object layer (``objects``: arrays ``object_<k>_*`` and ``point_object``
+in the npz, names and sources in the manifest). Version-1 folders still load, without objects.
 
 All points and normals are in the world frame (metres); cameras use OpenCV axes.
 Per-frame point sets have different sizes, so they are stored concatenated with offsets.
@@ -25,9 +31,12 @@ from pathlib import Path
 
 import numpy as np
 
+from reconstruction.objects import ObjectLayer, ObjectTrack
 from tesseract4d.errors import UserError
 
-RECON_FORMAT_VERSION = 1
+RECON_FORMAT_VERSION = 2  # 2: the object layer
+READABLE_VERSIONS = (1, 2)
+TRAJECTORIES = "trajectories.json"
 MANIFEST = "manifest.json"
 ARRAYS = "recon4d.npz"
 
@@ -57,6 +66,7 @@ class Recon4D:
     mesh_faces: np.ndarray = field(default_factory=lambda: np.zeros((0, 3), np.int32))
     mesh_colors: np.ndarray = field(default_factory=lambda: np.zeros((0, 3), np.uint8))
     metadata: dict = field(default_factory=dict)
+    objects: ObjectLayer | None = None  # the scene's objects as tracked rigid point sets (None: not made)
 
     @property
     def num_frames(self) -> int:
@@ -76,6 +86,14 @@ class Recon4D:
         for name in ("rgb", "depth_m", "normal_cam", "K", "T_world_cam"):
             if len(getattr(self, name)) != T:
                 raise ReconFormatError(f"{name} has {len(getattr(self, name))} frames, expected {T}")
+        if self.objects is not None:
+            for tr in self.objects.tracks:
+                for name in ("T_world_object", "visibility", "confidence", "state"):
+                    if len(getattr(tr, name)) != T:
+                        raise ReconFormatError(f"object {tr.name!r}: {name} has {len(getattr(tr, name))} frames, expected {T}")
+            labels = self.objects.point_object
+            if labels and (len(labels) != T or any(len(a) != len(p) for a, p in zip(labels, self.points_world))):
+                raise ReconFormatError("the object layer's point labels do not match the per-frame points")
 
     # ------------------------------------------------------------------ save / load
 
@@ -125,8 +143,12 @@ class Recon4D:
             mesh_vertices=self.mesh_vertices.astype(np.float32),
             mesh_faces=self.mesh_faces.astype(np.int32),
             mesh_colors=self.mesh_colors.astype(np.uint8),
+            **self._object_arrays(cat),
         )
         files = [ARRAYS]
+        if self.objects is not None:
+            (folder / TRAJECTORIES).write_text(self.objects.trajectories_json(self.fps, self.metadata.get("instruction")))
+            files.append(TRAJECTORIES)
         if write_ply:
             (folder / "frames").mkdir()
             for t in range(self.num_frames):
@@ -149,6 +171,8 @@ class Recon4D:
                 mesh.apply_transform(y_up)
                 mesh.export(folder / "background_mesh.glb")
                 files += ["background_mesh.ply", "background_mesh.glb"]
+            if self.objects is not None and len(self.objects):
+                files += self._write_object_plys(folder)
         manifest = {
             "format": "tesseract4d-recon4d",
             "format_version": RECON_FORMAT_VERSION,
@@ -161,7 +185,71 @@ class Recon4D:
             "files": files,
             "metadata": self.metadata,
         }
+        if self.objects is not None:
+            manifest["objects"] = {
+                "source": self.objects.source, "instructed": self.objects.instructed,
+                "names": [t.name for t in self.objects.tracks],
+                "colour_names": [t.colour_name for t in self.objects.tracks],
+                "colors": [[int(c) for c in t.color] for t in self.objects.tracks],
+                "point_labels": bool(self.objects.point_object),
+            }
         (folder / MANIFEST).write_text(json.dumps(manifest, indent=2, default=str))
+
+    def _object_arrays(self, cat) -> dict:
+        """The object layer's arrays for the npz (none without one)."""
+        if self.objects is None:
+            return {}
+        out = {}
+        for k, tr in enumerate(self.objects.tracks):
+            out.update({
+                f"object_{k}_points": tr.points_object.astype(np.float32), f"object_{k}_colors": tr.colors.astype(np.uint8),
+                f"object_{k}_normals": tr.normals_object.astype(np.float32),
+                f"object_{k}_T_world_object": tr.T_world_object.astype(np.float64),
+                f"object_{k}_visibility": tr.visibility.astype(np.float32),
+                f"object_{k}_confidence": tr.confidence.astype(np.float32), f"object_{k}_state": tr.state.astype(np.int8),
+            })
+        if self.objects.point_object:
+            out["point_object"] = cat(self.objects.point_object, np.int16, ())
+        return out
+
+    def _write_object_plys(self, folder: Path) -> list[str]:
+        """Each object's point set in its own frame, and every object placed per frame (world)."""
+        (folder / "objects" / "frames").mkdir(parents=True)
+        files, used = [], set()
+        for tr in self.objects.tracks:
+            stem = "".join(c if c.isalnum() or c in "-_" else "_" for c in tr.name) or "object"
+            while stem in used:
+                stem += "_"
+            used.add(stem)
+            write_point_ply(folder / "objects" / f"{stem}.ply", tr.points_object, tr.colors, tr.normals_object)
+            files.append(f"objects/{stem}.ply")
+        for t in range(self.num_frames):
+            tracks = self.objects.tracks
+            pts = np.concatenate([tr.points_world(t) for tr in tracks])
+            cols = np.concatenate([tr.colors for tr in tracks])
+            nrm = np.concatenate([tr.normals_object @ tr.T_world_object[t, :3, :3].T for tr in tracks])
+            write_point_ply(folder / "objects" / "frames" / f"frame_{t:04d}.ply", pts, cols, nrm)
+            files.append(f"objects/frames/frame_{t:04d}.ply")
+        return files
+
+    @staticmethod
+    def _load_objects(z, manifest: dict, offsets: np.ndarray) -> ObjectLayer | None:
+        info = manifest.get("objects")
+        if info is None:
+            return None
+        tracks = []
+        for k, name in enumerate(info["names"]):
+            tracks.append(ObjectTrack(
+                name=name, color=np.asarray(info["colors"][k], np.uint8), colour_name=info["colour_names"][k],
+                points_object=z[f"object_{k}_points"], colors=z[f"object_{k}_colors"], normals_object=z[f"object_{k}_normals"],
+                T_world_object=z[f"object_{k}_T_world_object"], visibility=z[f"object_{k}_visibility"],
+                confidence=z[f"object_{k}_confidence"], state=z[f"object_{k}_state"],
+            ))
+        labels = []
+        if info.get("point_labels"):
+            a = z["point_object"]
+            labels = [a[offsets[i]:offsets[i + 1]] for i in range(len(offsets) - 1)]
+        return ObjectLayer(tracks=tracks, source=info.get("source", ""), instructed=info.get("instructed"), point_object=labels)
 
     @classmethod
     def load(cls, path: str | os.PathLike) -> "Recon4D":
@@ -173,10 +261,10 @@ class Recon4D:
             manifest = json.loads(manifest_path.read_text())
         except json.JSONDecodeError as e:
             raise ReconFormatError(f"{manifest_path} is corrupt ({e}); re-run `tesseract4d reconstruct`.") from e
-        if manifest.get("format_version") != RECON_FORMAT_VERSION:
+        if manifest.get("format_version") not in READABLE_VERSIONS:
             raise ReconFormatError(
                 f"{path} is reconstruction format {manifest.get('format_version')}; this tesseract4d reads "
-                f"{RECON_FORMAT_VERSION}. Re-run `tesseract4d reconstruct` on the source video."
+                f"{', '.join(map(str, READABLE_VERSIONS))}. Re-run `tesseract4d reconstruct` on the source video."
             )
         if not (path / ARRAYS).is_file():
             raise ReconFormatError(f"{path} has a {MANIFEST} but no {ARRAYS}: the reconstruction is incomplete; "
@@ -196,8 +284,9 @@ class Recon4D:
                 background_normals=z["background_normals"], mesh_vertices=z["mesh_vertices"],
                 mesh_faces=z["mesh_faces"], mesh_colors=z["mesh_colors"],
                 metadata=manifest.get("metadata", {}),
+                objects=cls._load_objects(z, manifest, off),
             )
-        except (OSError, KeyError, ValueError) as e:
+        except (OSError, KeyError, ValueError, IndexError, TypeError) as e:
             raise ReconFormatError(f"{path / ARRAYS} is corrupt or truncated ({e}); re-run `tesseract4d reconstruct`.") from e
 
 

@@ -9,7 +9,7 @@ Usage from Python (non-blocking)::
     app.stop()
 
 GUI panels: Playback (frame slider, play, fps, loop), Display (colour mode, point size,
-per-frame vs fused static points, frustums), Frame images (RGB, depth, normal of the current
+per-frame vs fused static points, frustums, the object layer drawn whole or the raw points), Frame images (RGB, depth, normal of the current
 frame), Compare (layout and per-frame metrics, with a second source) and Generate (instruction,
 seed, steps -> predict + reconstruct, shown when done).
 """
@@ -30,7 +30,8 @@ from reconstruction.recon4d import Recon4D
 from tesseract4d.errors import Terminated, UserError
 from tesseract4d.colors import COLOR_MODES, colorize_depth, colorize_normals
 from viewer.origin import own_origin_only
-from viewer.scene import DEFAULT_MAX_POINTS, POINT_MODES, SceneLayer, configure_rendering, initial_view, make_server, stop_server
+from viewer.scene import (DEFAULT_MAX_POINTS, POINT_MODES, SCENE_MODES, SceneLayer, configure_rendering, initial_view,
+                          make_server, stop_server)
 
 # generate(instruction, seed, steps, progress(fraction in [0, 1], message)) -> a new source.
 Generator = Callable[[str, int, int, Callable[[float, str], None]], Recon4D]
@@ -107,6 +108,7 @@ class ViewerApp:
         self.layer = SceneLayer(source, "left" if compare is not None else "scene", max_points,
                                 label=self.labels[0] if compare is not None else None)
         self.right_layer = SceneLayer(compare, "right", max_points, label=self.labels[1]) if compare is not None else None
+        self._link_object_layers()
         self._metrics = metrics
         self._generate = generate
         self._generate_unavailable_reason = generate_unavailable_reason
@@ -124,6 +126,11 @@ class ViewerApp:
         self.frame_switches = 0  # how often the shown time step changed (for benchmarks)
         self.generation_error: str | None = None
         self.generation_count = 0
+
+    def _link_object_layers(self) -> None:
+        """Compare mode: the right source's (the truth's) object paths drawn thin over the left's objects."""
+        if self.right_layer is not None and self.right_layer.has_objects:
+            self.layer.reference = self.right_layer.recon.objects
 
     @classmethod
     def from_path(cls, path: str | os.PathLike, *, compare: str | os.PathLike | None = None,
@@ -251,6 +258,9 @@ class ViewerApp:
             lo, hi, step, size = point_size_range(self.layer.default_point_size)
             self.point_size_slider = gui.add_slider("Point size (m)", min=lo, max=hi, step=step, initial_value=size)
             self.points_dropdown = gui.add_dropdown("Points", tuple(POINT_MODES), initial_value=next(iter(POINT_MODES)))
+            # The object layer drawn whole, or the raw predicted points (only with a source that has one).
+            self.scene_dropdown = gui.add_dropdown("Scene", tuple(SCENE_MODES), initial_value=next(iter(SCENE_MODES)),
+                                                   disabled=not any(layer.has_objects for layer in self._layers()))
             self.frustum_checkbox = gui.add_checkbox("Camera frustums", initial_value=True)
             # Fewer points play faster where the browser draws WebGL in software.
             largest = max(len(p) for layer in self._layers() for p in layer.recon.points_world)
@@ -297,6 +307,7 @@ class ViewerApp:
         self.color_dropdown.on_update(lambda _: self._recolor())
         self.point_size_slider.on_update(lambda _: self._resize_points())
         self.points_dropdown.on_update(lambda _: self._rebuild())
+        self.scene_dropdown.on_update(lambda _: self._rebuild())
         self.frustum_checkbox.on_update(lambda _: self._toggle_frustums())
         self.budget_dropdown.on_update(lambda _: self._change_budget(int(self.budget_dropdown.value.replace(",", ""))))
         self.play_checkbox.on_update(lambda _: self._on_play_toggled())
@@ -380,7 +391,8 @@ class ViewerApp:
             for layer in self._layers():
                 layer.build(self.server, color_mode=self._color_mode(), point_size=float(self.point_size_slider.value),
                             point_mode=POINT_MODES[self.points_dropdown.value],
-                            show_frustums=bool(self.frustum_checkbox.value), t=self._frame)
+                            show_frustums=bool(self.frustum_checkbox.value), t=self._frame,
+                            objects=SCENE_MODES[self.scene_dropdown.value])
             self._apply_layout()
 
     def _apply_layout(self) -> None:
@@ -428,6 +440,8 @@ class ViewerApp:
                 self.labels = (label, self.labels[1])
                 self.compare_md.content = self._compare_text()
             self.layer = SceneLayer(recon, self.layer.name, self.max_points, label=label)
+            self._link_object_layers()
+            self.scene_dropdown.disabled = not any(layer.has_objects for layer in self._layers())
             if self.right_layer is not None:
                 from viewer.compare import image_metrics
 

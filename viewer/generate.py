@@ -52,7 +52,7 @@ def model_generator(checkpoint: str | os.PathLike, source: Recon4D,
             progress=lambda step, total: progress(PREDICT_SHARE * step / max(total, 1), denoising_message(step, total, steps)),
         )
         progress(PREDICT_SHARE, "reconstructing the 4D point cloud")
-        recon = reconstruct_episode(pred, config=ReconConfig())
+        recon = reconstruct_episode(pred, config=ReconConfig(), objects_from=first)  # objects named as in the source
         recon.metadata.update({"instruction": instruction, "sample_seed": seed, "steps": steps})
         return recon
 

@@ -6,6 +6,13 @@ A :class:`SceneLayer` owns the scene nodes of one :class:`Recon4D` under ``/<nam
     /<name>/frames/<t>          one point cloud per time step; only the current one is visible
     /<name>/cams/<t>            one camera frustum per time step, textured with that frame's RGB
     /<name>/background          the fused static background points (if the source has them)
+    /<name>/objects/<k>         the object layer (if the source has one): object k's rigid points, named,
+                                placed at the current frame's T_world_object; its label says its state
+    /<name>/paths/<k>           object k's path over the clip (its origin per frame) as a polyline
+    /<name>/reference/<k>       compare mode: the other layer's (the truth's) path of the same object, thin
+
+With the object layer shown, the per-frame clouds leave out the points that belong to an object (the
+objects are drawn whole instead); what stays is the arm and the rest of the scene.
 
 Points are decimated to a per-frame budget and sent relative to the layer's centre, so float16
 positions keep <= 1 mm rounding error for points within ~2 m of it; larger scenes use float32.
@@ -37,6 +44,11 @@ POINT_MODES: dict[str, str] = {
     "Static background + moving points": "background+dynamic",
     "Static background only": "background",
 }
+# Raw predicted points, or the object layer drawn whole (GUI label -> flag).
+SCENE_MODES: dict[str, bool] = {"Object layer": True, "Raw points": False}
+PATH_THICKNESS_M = 0.003
+REFERENCE_THICKNESS_M = 0.0015
+REFERENCE_RGB = (250, 250, 250)
 
 
 @dataclass
@@ -48,6 +60,7 @@ class FramePoints:
     normals: np.ndarray  # (N, 3) float32 world frame
     depth_m: np.ndarray  # (N,) float32, depth along this frame's camera axis
     dynamic: np.ndarray  # (N,) bool
+    object_index: np.ndarray | None = None  # (N,) int16: the object each point belongs to, -1 none (None: unlabelled)
 
 
 def decimate(n: int, budget: int, seed: int = 0) -> np.ndarray:
@@ -121,6 +134,12 @@ class SceneLayer:
         self._background_node = None
         self._label_node = None
         self._current = 0
+        self._point_mode = "frames"
+        self._objects_shown = False
+        self._object_nodes: list = []
+        self._object_labels: list = []
+        self._object_clouds: list = []
+        self.reference = None  # compare mode: the other source's object layer, its paths drawn thin here
 
     # ------------------------------------------------------------------ data
 
@@ -152,10 +171,19 @@ class SceneLayer:
         r = self.recon
         keep = decimate(len(r.points_world[t]), self.max_points, seed=t)
         pts = r.points_world[t][keep]
+        labels = r.objects.point_object if r.objects is not None else []
         return FramePoints(
             points_local=(pts - self.centre).astype(np.float32), rgb=r.colors[t][keep],
             normals=r.normals_world[t][keep], depth_m=self._camera_depth(t, pts), dynamic=r.dynamic[t][keep].astype(bool),
+            object_index=np.asarray(labels[t])[keep] if labels else None,
         )
+
+    def _mask(self, fr: FramePoints):
+        """Which of a frame's points the per-frame cloud draws under the current point and scene modes."""
+        mask = fr.dynamic.copy() if self._point_mode == "background+dynamic" else np.ones(len(fr.dynamic), bool)
+        if self._objects_shown and fr.object_index is not None:
+            mask &= fr.object_index < 0
+        return mask
 
     def _pixel_footprint(self) -> float:
         """Point size (m) that closes the gaps: one pixel's footprint at the median depth, times
@@ -178,13 +206,20 @@ class SceneLayer:
 
     # ------------------------------------------------------------------ scene nodes
 
+    @property
+    def has_objects(self) -> bool:
+        return self.recon.objects is not None and len(self.recon.objects) > 0
+
     def build(self, server, color_mode: str = "rgb", point_size: float | None = None, point_mode: str = "frames",
-              show_frustums: bool = True, t: int = 0) -> None:
-        """(Re)create every node of this layer in ``server.scene``, showing frame t."""
+              show_frustums: bool = True, t: int = 0, objects: bool = True) -> None:
+        """(Re)create every node of this layer in ``server.scene``, showing frame t. ``objects``: draw the
+        object layer (when the source has one) instead of the objects' raw points."""
         self.remove()
         self.server = server
         size = self.default_point_size if point_size is None else point_size
         self._current = self.frame_index(t)
+        self._point_mode = point_mode
+        self._objects_shown = bool(objects) and self.has_objects
         with server.atomic():
             self._root = server.scene.add_frame(f"/{self.name}", show_axes=False, position=tuple(self.offset))
             if self.label:
@@ -193,7 +228,7 @@ class SceneLayer:
                     f"/{self.name}/label", self.label, position=tuple(self.centre + 0.8 * self.radius * up),
                     anchor="bottom-center", font_screen_scale=1.2)
             for i, fr in enumerate(self.frames):
-                mask = fr.dynamic if point_mode == "background+dynamic" else slice(None)
+                mask = self._mask(fr)
                 self._clouds.append(server.scene.add_point_cloud(
                     f"/{self.name}/frames/{i}", points=fr.points_local[mask], colors=self.colors(fr, color_mode)[mask],
                     point_size=size, precision=self.precision, position=tuple(self.centre),
@@ -208,8 +243,44 @@ class SceneLayer:
                     position=tuple(self.centre), point_shape="square", point_shading="flat",
                     visible=point_mode != "frames",
                 )
-        self._point_mode = point_mode
+            if self._objects_shown:
+                self._add_objects(server, size)
         self._show_frustums = show_frustums
+
+    def _add_objects(self, server, point_size: float) -> None:
+        """The object layer's nodes: each object whole at the current frame, named, and its path."""
+        layer = self.recon.objects
+        up = scene_up_axis(self.recon.T_world_cam[0])
+        for k, tr in enumerate(layer.tracks):
+            T = tr.T_world_object[self._current]
+            node = server.scene.add_frame(f"/{self.name}/objects/{k}", show_axes=False,
+                                          wxyz=wxyz_from_matrix(T[:3, :3]), position=tuple(T[:3, 3]))
+            self._object_clouds.append(server.scene.add_point_cloud(
+                f"/{self.name}/objects/{k}/points", points=tr.points_object.astype(np.float32), colors=tr.colors,
+                point_size=point_size, point_shape="square", point_shading="flat"))
+            height = float(np.max(tr.points_object @ up)) if len(tr.points_object) else 0.0
+            label = server.scene.add_label(f"/{self.name}/objects/{k}/label", self._object_text(k),
+                                           position=tuple((height + 0.015) * up), anchor="bottom-center",
+                                           font_screen_scale=0.9)
+            self._object_nodes.append(node)
+            self._object_labels.append(label)
+            path = tr.positions_world()
+            if len(path) > 1:
+                server.scene.add_line_segments(
+                    f"/{self.name}/paths/{k}", points=np.stack([path[:-1], path[1:]], 1).astype(np.float32),
+                    colors=tuple(int(c) for c in tr.color), thickness=PATH_THICKNESS_M)
+        if self.reference is not None:
+            for k, tr in enumerate(self.reference.tracks):
+                path = tr.positions_world()
+                if len(path) > 1:
+                    server.scene.add_line_segments(
+                        f"/{self.name}/reference/{k}", points=np.stack([path[:-1], path[1:]], 1).astype(np.float32),
+                        colors=REFERENCE_RGB, thickness=REFERENCE_THICKNESS_M)
+
+    def _object_text(self, k: int) -> str:
+        tr = self.recon.objects.tracks[k]
+        state = tr.states()[self._current]
+        return tr.name if state == "tracked" else f"{tr.name} ({state})"
 
     def _add_frustum(self, server, t: int, visible: bool):
         import cv2
@@ -238,18 +309,24 @@ class SceneLayer:
         self._frustums[self._current].visible = False
         self._frustums[i].visible = self._show_frustums
         self._current = i
+        for k, (node, label) in enumerate(zip(self._object_nodes, self._object_labels)):
+            T = self.recon.objects.tracks[k].T_world_object[i]
+            node.wxyz = wxyz_from_matrix(T[:3, :3])
+            node.position = tuple(T[:3, 3])
+            text = self._object_text(k)
+            if label.text != text:
+                label.text = text
 
     def set_color_mode(self, mode: str) -> None:
         with self.server.atomic():
             for fr, cloud in zip(self.frames, self._clouds):
-                mask = fr.dynamic if self._point_mode == "background+dynamic" else slice(None)
-                cloud.colors = self.colors(fr, mode)[mask]
+                cloud.colors = self.colors(fr, mode)[self._mask(fr)]
             if self._background_node is not None:
                 self._background_node.colors = self.colors(self.background, mode)
 
     def set_point_size(self, size: float) -> None:
         with self.server.atomic():
-            for cloud in self._clouds + ([self._background_node] if self._background_node is not None else []):
+            for cloud in self._clouds + self._object_clouds + ([self._background_node] if self._background_node is not None else []):
                 cloud.point_size = float(size)
 
     def set_frustums_visible(self, visible: bool) -> None:
@@ -270,6 +347,7 @@ class SceneLayer:
         if self._root is not None:
             self._root.remove()  # removes the children too
         self._root, self._clouds, self._frustums, self._background_node, self._label_node = None, [], [], None, None
+        self._object_nodes, self._object_labels, self._object_clouds = [], [], []
 
 
 def initial_view(recon: Recon4D, look_at: np.ndarray, extra_distance: float = 0.0) -> dict:

@@ -75,6 +75,8 @@ import numpy as np
 from tesseract4d import dataset_format as df
 from tesseract4d.errors import UserError
 from tesseract4d.evaluation.instruction_following import RIGHT_WAY_COSINE
+from tesseract4d.evaluation.object_tracks import (episode_object_report, markdown_rows, object_summary,
+                                                  truth_tracker_summary)
 from tesseract4d.resize import episode_at_resolution, resize_factor
 
 METHODS = ("model", "model_raw", "static")
@@ -489,6 +491,7 @@ def evaluate_heldout(cfg: HeldoutConfig, progress: bool = True) -> dict:
                 believe = episode_believability(gt, camera, rgb, method_patch[method], token_rgb=token_rgb,
                                                 pred_depth_m=frames.depth_m, first_scored_frame=1)
                 metrics.update(believe["metrics"])
+                metrics.update(object_summary(episode_object_report(output, gt, camera)))
                 sc = None
                 if gt.env_id in TARGET_OBJECT and gt_cam.segmentation is not None:
                     sc = direction_score(gt.env_id, gt_cam.rgb, gt_cam.segmentation, gt_cam.seg_id_to_name,
@@ -503,11 +506,14 @@ def evaluate_heldout(cfg: HeldoutConfig, progress: bool = True) -> dict:
             gt_believe = episode_believability(gt, camera, gt_cam.rgb, static_patch_px, pred_depth_m=gt_cam.depth_m,
                                                first_scored_frame=1)
             skill = (gt.intent or {}).get("skill") or "task"
+            # The tracker on the truth itself (its frames, not its recorded poses): the object rows' ceiling.
+            tracker_on_truth = episode_object_report(gt, gt, camera)
             for k, seed in enumerate(seeds):
                 scored = {}
                 for (with_c, raw), preds in zip(keys, predictions):
                     pred, token_rgb = preds[k][j]
-                    scored[with_c] = score(with_c, reconstruct_episode(pred, config=ReconConfig()), token_rgb)
+                    scored[with_c] = score(with_c, reconstruct_episode(pred, config=ReconConfig(), objects_from=gt),
+                                           token_rgb)
                     scored[raw] = score(raw, pred, token_rgb)
                 scored.update(shared_scores)
                 # Each seed's futures of a group are judged together (contrast is relative within a group).
@@ -516,7 +522,8 @@ def evaluate_heldout(cfg: HeldoutConfig, progress: bool = True) -> dict:
                        "sample_seed": seed, "group_id": gt.group_id, "skill": skill,
                        "variant": (gt.intent or {}).get("variant"), "instruction": gt.instruction,
                        "target": (gt.intent or {}).get("target"), "metrics": {}, "direction": {}, "objects": {},
-                       "token_grid_ratio_gt": gt_believe["metrics"]["token_grid_ratio"]}
+                       "token_grid_ratio_gt": gt_believe["metrics"]["token_grid_ratio"],
+                       "object_tracks_truth": None if tracker_on_truth is None else tracker_on_truth["summary"]}
                 if gt_believe["contrast_entry"] is not None:
                     contrast_entries["ground_truth"].append((group, gt_believe["contrast_entry"]))
                 for method in methods:
@@ -575,6 +582,7 @@ def build_report(cfg, rows: list[dict], methods: list[str], labels: dict, scores
         "summary": summary, "per_task": breakdown(rows, methods, "task"), "per_skill": breakdown(rows, methods, "skill"),
         "episodes_per_task": counts(rows, "task"), "episodes_per_skill": counts(rows, "skill"),
         "token_grid_ratio_gt": _finite_mean(r["token_grid_ratio_gt"] for r in rows),
+        "object_tracks_truth": truth_tracker_summary(rows),
         "instruction_following": {m: summarize(scores[m]) for m in methods},
         "instruction_following_per_task": direction_breakdown(rows, methods, "task"),
         "instruction_following_per_skill": direction_breakdown(rows, methods, "skill"),
@@ -713,6 +721,7 @@ def format_markdown(report: dict) -> str:
             if any(contrast.get(m, {}).get("arm_judged") for m in methods):
                 lines.append("| where the arm goes: the instructed object | active instructions | "
                              + " | ".join(_arm_of(contrast.get(m)) for m in methods) + " |")
+    lines += markdown_rows(summary, methods, report.get("object_tracks_truth"))
     discrimination = report.get("discrimination") or {}
     if any(discrimination.get(m, {}).get("episodes") for m in methods):
         lines.append("| instruction discrimination: the network's one-step prediction from its own instruction "

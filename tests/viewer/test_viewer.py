@@ -71,7 +71,7 @@ def test_scene_size_and_initial_view_ignore_a_few_far_points():
     # 4% of the points far away (a floor seen up to the horizon) must not change the framing.
     rng = np.random.default_rng(0)
     far_points = [np.concatenate([p, p[rng.choice(len(p), len(p) // 25)] * 30.0]) for p in recon.points_world]
-    grown = Recon4D(**{**recon.__dict__, "points_world": far_points,
+    grown = Recon4D(**{**recon.__dict__, "objects": None, "points_world": far_points,
                        "colors": [np.concatenate([c, c[: len(p) - len(c)]]) for c, p in zip(recon.colors, far_points)],
                        "normals_world": [np.concatenate([n, n[: len(p) - len(n)]]) for n, p in zip(recon.normals_world, far_points)],
                        "dynamic": [np.concatenate([d, np.zeros(len(p) - len(d), bool)]) for d, p in zip(recon.dynamic, far_points)]})

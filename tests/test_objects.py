@@ -1,0 +1,167 @@
+"""The object layer (reconstruction/objects.py): known rigid motions of a ray-cast box scene are
+recovered (translation, yaw, occlusion, carrying, loss), and the layer survives save / load, with
+format-1 reconstructions still loading."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from reconstruction.objects import LOST, STATES, ObjectLayer, episode_objects, matrix_from_wxyz, quaternion_wxyz, yaw_about
+from reconstruction.recon4d import Recon4D
+from synthetic_objects import Box, box_episode, moving, still
+
+T = 10
+HALF = 0.02
+UP = np.array([0.0, 0.0, 1.0])
+FIXTURES = Path(__file__).parent / "fixtures"
+
+
+def truth_point_track(track, pose: np.ndarray) -> np.ndarray:
+    """(T, 3) where the track puts the simulator's object origin (its frame-0 position carried along)."""
+    c = np.linalg.inv(track.T_world_object[0]) @ np.r_[pose[0, :3], 1.0]
+    return np.einsum("tij,j->ti", track.T_world_object, c)[:, :3]
+
+
+def green_still() -> Box:
+    return Box("cube_green", still((-0.05, -0.09, HALF), T), np.zeros(T), (HALF, HALF, HALF), (30, 200, 40))
+
+
+def test_translation_and_yaw_are_recovered():
+    yaw = np.linspace(0, np.deg2rad(30), T)
+    red = Box("cube_red", moving((0.0, -0.03, HALF), (0.10, 0.02, HALF), T), yaw, (HALF, HALF, HALF), (220, 30, 30))
+    ep = box_episode([red, green_still()], T)
+    layer = episode_objects(ep, "close")
+    assert layer.names() == ["cube_red", "cube_green"] and layer.source == "segmentation"
+    for track in layer.tracks:
+        pose = ep.object_poses[track.name]
+        err = np.linalg.norm(truth_point_track(track, pose) - pose[:, :3], axis=1)
+        assert err.max() < 0.003, (track.name, err)
+        assert track.states() == ["tracked"] * T
+    red_track = layer.track("cube_red")
+    yaw_deg = np.degrees([yaw_about(Tw[:3, :3], UP) for Tw in red_track.T_world_object])
+    assert np.abs(yaw_deg - np.degrees(yaw)).max() < 1.0
+    assert np.allclose(layer.track("cube_green").T_world_object, layer.track("cube_green").T_world_object[0], atol=1e-6)
+
+
+def test_an_occluded_object_keeps_its_pose_for_the_covered_frames():
+    shown = np.zeros(T, bool)
+    shown[3:6] = True  # a grey arm stands in front of the red cube in frames 3-5
+    red = Box("cube_red", still((0.0, 0.0, HALF), T), np.zeros(T), (HALF, HALF, HALF), (220, 30, 30))
+    arm = Box("panda_hand", still((0.05, -0.05, 0.05), T), np.zeros(T), (0.03, 0.03, 0.05), (200, 200, 205), shown)
+    ep = box_episode([red, green_still(), arm], T)
+    track = episode_objects(ep, "close").track("cube_red")
+    assert [s for s, on in zip(track.states(), shown) if on] == ["occluded"] * 3
+    assert [s for s, on in zip(track.states(), shown) if not on] == ["tracked"] * 7
+    assert np.allclose(track.T_world_object, track.T_world_object[0], atol=1e-6)
+    assert (track.confidence[3:6] < track.confidence[2]).all() and (track.visibility[3:6] < 0.2).all()
+
+
+def test_an_object_carried_by_a_moving_gripper_moves_with_it():
+    # Pushed into view (frames 1-3), then the hand closes over it (frame 4) and carries it 6 cm on and 3 cm up.
+    cpos = moving((0.0, 0.0, HALF), (0.02, 0.0, HALF), T, 1, 3) + moving((0, 0, 0), (0.06, 0.0, 0.03), T, 4, 9)
+    red = Box("cube_red", cpos, np.zeros(T), (HALF, HALF, HALF), (220, 30, 30))
+    hand = Box("panda_hand", cpos + [0.0, 0.0, 0.012], np.zeros(T), (0.028, 0.028, 0.035), (200, 200, 205), np.arange(T) >= 4)
+    link = Box("panda_link7", cpos + [0.0, 0.0, 0.06], np.zeros(T), (0.012, 0.012, 0.04), (190, 190, 200))
+    ep = box_episode([red, green_still(), hand, link], T)
+    layer = episode_objects(ep, "close")
+    track = layer.track("cube_red")
+    pose = ep.object_poses["cube_red"]
+    assert track.states()[:4] == ["tracked"] * 4 and track.states()[5:] == ["held"] * 5
+    err = np.linalg.norm(truth_point_track(track, pose) - pose[:, :3], axis=1)
+    assert err.max() < 0.005, err  # moved 8.5 cm in all
+    assert np.linalg.norm(track.T_world_object[-1, :3, 3] - track.T_world_object[0, :3, 3]) > 0.08
+    assert layer.track("cube_green").states() == ["tracked"] * T
+
+
+def test_an_object_the_video_loses_is_flagged_never_dropped():
+    shown = np.arange(T) < 5  # the red cube vanishes from frame 5 on, nothing in front of it
+    red = Box("cube_red", still((0.0, 0.0, HALF), T), np.zeros(T), (HALF, HALF, HALF), (220, 30, 30), shown)
+    ep = box_episode([red, green_still()], T)
+    layer = episode_objects(ep, "close")
+    track = layer.track("cube_red")
+    assert len(layer) == 2
+    assert track.states() == ["tracked"] * 5 + ["lost"] * 5
+    assert (track.state[5:] == LOST).all() and (track.confidence[5:] == 0).all()
+    assert np.allclose(track.T_world_object, track.T_world_object[0])
+
+
+def test_colour_finder_names_objects_without_a_segmentation():
+    red = Box("cube_red", moving((0.0, 0.0, HALF), (0.06, 0.0, HALF), T), np.zeros(T), (HALF, HALF, HALF), (220, 30, 30))
+    ep = box_episode([red, green_still()], T, instruction="push the red cube forward")
+    ep.cameras["close"].segmentation = None
+    layer = episode_objects(ep, "close")
+    assert layer.source == "colour finder" and sorted(layer.names()) == ["green object", "red object"]
+    assert layer.instructed == "red object"
+    moved = layer.track("red object").T_world_object[-1, :3, 3] - layer.track("red object").T_world_object[0, :3, 3]
+    assert np.linalg.norm(moved - [0.06, 0.0, 0.0]) < 0.003
+
+
+def test_quaternions_round_trip():
+    rng = np.random.default_rng(0)
+    for q in rng.normal(size=(20, 4)):
+        q = q / np.linalg.norm(q) * np.sign(q[0])
+        assert np.allclose(quaternion_wxyz(matrix_from_wxyz(q)), q, atol=1e-9)
+
+
+def _recon_with_objects() -> Recon4D:
+    from reconstruction.backproject import recon_from_episode
+
+    red = Box("cube_red", moving((0.0, 0.0, HALF), (0.06, 0.0, HALF), T), np.zeros(T), (HALF, HALF, HALF), (220, 30, 30))
+    ep = box_episode([red, green_still()], T, intent={"skill": "push", "target": "cube_red"})
+    ep.source = "prediction"  # tracked, not read from the recorded poses
+    return recon_from_episode(ep)
+
+
+def test_object_layer_round_trips_and_trajectories_read_without_the_project(tmp_path):
+    recon = _recon_with_objects()
+    layer = recon.objects
+    assert isinstance(layer, ObjectLayer) and layer.instructed == "cube_red" and len(layer) == 2
+    assert [len(a) for a in layer.point_object] == [len(p) for p in recon.points_world]
+    assert (np.concatenate(layer.point_object) >= 0).sum() > 0
+    out = recon.save(tmp_path / "recon")
+    back = Recon4D.load(out)
+    assert json.loads((out / "manifest.json").read_text())["format_version"] == 2
+    for a, b in zip(layer.tracks, back.objects.tracks):
+        assert a.name == b.name and a.colour_name == b.colour_name
+        for field in ("points_object", "colors", "normals_object", "T_world_object", "visibility", "confidence", "state"):
+            assert np.array_equal(getattr(a, field), getattr(b, field)), field
+    assert back.objects.instructed == "cube_red" and back.objects.source == layer.source
+    assert all(np.array_equal(a, b) for a, b in zip(layer.point_object, back.objects.point_object))
+    # trajectories.json: plain JSON, positions per frame
+    data = json.loads((out / "trajectories.json").read_text())
+    assert data["instructed_object"] == "cube_red" and data["num_frames"] == T
+    red = next(o for o in data["objects"] if o["name"] == "cube_red")
+    assert len(red["position_m"]) == T and set(red["state"]) <= set(STATES)
+    assert np.allclose(red["position_m"], layer.track("cube_red").positions_world(), atol=1e-5)
+    assert (out / "objects" / "cube_red.ply").is_file() and (out / "objects" / "frames" / f"frame_{T - 1:04d}.ply").is_file()
+
+
+def test_a_format_1_reconstruction_still_loads():
+    recon = Recon4D.load(FIXTURES / "recon_v1")  # written by the format-1 writer
+    assert recon.objects is None and recon.num_frames == 2 and len(recon.points_world[0]) == 172
+
+
+def test_the_truth_layer_follows_the_recorded_poses():
+    from reconstruction.backproject import recon_from_episode
+
+    red = Box("cube_red", moving((0.0, 0.0, HALF), (0.06, 0.03, HALF), T), np.linspace(0, 0.4, T), (HALF, HALF, HALF), (220, 30, 30))
+    ep = box_episode([red, green_still()], T)
+    layer = recon_from_episode(ep).objects
+    assert layer.source == "simulator poses"
+    track = layer.track("cube_red")
+    assert np.allclose(truth_point_track(track, ep.object_poses["cube_red"]), ep.object_poses["cube_red"][:, :3], atol=1e-5)
+
+
+def test_reconstruct_episode_returns_the_object_layer():
+    from reconstruction.reconstruct import ReconConfig, reconstruct_episode
+
+    red = Box("cube_red", moving((0.0, 0.0, HALF), (0.05, 0.0, HALF), 6), np.zeros(6), (HALF, HALF, HALF), (220, 30, 30))
+    ep = box_episode([red], 6, size=96)
+    recon = reconstruct_episode(ep, config=ReconConfig(mesh=False))
+    track = recon.objects.track("cube_red")
+    moved = track.T_world_object[-1, :3, 3] - track.T_world_object[0, :3, 3]
+    assert np.linalg.norm(moved - [0.05, 0.0, 0.0]) < 0.004 and recon.metadata["objects"]["names"] == ["cube_red"]
+    assert "objects" in recon.metadata["timings_s"]
