@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from synthetic_scene import look_at_pose
+from tesseract4d.testing.synthetic_scene import look_at_pose
 from tesseract4d.dataset_format import CameraFrames, Episode
 
 TABLE_ID = 1

@@ -10,7 +10,7 @@ import sys
 
 import numpy as np
 
-from synthetic_objects import Box, box_episode, moving, still
+from tesseract4d.testing.synthetic_objects import Box, box_episode, moving, still
 from tesseract4d.dataset_format import write_episode_dataset
 
 EXAMPLE = '''\

@@ -11,7 +11,7 @@ import numpy as np
 
 from reconstruction.objects import LOST, STATES, ObjectLayer, episode_objects, matrix_from_wxyz, quaternion_wxyz, yaw_about
 from reconstruction.recon4d import Recon4D
-from synthetic_objects import Box, box_episode, moving, still
+from tesseract4d.testing.synthetic_objects import Box, box_episode, moving, still
 
 T = 10
 HALF = 0.02

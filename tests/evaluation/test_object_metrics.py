@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from reconstruction.objects import episode_objects, rotation_about
-from synthetic_objects import Box, box_episode, moving, still
+from tesseract4d.testing.synthetic_objects import Box, box_episode, moving, still
 from tesseract4d.evaluation.object_tracks import format_rows, object_track_metrics, pooled
 
 T = 8

@@ -10,9 +10,9 @@ import time
 import numpy as np
 import pytest
 
-from browser import canvas_image, chromium, drawn_fraction, image_change, wait_until_changed, wait_until_drawn
+from tesseract4d.testing.browser import canvas_image, chromium, drawn_fraction, image_change, wait_until_changed, wait_until_drawn
 from reconstruction.backproject import recon_from_episode
-from synthetic_objects import Box, box_episode, moving, still
+from tesseract4d.testing.synthetic_objects import Box, box_episode, moving, still
 from test_viewer_browser import click_slider, select, wait_for
 
 pytestmark = pytest.mark.browser
