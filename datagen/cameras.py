@@ -19,6 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from tesseract4d.errors import UserError
+from datagen.tasks import get_task
 
 PRESETS = ("base_camera", "close", "side")
 DEFAULT_NEAR_M = 0.01
@@ -78,8 +79,6 @@ def preset_view(name: str, env_id: str, base_env=None) -> CameraView:
 
     ``base_camera`` reads the task's default sensor config, so it needs the (unwrapped) env.
     """
-    from datagen.tasks import get_task
-
     spec = get_task(env_id)
     if name == "close":
         return CameraView("close", spec.close_eye, spec.close_target, spec.close_fov_deg)

@@ -22,6 +22,7 @@ from datagen import skills as sk
 from datagen.simulate import INSTRUCTION_STREAM, EpisodeSimulator, frame_indices
 from tesseract4d.dataset_format import Episode
 from tesseract4d.errors import UserError
+from datagen.skill_language import describe, make_skill_instruction, skill_attributes
 
 PLANNER = "datagen.skills on mani_skill.examples.motionplanning.panda PandaArmMotionPlanningSolver"
 
@@ -140,8 +141,6 @@ def skill_instruction(env_id: str, variant: sk.SkillVariant, intent: dict, color
     of ``split`` is drawn from the stream (seed, INSTRUCTION_STREAM, variant index), so a scene's
     future under a variant always gets the same words.
     """
-    from datagen.skill_language import describe, make_skill_instruction, skill_attributes
-
     shapes = {o.name: o.shape for o in sk.SCENES[env_id]}
     descriptions = {n: describe(shapes[n], colors.get(n, "")) for n in intent["objects_present"]}
     attrs = skill_attributes(intent, descriptions)

@@ -36,13 +36,20 @@ from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from datagen.simulate import SimConfig
+from datagen.simulate import EpisodeSimulator, SimConfig, check_vulkan_env
 from datagen.tasks import get_task
 from tesseract4d.dataset_format import (
-    INFO_FILE, LOCK_FILE, PREVIEWS_DIR, DatasetInfo, atomic_write_text, init_dataset, list_episode_files, remove_partial_files,
+    INFO_FILE, LOCK_FILE, PREVIEWS_DIR, DatasetInfo, atomic_write_text, init_dataset, list_episode_files,
+    preview_path, read_episode, read_episode_attrs, remove_partial_files, write_episode,
 )
 from tesseract4d.configs import knob
 from tesseract4d.errors import UserError
+from tesseract4d.outputs import claim_folder, release_new_folder
+from tesseract4d.previews import write_preview
+from datagen.skills import check_group_size, parse_skill_list
+from tesseract4d import runtime
+from datagen.counterfactual import run_group
+from tesseract4d.stopping import handlers_kept
 
 CONFIG_FILE = "datagen_config.json"
 REPORT_FILE = "datagen_report.json"
@@ -109,8 +116,6 @@ class DatagenConfig:
             raise UserError(f"--max-attempts ({self.attempts_cap()}) must be at least --episodes ({self.episodes})")
         skill_tasks = [t for t in self.tasks if self.skill_mode(t)]
         if skill_tasks:
-            from datagen.skills import check_group_size, parse_skill_list
-
             parse_skill_list(",".join(self.skills) if self.skills is not None else None, skill_tasks)
             check_group_size(self.instructions_per_scene, skill_tasks, self.skills)
 
@@ -129,8 +134,6 @@ class Worker:
 
     def __init__(self, out: str, sim: dict, previews: bool, render_threads: int | None = None,
                  instructions_per_scene: int = 1, skills: list[str] | None = None):
-        from tesseract4d import runtime
-
         runtime.configure()
         if render_threads:  # lavapipe's rasteriser threads; one per worker avoids oversubscription
             os.environ.setdefault("LP_NUM_THREADS", str(render_threads))
@@ -150,10 +153,6 @@ class Worker:
 
         import torch
 
-        from tesseract4d.previews import write_preview
-        from datagen.simulate import EpisodeSimulator
-        from tesseract4d.dataset_format import write_episode
-
         torch.set_num_threads(1)  # ManiSkill's tensors are tiny; threads only contend
         if self._sim is None or self._sim.env_id != env_id:
             if self._sim is not None:
@@ -163,8 +162,6 @@ class Worker:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             if group:
-                from datagen.counterfactual import run_group
-
                 result = run_group(self._sim, seed, self.instructions_per_scene, self.skills)
                 episodes = result.episodes
             else:
@@ -330,8 +327,6 @@ class _RayPool:
 
         self.ray = ray
         if not ray.is_initialized():
-            from tesseract4d.stopping import handlers_kept
-
             # ray.init() installs its own SIGTERM handler: the command line's stays (SIGTERM ends datagen with 143).
             with handlers_kept():
                 ray.init(address=cfg.ray_address, log_to_driver=False)
@@ -600,9 +595,6 @@ def run_datagen(cfg: DatagenConfig, progress: bool = True) -> dict:
     Returns the report that is also written to ``DIR/datagen_report.json``. The folder must be
     new, empty or a dataset (tesseract4d.outputs); one datagen at a time writes it (DatasetLock).
     """
-    from datagen.simulate import check_vulkan_env
-    from tesseract4d.outputs import claim_folder, release_new_folder
-
     cfg.validate()
     if cfg.ray_address:
         check_ray_cluster(cfg.ray_address)
@@ -700,9 +692,6 @@ def _prepare_output(cfg: DatagenConfig) -> Path:
 
 def _write_missing_previews(root: Path) -> list[Path]:
     """The MP4 previews of episodes on disk whose preview an interrupted run did not finish."""
-    from tesseract4d.dataset_format import preview_path, read_episode, read_episode_attrs
-    from tesseract4d.previews import write_preview
-
     written = []
     for path in list_episode_files(root):
         attrs = read_episode_attrs(path)

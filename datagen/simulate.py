@@ -20,6 +20,9 @@ from datagen.tasks import CONTROL_MODE, get_task
 from tesseract4d.configs import knob
 from tesseract4d.dataset_format import CameraFrames, Episode
 from tesseract4d.errors import UserError
+from datagen.capture import SceneRenderer
+from datagen.tabletop import register
+from datagen.instructions import make_instruction, scene_attributes
 
 # Passed to gym.make; stored per episode so it can be re-simulated with the same settings.
 # Random streams of an episode, seeded with [episode seed, stream]: independent of each other
@@ -152,9 +155,6 @@ class EpisodeSimulator:
         import gymnasium as gym
         import mani_skill.envs  # noqa: F401  (registers the tasks)
 
-        from datagen.capture import SceneRenderer
-        from datagen.tabletop import register
-
         register()  # the project's own scene
 
         try:
@@ -260,8 +260,6 @@ class EpisodeSimulator:
 
     def _instruction(self, seed: int, object_poses: dict[str, np.ndarray], colors: dict[str, str]) -> tuple[str, dict]:
         """The instruction for the scene at its first state, and the attributes it was made from."""
-        from datagen.instructions import make_instruction, scene_attributes
-
         attributes = scene_attributes(self.env_id, {n: p[0, :3] for n, p in object_poses.items()}, colors)
         instruction = make_instruction(self.env_id, attributes, np.random.default_rng([seed, INSTRUCTION_STREAM]),
                                        split=self.config.instruction_split)

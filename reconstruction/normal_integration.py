@@ -23,6 +23,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from tesseract4d.geometry import MIN_NORMAL_LENGTH, pixel_grid
+
 # Pixels whose ray meets the surface this close to grazing give unbounded gradients; no rows.
 MIN_RAY_COSINE = 0.05
 # Rows whose target log-depth change exceeds this per pixel (a 20 % depth change) sit on a
@@ -112,8 +114,6 @@ def log_depth_gradients(normal_cam: np.ndarray, K: np.ndarray) -> tuple[np.ndarr
     Returns (d log z / du (H, W), d log z / dv (H, W), usable (H, W) bool): usable where the
     normal exists and its ray is not near grazing.
     """
-    from tesseract4d.geometry import MIN_NORMAL_LENGTH, pixel_grid
-
     n = np.asarray(normal_cam, np.float64)
     K = np.asarray(K, np.float64)
     H, W = n.shape[:2]

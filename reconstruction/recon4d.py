@@ -33,6 +33,7 @@ import numpy as np
 
 from reconstruction.objects import ObjectLayer, ObjectTrack
 from tesseract4d.errors import UserError
+from tesseract4d.geometry import rotation_to_y_up, scene_up_axis
 
 RECON_FORMAT_VERSION = 2  # 2: the object layer
 READABLE_VERSIONS = (1, 2)
@@ -160,8 +161,6 @@ class Recon4D:
                 files.append("background.ply")
             if len(self.mesh_faces):
                 import trimesh
-
-                from tesseract4d.geometry import rotation_to_y_up, scene_up_axis
 
                 mesh = trimesh.Trimesh(self.mesh_vertices, self.mesh_faces, vertex_colors=self.mesh_colors, process=False)
                 mesh.export(folder / "background_mesh.ply")  # the world frame, as the point clouds

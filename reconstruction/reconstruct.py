@@ -38,6 +38,10 @@ from tesseract4d.configs import knob
 from tesseract4d.dataset_format import CameraFrames, Episode
 from tesseract4d.errors import UserError
 from tesseract4d.geometry import MIN_NORMAL_LENGTH, normals_from_depth
+from reconstruction.consistency import add_temporal_rows
+from reconstruction.normal_integration import LeastSquares, add_normal_rows
+from reconstruction.flow import motion_masks
+from reconstruction.fusion import FusedSurface, auto_voxel_size, fuse_tsdf
 
 
 @dataclass
@@ -114,9 +118,6 @@ def check_frames(cam: CameraFrames, label: str) -> tuple[np.ndarray, np.ndarray,
 
 def refine_depth(depth_m, normal_cam, valid, K, T_world_cam, flow_prev, dynamic, config: ReconConfig, timings: dict) -> tuple[np.ndarray, dict]:
     """Stages 3-5: the joint least-squares refinement. Returns (depth (T, H, W) float32, stats)."""
-    from reconstruction.consistency import add_temporal_rows
-    from reconstruction.normal_integration import LeastSquares, add_normal_rows
-
     T = depth_m.shape[0]
     index = np.full(depth_m.shape, -1, np.int64)
     index[valid] = np.arange(int(valid.sum()))
@@ -182,8 +183,6 @@ def reconstruct_episode(
         if progress is not None:
             progress(done, len(STAGES))
 
-    from reconstruction.flow import motion_masks
-
     start = time.perf_counter()
     flow_prev, dynamic = motion_masks(rgb, depth_in, K, T_world_cam, config.flow_threshold_px)
     timings["flow"] = time.perf_counter() - start
@@ -208,7 +207,6 @@ def reconstruct_episode(
     tick()
 
     start = time.perf_counter()
-    from reconstruction.fusion import FusedSurface, auto_voxel_size, fuse_tsdf
 
     voxel = config.voxel_size_m or auto_voxel_size(depth, K)
     fused = (fuse_tsdf(depth, rgb, K, T_world_cam, valid & ~dynamic, voxel, config.trunc_voxels, mesh=config.mesh)

@@ -14,6 +14,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from tesseract4d.geometry import invert_pose
+
 # Maps OpenCV camera coordinates to OpenGL camera coordinates (and back: it is its own inverse).
 GL_FROM_CV = np.diag([1.0, -1.0, -1.0])
 CV_FROM_GL = GL_FROM_CV
@@ -44,7 +46,6 @@ def T_world_cam_from_extrinsic_cv(extrinsic_cv: np.ndarray) -> np.ndarray:
     T_cam_world = np.zeros(E.shape[:-2] + (4, 4))
     T_cam_world[..., :3, :] = E[..., :3, :]
     T_cam_world[..., 3, 3] = 1.0
-    from tesseract4d.geometry import invert_pose
 
     return invert_pose(T_cam_world)
 

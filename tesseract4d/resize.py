@@ -38,6 +38,7 @@ import numpy as np
 
 from tesseract4d.errors import UserError
 from tesseract4d.geometry import MIN_NORMAL_LENGTH
+from tesseract4d.dataset_format import CameraFrames
 
 # Enlarging interpolates depth only between neighbours whose depths differ by at most this share
 # (2 cm at 1 m); a step beyond it is an edge and the nearest pixel is copied instead. A plane seen
@@ -99,8 +100,6 @@ def episode_at_resolution(episode, camera: str, hw: tuple[int, int]):
     (itself when already there). The resized copy carries no segmentation (so a sampler with several
     noise draws chooses among them by the objects found by their colour: draw_choice.py)."""
     import dataclasses
-
-    from tesseract4d.dataset_format import CameraFrames
 
     cam = episode.cameras[camera]
     if tuple(cam.rgb.shape[1:3]) == tuple(hw) and list(episode.cameras) == [camera]:

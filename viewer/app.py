@@ -32,6 +32,9 @@ from tesseract4d.colors import COLOR_MODES, colorize_depth, colorize_normals
 from viewer.origin import own_origin_only
 from viewer.scene import (DEFAULT_MAX_POINTS, POINT_MODES, SCENE_MODES, SceneLayer, configure_rendering, initial_view,
                           make_server, stop_server)
+from viewer.sources import load_source
+from viewer.compare import format_metrics, image_metrics, load_report_per_frame
+from viewer.generate import checkpoint_steps, model_generator
 
 # generate(instruction, seed, steps, progress(fraction in [0, 1], message)) -> a new source.
 Generator = Callable[[str, int, int, Callable[[float, str], None]], Recon4D]
@@ -137,8 +140,6 @@ class ViewerApp:
                   metrics: str | os.PathLike | None = None, checkpoint: str | os.PathLike | None = None,
                   camera: str | None = None, precision: str = "auto", **kwargs) -> "ViewerApp":
         """Open PATH (reconstruction folder or dataset episode); see :func:`viewer.sources.load_source`."""
-        from viewer.sources import load_source
-
         source = load_source(path, camera=camera)
         gt = None
         if compare is not None:
@@ -148,13 +149,9 @@ class ViewerApp:
                 raise UserError(f"--compare: {e}") from e
         rows = None
         if metrics is not None:
-            from viewer.compare import load_report_per_frame
-
             rows = load_report_per_frame(metrics)
         generate = steps = None
         if checkpoint is not None:
-            from viewer.generate import checkpoint_steps, model_generator
-
             generate, steps = model_generator(checkpoint, source, precision=precision), checkpoint_steps(checkpoint)
         return cls(source, compare=gt, metrics=rows, generate=generate, generate_steps=steps, **kwargs)
 
@@ -283,8 +280,6 @@ class ViewerApp:
             self.compare_md = gui.add_markdown(self._compare_text())
             self.metrics_md = gui.add_markdown("")
         if self._metrics is None:
-            from viewer.compare import image_metrics
-
             self._metrics = image_metrics(self.layer.recon, self.right_layer.recon)
         self.layout_dropdown.on_update(lambda _: self._apply_layout())
 
@@ -343,8 +338,6 @@ class ViewerApp:
         self.depth_image.image = _panel_image(colorize_depth(r.depth_m[i], *self.layer.depth_limits))
         self.normal_image.image = _panel_image(colorize_normals(r.normal_cam[i]))
         if self.metrics_md is not None:
-            from viewer.compare import format_metrics
-
             rows = self._metrics or []
             self.metrics_md.content = format_metrics(rows[t] if t < len(rows) else None, t)
 
@@ -443,8 +436,6 @@ class ViewerApp:
             self._link_object_layers()
             self.scene_dropdown.disabled = not any(layer.has_objects for layer in self._layers())
             if self.right_layer is not None:
-                from viewer.compare import image_metrics
-
                 self._metrics = image_metrics(self.layer.recon, self.right_layer.recon)
             T = self.num_frames
             self.frame_slider.max = max(T - 1, 1)

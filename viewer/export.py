@@ -11,6 +11,8 @@ from pathlib import Path
 
 from reconstruction.recon4d import Recon4D
 from viewer.scene import DEFAULT_MAX_POINTS, SceneLayer, configure_rendering, initial_view, make_server, stop_server
+from tesseract4d.outputs import OutputFile
+from viewer.sources import load_source
 
 
 HTML_MARK = "<!-- tesseract4d view --export -->"
@@ -30,13 +32,9 @@ def export_html(source: Recon4D | str | os.PathLike, out_path: str | os.PathLike
                 inputs: tuple = (), overwrite: bool = False) -> Path:
     """Write the recording to ``out_path`` (atomically) and return it. An existing file is replaced
     only if it is an earlier export (or with ``overwrite``); ``inputs`` are never written."""
-    from tesseract4d.outputs import OutputFile
-
     out = Path(out_path)
     output = OutputFile(out, inputs=inputs, overwrite=overwrite, flag="--export", is_ours=is_export)
     if not isinstance(source, Recon4D):
-        from viewer.sources import load_source
-
         source = load_source(source)
     layer = SceneLayer(source, "scene", max_points)
     server = make_server("127.0.0.1", 0)

@@ -12,7 +12,10 @@ from pathlib import Path
 from typing import Callable
 
 from reconstruction.recon4d import Recon4D
+from reconstruction.reconstruct import ReconConfig, reconstruct_episode
 from tesseract4d.errors import UserError
+from tesseract4d.model.checkpoint import read_inference_config
+from viewer.sources import first_frame_episode
 
 # Share of the progress bar spent denoising; the rest is reconstruction.
 PREDICT_SHARE = 0.8
@@ -20,8 +23,6 @@ PREDICT_SHARE = 0.8
 
 def checkpoint_steps(checkpoint: str | os.PathLike) -> int:
     """The sampler steps a checkpoint's preset uses (read from its config; the model is not loaded)."""
-    from tesseract4d.model.checkpoint import read_inference_config
-
     return int(read_inference_config(checkpoint)["preset"]["num_steps"])
 
 
@@ -34,12 +35,8 @@ def model_generator(checkpoint: str | os.PathLike, source: Recon4D,
     cache: dict = {}
 
     def generate(instruction: str, seed: int, steps: int, progress: Callable[[float, str], None]) -> Recon4D:
-        try:
-            from reconstruction.reconstruct import ReconConfig, reconstruct_episode
-            from tesseract4d.model.predict import load_pipeline, predict_episode
-        except ImportError as e:
-            raise UserError(f"the model code is not available in this install ({e}); update tesseract4d.") from e
-        from viewer.sources import first_frame_episode
+        # deferred: imports torch (heavy)
+        from tesseract4d.model.predict import load_pipeline, predict_episode
 
         if "pipeline" not in cache:
             progress(0.0, f"loading {checkpoint}")

@@ -15,14 +15,12 @@ import numpy as np
 
 from reconstruction.backproject import recon_from_episode
 from reconstruction.recon4d import MANIFEST, Recon4D
-from tesseract4d.dataset_format import CameraFrames, Episode
+from tesseract4d.dataset_format import CameraFrames, Episode, read_episode, resolve_episode, samples_hint
 from tesseract4d.errors import UserError
 
 
 def load_source(path: str | os.PathLike, camera: str | None = None) -> Recon4D:
     """Open PATH as a reconstruction folder or a dataset episode; raise UserError with the fix."""
-    from tesseract4d.dataset_format import read_episode, resolve_episode
-
     p = Path(path)
     if p.is_dir() and (p / MANIFEST).is_file():
         recon = Recon4D.load(p)
@@ -43,8 +41,6 @@ def load_source(path: str | os.PathLike, camera: str | None = None) -> Recon4D:
             "dataset episode (.h5 file, dataset folder with one episode, or DIR/ENV_ID/SEED)."
         )
     if p.is_dir() and not (p / "episodes").is_dir():
-        from tesseract4d.dataset_format import samples_hint
-
         if hint := samples_hint(p):
             raise UserError(hint)
         raise UserError(
@@ -64,8 +60,6 @@ def first_frame_episode(recon: Recon4D) -> Episode:
     Uses the original episode file when the source was opened from one, so the simulator
     metadata travels along; otherwise rebuilds the frame from the reconstruction's images.
     """
-    from tesseract4d.dataset_format import read_episode
-
     path = recon.metadata.get("episode_path")
     if path and Path(path).is_file():
         return read_episode(path, frames=slice(0, 1))

@@ -25,6 +25,7 @@ from tesseract4d.evaluation.metrics import depth_metrics, normal_metrics, rgb_ps
 from tesseract4d.model.autoencoder import RGBDNAutoencoder
 from tesseract4d.model.autoencoder_trainer import FrameSet
 from tesseract4d.model.model_space import FAR_BAND
+from tesseract4d.colors import colorize_depth, colorize_normals
 
 AIMS = {"rgb_psnr_db": 32.0, "object_depth_mae_mm": 5.0, "object_normal_mean_deg": 6.0}
 
@@ -81,8 +82,6 @@ def format_fidelity(d: dict) -> str:
 def reconstruction_sheet(model: RGBDNAutoencoder, frames: FrameSet, indices: list[int]) -> np.ndarray:
     """An image (uint8 (rows * 2 * H, 3 * W, 3)): per frame, the truth (upper row) and its reconstruction
     (lower row) as RGB | depth | normals, coloured like every preview."""
-    from tesseract4d.colors import colorize_depth, colorize_normals
-
     ms = model.model_space
     x = frames.frames[indices].float()  # (n, 7, H, W)
     gt, pr = ms.decode(x), ms.decode(reconstruct_frames(model, x))

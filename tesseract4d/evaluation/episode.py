@@ -26,6 +26,7 @@ from reconstruction.recon4d import Recon4D
 from tesseract4d.dataset_format import Episode
 from tesseract4d.errors import UserError
 from tesseract4d.geometry import depth_to_world_points, invert_pose, project_points, transform_points
+from reconstruction.reconstruct import check_frames, select_camera
 
 REPORT_FORMAT = "tesseract4d-eval"
 REPORT_VERSION = 2  # 2: means from first_scored_frame on (a prediction's given frame 0 no longer counts)
@@ -68,8 +69,6 @@ def given_frames(pred: "Episode | Recon4D") -> int:
 
 
 def _episode_frames(episode: Episode, camera: str | None, role: str) -> tuple[str, _Frames, object]:
-    from reconstruction.reconstruct import check_frames, select_camera
-
     name, cam = select_camera(episode, camera)
     depth, normals, _ = check_frames(cam, f"{role} {episode.episode_id}/{name}")
     points = [depth_to_world_points(depth[t], cam.K[t], cam.T_world_cam[t])[0] for t in range(len(depth))]

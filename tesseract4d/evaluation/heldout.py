@@ -74,10 +74,17 @@ import numpy as np
 
 from tesseract4d import dataset_format as df
 from tesseract4d.errors import UserError
-from tesseract4d.evaluation.instruction_following import RIGHT_WAY_COSINE
+from tesseract4d.evaluation.instruction_following import RIGHT_WAY_COSINE, TARGET_OBJECT, direction_score, summarize
 from tesseract4d.evaluation.object_tracks import (episode_object_report, markdown_rows, object_summary,
                                                   truth_tracker_summary)
 from tesseract4d.resize import episode_at_resolution, resize_factor
+from tesseract4d.evaluation.episode import evaluate_episode, json_safe
+from tesseract4d.evaluation.heldout_believability import (
+    CONTRAST_GOAL, EDGE_SHARPNESS_GOAL, PRESENCE_GOAL, STILL_SHARE, TOKEN_GRID_GOAL, breakdown, contrast_by_group,
+    counts, direction_breakdown, episode_believability, goal_met,
+)
+from tesseract4d.evaluation.metrics import moving_region_mask
+from reconstruction.reconstruct import ReconConfig, reconstruct_episode
 
 METHODS = ("model", "model_raw", "static")
 METHOD_LABELS = {"model": "model + consistency", "model_raw": "model, no consistency", "static": "static world"}
@@ -287,6 +294,7 @@ def predict_at_data_resolution(pipeline, firsts: list[df.Episode], instructions:
     frame again. ``start_clips`` (per scene, :func:`truth_clip`) and ``start_sigma``: the pipeline's
     ``start`` diagnostic (the data's resolution must be the model's; one noise draw, whatever the preset's).
     """
+    # deferred: imports torch (heavy)
     from tesseract4d.model.predict import predict_scenes
 
     if noise_seeds is None:
@@ -324,6 +332,7 @@ def instruction_discrimination(pipeline, files: list[Path], camera: str | None, 
     over another future's noisy sample. Episodes shorter than the preset's clip are left out."""
     import torch
 
+    # deferred: imports torch (heavy)
     from tesseract4d.evaluation.instruction_discrimination import (discrimination_errors, own_closest,
                                                                    summarize_discrimination,
                                                                    summarize_words_over_sample, words_over_sample)
@@ -398,11 +407,7 @@ def evaluate_heldout(cfg: HeldoutConfig, progress: bool = True) -> dict:
     """
     from tqdm import tqdm
 
-    from tesseract4d.evaluation.episode import evaluate_episode, json_safe
-    from tesseract4d.evaluation.heldout_believability import episode_believability
-    from tesseract4d.evaluation.metrics import moving_region_mask
-    from reconstruction.reconstruct import ReconConfig, reconstruct_episode
-    from tesseract4d.evaluation.instruction_following import TARGET_OBJECT, direction_score
+    # deferred: imports torch (heavy)
     from tesseract4d.model.predict import DEFAULT_SCENE_BATCH, load_pipeline
 
     data = Path(cfg.data)
@@ -558,9 +563,6 @@ def build_report(cfg, rows: list[dict], methods: list[str], labels: dict, scores
     ``resolutions``: per checkpoint method, its model and data resolution and how it was resized;
     ``sampler``: per checkpoint method, the steps and text guidance it sampled with;
     ``discrimination``: per checkpoint method, its network's instruction discrimination."""
-    from tesseract4d.evaluation.heldout_believability import breakdown, contrast_by_group, counts, direction_breakdown
-    from tesseract4d.evaluation.instruction_following import summarize
-
     summary = {}
     for method in methods:
         keys = rows[0]["metrics"][method].keys()
@@ -661,8 +663,6 @@ def _words_won(entry: dict | None) -> str:
 
 
 def _mark(key: str, value) -> str:
-    from tesseract4d.evaluation.heldout_believability import goal_met
-
     met = goal_met(key, value)
     return "" if met is None else (" ✓" if met else " ✗")
 
@@ -671,9 +671,6 @@ def format_markdown(report: dict) -> str:
     """The results table: each metric over all pixels and over the moving region, per method;
     the best method per row in bold; then instruction following, the believability measures with
     their goals (✓ met, ✗ not met), and the per-skill / per-task breakdowns."""
-    from tesseract4d.evaluation.heldout_believability import (CONTRAST_GOAL, EDGE_SHARPNESS_GOAL, PRESENCE_GOAL,
-                                                              STILL_SHARE, TOKEN_GRID_GOAL)
-
     summary = report["summary"]
     methods = list(report.get("methods", METHOD_LABELS))
     labels = report.get("methods", METHOD_LABELS)

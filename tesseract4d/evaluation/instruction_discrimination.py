@@ -28,6 +28,8 @@ import torch
 # The cells where the group's true futures differ most (the share DISAGREE_SHARE of its latent cells):
 # defined beside the training recipe (model/recipe.py).
 from tesseract4d.model.recipe import DISAGREE_SHARE, disagreement_mask  # noqa: F401
+from tesseract4d.model.codec import make_condition
+from tesseract4d.intervals import wilson_interval
 
 # The noise level at which words_over_sample shows an episode another future's noisy sample: the
 # middle of sampling, where v2's samplers were seen to pull the instructed object back.
@@ -42,8 +44,6 @@ def one_step_predictions(pipeline, clips: torch.Tensor, instructions: list[str],
     frames condition the prediction); noise: (1, t', c, h, w) network-space noise shared by the group.
     Returns (n, t', c, h, w): prediction i from first frame i and ``instructions[i]``.
     """
-    from tesseract4d.model.codec import make_condition
-
     n = clips.shape[0]
     first = pipeline.codec.encode(clips[:, :1].to(pipeline.device))  # (n, 1, c, h, w)
     cond = make_condition(first, noise.shape[1], pipeline.preset.condition)
@@ -70,8 +70,6 @@ def sibling_sample_predictions(pipeline, clips: torch.Tensor, instructions: list
     first frame and instruction, shown episode j's noisy sample ``(1 - t) x0_j + t noise`` (network
     space; noise (1, t', c, h, w) shared by the group). P[a, a] is an ordinary denoising step.
     ``x0``: the clips already encoded, when the caller has them."""
-    from tesseract4d.model.codec import make_condition
-
     n = clips.shape[0]
     if x0 is None:
         x0 = pipeline.codec.encode(clips.to(pipeline.device)).float()  # (n, t', c, h, w)
@@ -108,8 +106,6 @@ def words_over_sample(pipeline, clips: torch.Tensor, instructions: list[str], no
 
 def summarize_words_over_sample(judged: list[bool], t: float = SIBLING_T) -> dict:
     """{"pairs", "words", "share", "t", "wilson95"} of :func:`words_over_sample` judgments."""
-    from tesseract4d.intervals import wilson_interval
-
     n, k = len(judged), sum(judged)
     return {"pairs": n, "words": k, "share": k / n if n else None, "t": t,
             "wilson95": list(wilson_interval(k, n)) if n else None}
@@ -128,8 +124,6 @@ def own_closest(errors: torch.Tensor, instructions: list[str]) -> list[bool | No
 def summarize_discrimination(judged: list[tuple[bool, int]]) -> dict:
     """{"episodes", "right", "share", "chance", "wilson95"} over (right, distinct instructions in the
     group) pairs; chance is the mean of 1 / distinct instructions."""
-    from tesseract4d.intervals import wilson_interval
-
     n = len(judged)
     right = sum(r for r, _ in judged)
     return {"episodes": n, "right": right, "share": right / n if n else None,

@@ -63,7 +63,7 @@ def scenes(heldout: Path, max_scenes: int | None) -> list[dict]:
 def probe(checkpoint: Path, scene_list: list[dict], phrasings: list[tuple[str, str]], sample_seeds: list[int],
           precision: str = "auto") -> dict:
     """{phrase: {"split", "motion": [...], "limit": [...], "still": n, "clips": n}} for one checkpoint."""
-    from tesseract4d.model.predict import load_pipeline  # torch and diffusers: only when a model runs
+    from tesseract4d.model.predict import load_pipeline  # deferred: torch and diffusers load only when a model runs
 
     pipeline = load_pipeline(checkpoint, precision=precision)
     result = {}

@@ -55,9 +55,12 @@ from tesseract4d.training.config import TrainingLoopConfig, option
 from tesseract4d.training.loop import (check_finite, learning_rate, loop_state, restore_loop_state, run_loop,
                                        set_learning_rate, write_config_file)
 from tesseract4d.model.autoencoder import (
-    FIDELITY_FILE, AutoencoderConfig, RGBDNAutoencoder, get_autoencoder_preset, load_autoencoder, save_autoencoder,
+    FIDELITY_FILE, WEIGHTS_FILE, AutoencoderConfig, RGBDNAutoencoder, get_autoencoder_preset, load_autoencoder,
+    read_autoencoder_config, save_autoencoder,
 )
 from tesseract4d.model.model_space import ModelSpace, channel_slices
+from tesseract4d.model.trainer import EMA
+from tesseract4d.outputs import claim_folder
 
 CONFIG_FILE = "ae_train_config.json"
 EXPORT_DIR = "autoencoder"
@@ -263,7 +266,6 @@ class AutoencoderTrainer:
         announce(chosen)
         self.precision = chosen.name
         self._check_run_folder()
-        from tesseract4d.model.trainer import EMA
 
         ae_cfg: AutoencoderConfig = get_autoencoder_preset(cfg.preset)
         torch.manual_seed(cfg.seed)
@@ -280,7 +282,6 @@ class AutoencoderTrainer:
             FrameSet.load(folder, height=ae_cfg.height, width=ae_cfg.width, model_space=self.model.model_space,
                           camera=cfg.camera, frame_stride=cfg.frame_stride, progress=not cfg.quiet)
             for folder in cfg.data_folders])
-        from tesseract4d.outputs import claim_folder
 
         # Claimed once the inputs have loaded, so a mistake leaves nothing behind; the checkpoints
         # and export this trainer replaces then live only in a folder that is its own.
@@ -297,8 +298,6 @@ class AutoencoderTrainer:
     def _load_init(self, folder: Path) -> None:
         """Start from an exported autoencoder of the same preset (fine-tuning, e.g. on new scenes)."""
         from safetensors.torch import load_file
-
-        from tesseract4d.model.autoencoder import WEIGHTS_FILE, read_autoencoder_config
 
         saved = read_autoencoder_config(folder)
         mine = self.model.config

@@ -12,6 +12,9 @@ from pathlib import Path
 
 from tesseract4d.errors import UserError
 from tesseract4d.model.presets import AUTOENCODER, LATENT, PIXEL, ModelPreset
+from tesseract4d.model.text_encoder import TextEncoder
+from tesseract4d.model.codec import AutoencoderCodec, PixelCodec, VaeCodec
+from tesseract4d.model.autoencoder import autoencoder_hash, load_autoencoder
 
 # Keys of a plain CogVideoX transformer -> keys inside RGBDNTransformer.
 _KEY_MAP = (("patch_embed.proj.", "backbone.patch_embed.proj.projs.rgb."), ("proj_out.", "backbone.proj_out.heads.rgb."))
@@ -33,8 +36,6 @@ _TEXT_ENCODERS: dict[tuple, object] = {}
 
 def build_text_encoder(preset: ModelPreset, pretrained_dir=None, device="cpu"):
     """The preset's frozen text encoder; one instance per process and configuration (it is only read)."""
-    from tesseract4d.model.text_encoder import TextEncoder
-
     path = _require_pretrained(preset, pretrained_dir, "text_encoder").parent if preset.text_encoder == "t5" else None
     key = (preset.text_encoder, preset.max_text_tokens, str(path), str(device))
     if key not in _TEXT_ENCODERS:
@@ -44,13 +45,9 @@ def build_text_encoder(preset: ModelPreset, pretrained_dir=None, device="cpu"):
 
 def build_codec(preset: ModelPreset, pretrained_dir=None, autoencoder=None):
     """The preset's codec; latent presets of the project's autoencoder need its folder (``autoencoder``)."""
-    from tesseract4d.model.codec import AutoencoderCodec, PixelCodec, VaeCodec
-
     if preset.space == PIXEL:
         return PixelCodec()
     if preset.space == AUTOENCODER:
-        from tesseract4d.model.autoencoder import autoencoder_hash, load_autoencoder
-
         if autoencoder is None:
             raise UserError(f"preset {preset.name!r} needs its RGB-D-N autoencoder: pass --autoencoder DIR "
                             f"(RUN/autoencoder of `tesseract4d train-autoencoder`)")
@@ -63,6 +60,7 @@ def build_codec(preset: ModelPreset, pretrained_dir=None, autoencoder=None):
 def build_transformer(preset: ModelPreset, codec, pretrained_dir=None):
     """A fresh RGBDNTransformer for training: random (pixel presets) or the pretrained CogVideoX
     backbone with new zero-initialised depth/normal projections and heads copied from RGB (latent)."""
+    # deferred: imports diffusers (heavy)
     from tesseract4d.model.rgbdn_transformer import RGBDNTransformer
 
     if preset.space in (PIXEL, AUTOENCODER):

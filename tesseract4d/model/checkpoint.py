@@ -48,6 +48,7 @@ def format_header() -> dict:
 def write_inference_files(folder: str | os.PathLike, inference_config: dict) -> None:
     """Write INFERENCE_CONFIG_FILE (opening with :func:`format_header`) and the scheduler into
     ``folder``; the transformer is written by its own ``save_pretrained``."""
+    # deferred: imports torch (heavy)
     from tesseract4d.model.pipeline import make_scheduler
 
     folder = Path(folder)
@@ -114,6 +115,7 @@ def load_scheduler(checkpoint: str | os.PathLike, config: dict):
     """The checkpoint's sampler: SCHEDULER_DIR when saved (version 2), else the version-1 sampler."""
     from diffusers import FlowMatchEulerDiscreteScheduler
 
+    # deferred: imports torch (heavy)
     from tesseract4d.model.pipeline import make_scheduler
 
     folder = Path(checkpoint) / SCHEDULER_DIR
@@ -127,6 +129,7 @@ def load_scheduler(checkpoint: str | os.PathLike, config: dict):
 def load_transformer(checkpoint: str | os.PathLike, preset, modality_channels: dict[str, int]):
     """The checkpoint's RGBDNTransformer (``from_pretrained``), checked against the preset and the
     codec's ``modality_channels`` first, so a mismatch says which setting differs."""
+    # deferred: imports diffusers, torch (heavy)
     from tesseract4d.model.rgbdn_transformer import RGBDNTransformer
 
     folder = Path(checkpoint) / TRANSFORMER_DIR

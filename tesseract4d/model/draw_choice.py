@@ -26,6 +26,7 @@ import numpy as np
 from tesseract4d.object_colours import MIN_OBJECT_PIXELS, distinctive, matches
 from tesseract4d.object_finder import find_objects
 from tesseract4d.segments import scene_object_ids
+from tesseract4d.errors import UserError
 
 # How far (pixels) around an object's frame-0 box its colours are counted in later frames: about the
 # distance a pushed cube travels in a 128² clip of the close camera.
@@ -38,8 +39,6 @@ MAX_PALETTE = 64
 
 def check_draws(draws: int) -> int:
     """``draws`` as an int, refused with the fix when it is below 1."""
-    from tesseract4d.errors import UserError
-
     if int(draws) < 1:
         raise UserError(f"--draws must be at least 1 (1 = a single noise draw), got {draws}")
     return int(draws)

@@ -34,7 +34,10 @@ import torch.nn.functional as F
 
 from tesseract4d import dataset_format as df
 from tesseract4d.errors import UserError
-from tesseract4d.outputs import files_as_created
+from tesseract4d.outputs import files_as_created, note_leftovers
+from tesseract4d.model.autoencoder import autoencoder_hash, latents_hash, load_autoencoder
+from tesseract4d.segments import robot_object_mask, scene_object_mask
+from tesseract4d.model.clips import grouped_batch_plan, spread_over_tasks
 
 CACHE_FILE = "cache.json"
 LATENTS_FILE = "latents.safetensors"
@@ -74,9 +77,6 @@ class LatentCache:
 
 def _build(dataset: Path, autoencoder_dir: Path, camera: str, folder: Path, progress: bool) -> None:
     from safetensors.torch import save_file
-
-    from tesseract4d.model.autoencoder import autoencoder_hash, latents_hash, load_autoencoder
-    from tesseract4d.segments import robot_object_mask, scene_object_mask
 
     model = load_autoencoder(autoencoder_dir)
     info = df.read_info(dataset)
@@ -132,8 +132,6 @@ def _made_by(meta: dict, autoencoder_dir: str | os.PathLike, ae_hash: str) -> bo
     """Whether a cache's latents are those ``autoencoder_dir`` (hash ``ae_hash``) makes: it built the
     cache, or it is a decoder-only fine-tune of the one that did (``latents_hash``: same encoder,
     statistics and config; read only when the hashes differ)."""
-    from tesseract4d.model.autoencoder import latents_hash
-
     if meta["autoencoder_hash"] == ae_hash:
         return True
     return meta.get("latents_hash") is not None and meta["latents_hash"] == latents_hash(autoencoder_dir)
@@ -149,8 +147,6 @@ def open_latent_cache(folder: str | os.PathLike, autoencoder_dir: str | os.PathL
         raise UserError(f"{folder} is not a latent cache; build one with "
                         f"`tesseract4d encode-latents --data DATASET --autoencoder AE_DIR`")
     if autoencoder_dir is not None:
-        from tesseract4d.model.autoencoder import autoencoder_hash
-
         want = autoencoder_hash(autoencoder_dir)
         if not _made_by(meta, autoencoder_dir, want):
             raise UserError(f"the latent cache {folder} was built by autoencoder {meta['autoencoder_hash']} "
@@ -169,8 +165,6 @@ def ensure_latent_cache(dataset: str | os.PathLike, autoencoder_dir: str | os.Pa
 
     Returns (cache, built): ``built`` is False when an existing valid cache was reused.
     """
-    from tesseract4d.model.autoencoder import autoencoder_hash
-
     dataset, autoencoder_dir = Path(dataset), Path(autoencoder_dir)
     info = df.read_info(dataset)
     camera = camera or info.cameras[0]
@@ -196,7 +190,6 @@ def ensure_latent_cache(dataset: str | os.PathLike, autoencoder_dir: str | os.Pa
     # Build in a fresh temporary sibling of our own, then move its two files into place: the cache
     # file last, so an interruption leaves an invalid (rebuilt next time) cache, never a mixed one;
     # anything else in the folder is left alone.
-    from tesseract4d.outputs import note_leftovers
 
     made_parent = not folder.parent.exists()
     folder.parent.mkdir(parents=True, exist_ok=True)
@@ -260,8 +253,6 @@ class LatentClipDataset:
     def sample_group_batch(self, batch_size: int, generator: torch.Generator):
         """(b, T, C, h, w) latent clips of whole counterfactual groups, their instructions, the
         (b, T, 2, h, w) shares of :meth:`objects` and each clip's group leader (``clips.draw_group_batch``)."""
-        from tesseract4d.model.clips import grouped_batch_plan
-
         indices, starts, leaders = grouped_batch_plan(self, batch_size, generator)
         clips = torch.stack([self.clip(i, s)[0] for i, s in zip(indices, starts)])
         objects = torch.stack([self.objects(i, s) for i, s in zip(indices, starts)])
@@ -286,6 +277,4 @@ class LatentClipDataset:
 
     def validation_indices(self, count: int) -> list[int]:
         """Up to ``count`` fixed episodes, spread over the tasks."""
-        from tesseract4d.model.clips import spread_over_tasks
-
         return spread_over_tasks([s.episode_id for s in self.sources], count)

@@ -16,7 +16,7 @@ import shutil
 from pathlib import Path
 
 from tesseract4d.errors import UserError
-from tesseract4d.model.autoencoder import DECODER_FIELDS, ENCODER_PREFIXES
+from tesseract4d.model.autoencoder import DECODER_FIELDS, ENCODER_PREFIXES, autoencoder_hash
 
 AUTOENCODER_DIR = "autoencoder"
 
@@ -29,8 +29,6 @@ def autoencoder_entry(codec, autoencoder_dir: str | None) -> dict:
 
 def copy_autoencoder(entry: dict, checkpoint_dir: Path) -> Path:
     """Copy the autoencoder recorded in ``entry`` into ``checkpoint_dir``/autoencoder, checking its hash."""
-    from tesseract4d.model.autoencoder import autoencoder_hash
-
     src = Path(entry["source_dir"] or "")
     if not (src / "config.json").is_file() or autoencoder_hash(src) != entry["hash"]:
         raise UserError(f"the autoencoder this run trained with ({src}, hash {entry['hash']}) is missing or was "
@@ -45,8 +43,6 @@ def copy_autoencoder(entry: dict, checkpoint_dir: Path) -> Path:
 
 def checkpoint_autoencoder(checkpoint_dir: Path, entry: dict) -> Path:
     """The checkpoint's autoencoder folder, after checking it is there and is the one it was trained with."""
-    from tesseract4d.model.autoencoder import autoencoder_hash
-
     folder = Path(checkpoint_dir) / entry.get("dir", AUTOENCODER_DIR)
     if not (folder / "config.json").is_file() or not (folder / "model.safetensors").is_file():
         if shares_autoencoder(entry):

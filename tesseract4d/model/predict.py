@@ -37,6 +37,10 @@ from tesseract4d.model.draw_choice import check_draws, choose, draw_noise_seed, 
 from tesseract4d.model.checkpoint import INFERENCE_CONFIG_FILE, load_scheduler, load_transformer, read_inference_config
 from tesseract4d.model.pipeline import RGBDNPipeline
 from tesseract4d.model.presets import PRESETS, preset_from_dict
+from tesseract4d.model.build import build_codec, build_text_encoder
+from tesseract4d.model.recipe import check_samples_as_trained
+from tesseract4d.model.latent_checkpoint import checkpoint_autoencoder
+from tesseract4d.previews import write_preview
 
 # Where a predicted episode records the size of a first frame it was resized from.
 RESIZED_FROM = "first_frame_resized_from"
@@ -56,9 +60,6 @@ def load_pipeline(checkpoint: str | os.PathLike, device: str = "cpu", precision:
     Raises UserError when the folder is missing, is not a tesseract4d checkpoint, names an unknown
     preset, or holds weights that do not match its preset.
     """
-    from tesseract4d.model.build import build_codec, build_text_encoder
-    from tesseract4d.model.recipe import check_samples_as_trained
-
     ckpt = Path(checkpoint)
     cfg = read_inference_config(ckpt)
     check_samples_as_trained(cfg.get("recipe") or {}, ckpt)
@@ -75,8 +76,6 @@ def load_pipeline(checkpoint: str | os.PathLike, device: str = "cpu", precision:
     pretrained = cfg.get("pretrained_dir")
     autoencoder = None
     if "autoencoder" in cfg:
-        from tesseract4d.model.latent_checkpoint import checkpoint_autoencoder
-
         autoencoder = checkpoint_autoencoder(ckpt, cfg["autoencoder"])
     codec = build_codec(preset, pretrained, autoencoder=autoencoder)
     transformer = load_transformer(ckpt, preset, codec.modality_channels)
@@ -374,8 +373,6 @@ def _predict_batch(pipeline: RGBDNPipeline, scenes: list, sample_indices: list[i
 def write_prediction(episode: df.Episode, out_dir: str | os.PathLike) -> Path:
     """Write a predicted episode as a one-episode dataset folder (``out_dir``) with its MP4 preview
     (RGB | depth | normal); returns the episode's .h5 path."""
-    from tesseract4d.previews import write_preview
-
     path = df.write_episode_dataset(out_dir, episode)
     write_preview(out_dir, episode)
     return path

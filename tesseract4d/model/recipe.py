@@ -57,6 +57,9 @@ import torch
 
 from tesseract4d.errors import UserError
 from tesseract4d.model.presets import AUTOENCODER, ModelPreset
+from tesseract4d.model.clips import ClipDataset, merge_clip_datasets
+from tesseract4d import dataset_format as df
+from tesseract4d.model.latent_cache import LatentClipDataset, ensure_latent_cache
 
 MOVING_TOL = 0.1
 SWAP_MIN_T = 0.3
@@ -127,21 +130,14 @@ def check_scene_objects(data, cfg) -> None:
 def load_training_data(cfg, preset: ModelPreset, model_space, codec, progress: bool = False):
     """The preset's clip dataset over every folder of ``cfg.data``: model-space pixel clips, or latent
     clips from each folder's (re)built cache."""
-    from tesseract4d.model.clips import merge_clip_datasets
-
     return merge_clip_datasets([_load_folder(folder, cfg, preset, model_space, codec, progress)
                                 for folder in cfg.data_folders])
 
 
 def _load_folder(folder, cfg, preset: ModelPreset, model_space, codec, progress: bool):
-    from tesseract4d import dataset_format as df
-
     if preset.space != AUTOENCODER:
-        from tesseract4d.model.clips import ClipDataset
-
         return ClipDataset(folder, num_frames=preset.num_frames, height=preset.height, width=preset.width,
                            model_space=model_space, camera=cfg.camera, show_progress=progress)
-    from tesseract4d.model.latent_cache import LatentClipDataset, ensure_latent_cache
 
     info = df.read_info(folder)
     if (info.height, info.width) != (preset.height, preset.width):

@@ -36,13 +36,21 @@ from typing import Callable
 
 import torch
 
-from tesseract4d.configs import knob
+from tesseract4d.configs import config_dict, folder_list, knob, plain
 from tesseract4d.errors import UserError
-from tesseract4d.outputs import files_as_created
-from tesseract4d.model.checkpoint import weights_digest
+from tesseract4d.outputs import check_not_input, files_as_created
+from tesseract4d.model.checkpoint import read_inference_config, weights_digest
 from tesseract4d.model.trainer import TrainConfig, Trainer
 from tesseract4d.precision import precision_field
 from tesseract4d.training.config import option
+from tesseract4d.model.presets import PRESETS, preset_from_dict
+from tesseract4d.model.clips import (
+    ClipDataset, dataset_units, draw_group_batch, grouped_batch_plan, merge_clip_datasets,
+)
+from tesseract4d.model.predict import load_pipeline
+from tesseract4d.model.recipe import share_within_groups, swap_sources
+from tesseract4d.psnr import rgb_psnr
+from tesseract4d.model.pipeline import RGBDNPipeline, make_scheduler
 
 MANIFEST = "reflow_pairs.json"
 SHARD_PREFIX = "pairs-"
@@ -67,8 +75,6 @@ class PairsConfig:
                                "instructions), a group's pairs sharing one noise")
 
     def to_dict(self) -> dict:
-        from tesseract4d.configs import config_dict
-
         return config_dict(self)
 
 
@@ -106,9 +112,6 @@ def check_pairs_of_teacher(pairs: Path, teacher: Path, teacher_steps: int | None
     the steps and text guidance the pairs were
     made with (recorded in the student's ``distilled_from``) only when given. Reads configs and
     digests only, no weights into memory."""
-    from tesseract4d.model.checkpoint import read_inference_config
-    from tesseract4d.model.presets import preset_from_dict
-
     saved = json.loads((Path(pairs) / MANIFEST).read_text())
     p = preset_from_dict(read_inference_config(teacher)["preset"])
     now = {"teacher_digest": weights_digest(teacher), "image_guidance": p.image_guidance,
@@ -127,11 +130,6 @@ def generate_pairs(cfg: PairsConfig, progress: bool = True) -> Path:
     from safetensors.torch import save_file
     from tqdm import tqdm
 
-    from tesseract4d.configs import folder_list, plain
-    from tesseract4d.model.clips import ClipDataset, merge_clip_datasets
-    from tesseract4d.model.predict import load_pipeline
-    from tesseract4d.model.recipe import share_within_groups
-
     if cfg.num_pairs < 1 or cfg.shard_size < 1 or cfg.batch_size < 1:
         raise UserError("--num-pairs and --pair-batch-size must be at least 1 (and the shard size of the pairs)")
     # On a GPU machine the teacher samples there, as the trainers train there (CUDA_VISIBLE_DEVICES= keeps it on the CPU).
@@ -144,8 +142,6 @@ def generate_pairs(cfg: PairsConfig, progress: bool = True) -> Path:
                                             model_space=pipe.model_space, camera=cfg.camera or pipe.camera_name)
                                 for folder in folder_list(cfg.data)])
     if cfg.groups:
-        from tesseract4d.model.clips import dataset_units
-
         dataset_units(data)  # refuses data without counterfactual groups
     out = Path(cfg.out)
     manifest = {"format": 1, "teacher": str(cfg.teacher), "teacher_digest": weights_digest(cfg.teacher),
@@ -203,8 +199,6 @@ def _shard_generator(seed: int, shard: int) -> torch.Generator:
 def _shard_plan(data, n: int, generator: torch.Generator, groups: bool) -> tuple[list[int], list[int], list[int] | None]:
     """A shard's episode indices, clip starts and (grouped) group leaders: the shard's first draws."""
     if groups:
-        from tesseract4d.model.clips import grouped_batch_plan
-
         return grouped_batch_plan(data, n, generator)  # whole groups
     return (*data.batch_plan(n, generator), None)
 
@@ -279,8 +273,6 @@ class ReflowPairs:
     def sample_group_batch(self, batch_size: int, generator: torch.Generator):
         """Like :meth:`sample_batch`, of whole groups (:func:`clips.draw_group_batch`), plus each pair's
         group leader (its batch position)."""
-        from tesseract4d.model.clips import draw_group_batch
-
         units = self.group_units()
         idx, _, leaders = draw_group_batch(units, [1] * len(self), 1, batch_size, generator)
         texts = [self.instructions[i] for i in idx]
@@ -320,9 +312,6 @@ class ReflowTrainer(Trainer):
     command = "distill"
 
     def __init__(self, config: ReflowConfig, paraphrases: Callable[[str], list[str]] | None = None):
-        from tesseract4d.model.checkpoint import read_inference_config
-        from tesseract4d.outputs import check_not_input
-
         if config.teacher is None:
             raise UserError("pass --teacher CKPT (the inference checkpoint to distil)")
         if config.student_steps < 1:
@@ -342,8 +331,6 @@ class ReflowTrainer(Trainer):
         return self.init_digest
 
     def _resolve_preset(self, config: TrainConfig):
-        from tesseract4d.model.presets import PRESETS, preset_from_dict
-
         teacher = preset_from_dict(self.teacher_config["preset"])
         if teacher.name not in PRESETS:
             raise UserError(f"{config.teacher} uses preset {teacher.name!r}, unknown to this tesseract4d")
@@ -365,8 +352,6 @@ class ReflowTrainer(Trainer):
         self.data.group_units()
 
     def compute_loss(self, step: int) -> tuple[torch.Tensor, dict[str, float]]:
-        from tesseract4d.model.recipe import share_within_groups, swap_sources
-
         cfg = self.cfg
         g = self._step_generator(step)
         leaders = shown = None
@@ -398,8 +383,6 @@ class ReflowTrainer(Trainer):
     def validate(self) -> dict[str, float]:
         """PSNR (model space, all 7 channels) of the student's K-step samples (EMA weights) against the
         teacher's clips from the same noise."""
-        from tesseract4d.model.pipeline import RGBDNPipeline, make_scheduler
-
         idx = self.validation_indices()
         if not idx:
             return {}
@@ -415,8 +398,6 @@ class ReflowTrainer(Trainer):
 def model_space_psnr(codec, a: torch.Tensor, b: torch.Tensor) -> float:
     """PSNR (dB, peak 1) of two network-space batches decoded to model space ([-1, 1] -> [0, 1], all
     channels: RGB, depth, normal)."""
-    from tesseract4d.psnr import rgb_psnr
-
     with torch.no_grad():
         da = ((codec.decode(a.float()) + 1) / 2).clamp(0, 1)
         db = ((codec.decode(b.float()) + 1) / 2).clamp(0, 1)

@@ -46,9 +46,24 @@ from tesseract4d.training.loop import (check_finite, learning_rate, loop_state, 
 from tesseract4d.model.model_space import MODALITIES, ModelSpace
 from tesseract4d.model.checkpoint import (
     INFERENCE_CONFIG_FILE, MODEL_CONFIG_FILE, SCHEDULER_CONFIG_FILE, SCHEDULER_DIR, TRANSFORMER_DIR, WEIGHTS_FILE,
-    format_header, weights_to_half, write_inference_files,
+    format_header, read_inference_config, weights_digest, weights_to_half, write_inference_files,
 )
-from tesseract4d.model.presets import ModelPreset, get_preset, preset_from_dict
+from tesseract4d.model.presets import AUTOENCODER, ModelPreset, get_preset, preset_from_dict
+from tesseract4d.model.latent_checkpoint import (
+    autoencoder_entry, checkpoint_autoencoder, copy_autoencoder, encoder_differences,
+)
+from tesseract4d.outputs import OutputDir, claim_folder, release_new_folder
+from tesseract4d.model.autoencoder import WEIGHTS_FILE as AE_WEIGHTS, autoencoder_hash, load_autoencoder
+from tesseract4d.previews import write_preview
+from tesseract4d.dataset_format import CameraFrames, Episode
+from tesseract4d.model.recipe import (
+    augment_condition, augment_text, cell_weights, check_recipe, check_samples_as_trained, check_scene_objects,
+    load_training_data, recipe_loss, rephrase, sample_times, share_within_groups, swap_sources,
+)
+from tesseract4d.model.build import build_codec, build_text_encoder, build_transformer
+from tesseract4d.model.clips import dataset_units
+from tesseract4d.model.codec import make_condition
+from tesseract4d.model.pipeline import RGBDNPipeline, make_scheduler
 
 EMA_DIR = "transformer_ema"
 CONFIG_FILE = "train_config.json"
@@ -157,7 +172,6 @@ def inference_config(preset: ModelPreset, model_space: ModelSpace, text_encoder,
                      pretrained: Path | None, training: dict, codec=None, recipe: dict | None = None) -> dict:
     extra = {}
     if getattr(codec, "autoencoder_hash", None):  # latent presets: the autoencoder travels with the checkpoint
-        from tesseract4d.model.latent_checkpoint import autoencoder_entry
 
         extra["autoencoder"] = autoencoder_entry(codec, training.get("autoencoder"))
     return {
@@ -183,8 +197,6 @@ def export_checkpoint(run: str | os.PathLike, to: str | os.PathLike | None = Non
     (``TO/transformer/`` + ``TO/tesseract4d_config.json``); default ``RUN/final``. Only the
     export's own files in TO are ever replaced (tesseract4d.outputs). ``half`` stores the weights
     (and a latent checkpoint's autoencoder) in float16, half the size; they load as float32."""
-    from tesseract4d.outputs import OutputDir
-
     run = Path(run)
     ckpts = list_checkpoints(run)
     if not ckpts:
@@ -199,10 +211,6 @@ def export_checkpoint(run: str | os.PathLike, to: str | os.PathLike | None = Non
         if half:
             weights_to_half(tmp / TRANSFORMER_DIR / WEIGHTS_FILE)
         if "autoencoder" in config:
-            from tesseract4d.model.autoencoder import WEIGHTS_FILE as AE_WEIGHTS
-            from tesseract4d.model.autoencoder import autoencoder_hash
-            from tesseract4d.model.latent_checkpoint import copy_autoencoder
-
             ae_dir = copy_autoencoder(config["autoencoder"], tmp)
             if half:  # the half autoencoder is another file: record its identity
                 weights_to_half(ae_dir / AE_WEIGHTS)
@@ -257,7 +265,6 @@ class Trainer:
         if not cfg.data_folders:
             raise UserError("pass --data DIR (a dataset folder written by `tesseract4d datagen`)")
         cfg.validate()
-        from tesseract4d.model.recipe import check_recipe
 
         check_recipe(cfg, self.preset)
         if cfg.rephrase > 0 and paraphrases is None:
@@ -269,7 +276,6 @@ class Trainer:
         if cfg.resume and not existing:
             raise UserError(f"--resume: {self.out} holds no checkpoint ({CHECKPOINT_PREFIX}XXXXXX/) to resume from; "
                             f"drop --resume to start a new run")
-        from tesseract4d.outputs import claim_folder, release_new_folder
 
         fresh = claim_folder(self.out, self.command, inputs=[*cfg.data_folders, cfg.pretrained, cfg.init],
                              legacy_marker=CONFIG_FILE)
@@ -287,8 +293,6 @@ class Trainer:
     def _build_data(self, cfg: TrainConfig):
         """The training data source: clips of a dataset folder, or latent clips from its cache
         (``self.codec`` is built before this is called)."""
-        from tesseract4d.model.recipe import check_scene_objects, load_training_data
-
         data = load_training_data(cfg, self.preset, self.model_space, self.codec,
                                   progress=not cfg.quiet and self.accelerator.is_main_process)
         check_scene_objects(data, cfg)
@@ -300,8 +304,6 @@ class Trainer:
         self.init_digest = None
         if cfg.init is None:
             return cfg
-        from tesseract4d.model.checkpoint import read_inference_config, weights_digest
-        from tesseract4d.model.presets import AUTOENCODER
 
         saved = read_inference_config(cfg.init)
         self.init_digest = weights_digest(cfg.init)
@@ -309,14 +311,11 @@ class Trainer:
         if name != self.preset.name:
             raise UserError(f"--init {cfg.init} is a {name!r} checkpoint but this run's preset is "
                             f"{self.preset.name!r}; pass --preset {name}")
-        from tesseract4d.model.recipe import check_samples_as_trained
 
         check_samples_as_trained(saved.get("recipe") or {}, f"--init {cfg.init}")
         entry = saved.get("autoencoder")
         if self.preset.space != AUTOENCODER or entry is None:
             return cfg
-        from tesseract4d.model.autoencoder import load_autoencoder
-        from tesseract4d.model.latent_checkpoint import checkpoint_autoencoder, encoder_differences
 
         own = checkpoint_autoencoder(Path(cfg.init), entry)
         if cfg.autoencoder is None:
@@ -335,8 +334,6 @@ class Trainer:
             return
         from safetensors.torch import load_file
 
-        from tesseract4d.model.checkpoint import TRANSFORMER_DIR, WEIGHTS_FILE
-
         path = Path(self.cfg.init) / TRANSFORMER_DIR / WEIGHTS_FILE
         try:
             model.load_state_dict(load_file(str(path)))
@@ -345,8 +342,6 @@ class Trainer:
 
     def _setup(self, cfg: "TrainConfig", existing: list[Path]) -> None:
         from accelerate import Accelerator
-
-        from tesseract4d.model.build import build_codec, build_text_encoder, build_transformer
 
         self.precision = resolve_precision(cfg.precision, "cuda" if torch.cuda.is_available() else "cpu")
         announce(self.precision)
@@ -390,8 +385,6 @@ class Trainer:
 
     def _check_group_data(self) -> None:
         """UserError when the training data holds no counterfactual group (for --group-batches)."""
-        from tesseract4d.model.clips import dataset_units
-
         dataset_units(self.data)
 
     # ------------------------------------------------------------------ loss
@@ -403,8 +396,6 @@ class Trainer:
         """The loss of training step ``step`` (its batch and noise depend only on seed and step)."""
         cfg = self.cfg
         g = self._step_generator(step)
-        from tesseract4d.model.recipe import (augment_condition, augment_text, sample_times, share_within_groups,
-                                              swap_sources)
 
         objects = leaders = shown = None
         encoded = getattr(self.data, "encoded", False)  # a latent cache: the encoder never runs in a step
@@ -439,7 +430,6 @@ class Trainer:
         """The batch's instructions after the ``rephrase`` lever (unchanged, drawing nothing, at 0)."""
         if self.cfg.rephrase <= 0:
             return texts
-        from tesseract4d.model.recipe import rephrase
 
         return rephrase(texts, self.paraphrases, self.cfg.rephrase, g)
 
@@ -452,9 +442,6 @@ class Trainer:
         and scene-object shares of a latent cache (``recipe.cell_weights``), or None. With group
         batches, ``shown`` gives the clip whose clean sample builds each clip's ``x_t``
         (recipe.swap_sources); the target stays the clip's own."""
-        from tesseract4d.model.codec import make_condition
-        from tesseract4d.model.recipe import cell_weights, recipe_loss
-
         cfg = self.cfg
         x0, first, text = x0.to(self.device), first.to(self.device), text.to(self.device)
         t, noise = t.to(self.device), noise.to(self.device)
@@ -563,8 +550,6 @@ class Trainer:
     # ------------------------------------------------------------------ validation
     def validate(self) -> dict[str, float]:
         """Sample the validation clips with the EMA weights; write GT|prediction videos, return PSNRs."""
-        from tesseract4d.model.pipeline import RGBDNPipeline, make_scheduler
-
         idx = self.data.validation_indices(self.cfg.val_clips)
         if not idx:
             return {}
@@ -628,9 +613,6 @@ def _allow_new_accelerator(mixed_precision: str) -> None:
 
 def _write_validation_video(folder: Path, episode_id: str, gt: torch.Tensor, pred: torch.Tensor, space: ModelSpace) -> Path:
     """One MP4: ground truth RGB|depth|normal on top, prediction below (datagen's preview writer)."""
-    from tesseract4d.previews import write_preview
-    from tesseract4d.dataset_format import CameraFrames, Episode
-
     g_rgb, g_depth, g_normal = space.decode(gt)
     p_rgb, p_depth, p_normal = space.decode(pred)
     t, h, w = g_depth.shape

@@ -30,6 +30,7 @@ from torch import nn
 from tesseract4d.errors import UserError
 from tesseract4d.outputs import files_as_created
 from tesseract4d.policy.points import POINT_CHANNELS
+from tesseract4d.resize import resize_factor
 
 CONFIG_FILE = "idm_config.json"
 WEIGHTS_FILE = "model.safetensors"
@@ -198,7 +199,6 @@ def check_compatible(config: IDMConfig, *, control_mode: str, action_dim: int, c
     if config.control_mode != control_mode or config.action_dim != action_dim:
         raise UserError(f"the IDM was trained on actions {config.control_mode} ({config.action_dim}-d) but {what} "
                         f"uses {control_mode} ({action_dim}-d); train an IDM on data of that control mode")
-    from tesseract4d.resize import resize_factor
 
     # Frames of another resolution reach the IDM resized to its own, by a whole factor (the policy loop).
     if config.camera != camera or resize_factor(resolution, config.resolution) is None:

@@ -37,6 +37,9 @@ from tesseract4d.training.checkpoints import (list_checkpoints, load_optimizer, 
 from tesseract4d.training.config import TrainingLoopConfig, option
 from tesseract4d.training.loop import (check_finite, learning_rate, loop_state, restore_loop_state, run_loop,
                                        set_learning_rate, write_config_file)
+from tesseract4d.outputs import claim_folder, release_new_folder
+from tesseract4d.model.text_encoder import TextEncoder
+from tesseract4d.policy.predicted_pairs import PredictedFutures
 
 CONFIG_FILE = "train_idm_config.json"
 
@@ -218,8 +221,6 @@ def fit_report(model: InverseDynamics, pairs: PairSet, max_pairs: int = 2048, pr
 
 class IDMTrainer:
     def __init__(self, config: IDMTrainConfig, text_encoder=None):
-        from tesseract4d.outputs import claim_folder, release_new_folder
-
         self.config = self.cfg = cfg = config
         if not cfg.data or not cfg.out:
             raise UserError("pass --data DATASET and --out RUN")
@@ -242,13 +243,9 @@ class IDMTrainer:
     def _setup(self, cfg: IDMTrainConfig, text_encoder) -> None:
         from safetensors.torch import load_file
 
-        from tesseract4d.model.text_encoder import TextEncoder
-
         self.text_encoder = text_encoder or TextEncoder("minilm", max_tokens=32)
         predicted = None
         if cfg.predicted_futures:
-            from tesseract4d.policy.predicted_pairs import PredictedFutures
-
             if not cfg.use_future:
                 raise UserError("--predicted-futures gives the IDM predicted future frames; behaviour cloning "
                                 "(use_future=false) reads no future: drop one of them")

@@ -33,6 +33,8 @@ from tesseract4d.errors import UserError
 from tesseract4d.policy.idm import InverseDynamics, check_compatible, clip_gap, expand_chunk, sentence_embeddings
 from tesseract4d.policy.points import frame_points
 from tesseract4d.resize import resize_factor, resize_rgbdn
+from tesseract4d.model.predict import predict_episode
+from datagen.tasks import CONTROL_MODE
 
 STAGES = ("observe", "predict", "reconstruct", "idm", "act")
 
@@ -139,8 +141,6 @@ class WorldModelFuture:
                             f"it) or use a matching checkpoint")
 
     def clip(self, frame, env_id: str, seed: int, instruction: str, step: int) -> FutureClip:
-        from tesseract4d.model.predict import predict_episode
-
         c = self.config
         first = observation_episode([frame], env_id, seed, instruction, c.camera)
         cam = first.cameras[c.camera]
@@ -210,7 +210,6 @@ class PolicyRunner:
 
     def check_env(self) -> None:
         env = self.sim.env
-        from datagen.tasks import CONTROL_MODE
 
         action_dim = int(np.prod(env.unwrapped.single_action_space.shape))
         check_compatible(self.model.config, control_mode=CONTROL_MODE, action_dim=action_dim, camera=self.config.camera,

@@ -22,6 +22,10 @@ from tesseract4d import dataset_format as df
 from tesseract4d.errors import UserError
 from tesseract4d.policy.idm import clip_gap, encode_target
 from tesseract4d.policy.points import frame_points
+from tesseract4d.model.checkpoint import weights_digest
+from tesseract4d.model.predict import load_pipeline
+from tesseract4d.policy.loop import LoopConfig, WorldModelFuture
+from datagen.capture import Frame
 
 @dataclass
 class PredictedPair:
@@ -40,9 +44,6 @@ class PredictedFutures:
 
     def __init__(self, checkpoint: str, *, starts: int = 3, sample_steps: int | None = None, sample_seed: int = 0,
                  precision: str = "auto"):
-        from tesseract4d.model.checkpoint import weights_digest
-        from tesseract4d.model.predict import load_pipeline
-
         if starts < 1:
             raise UserError(f"--predicted-starts must be at least 1, got {starts}")
         self.checkpoint = str(checkpoint)
@@ -58,8 +59,6 @@ class PredictedFutures:
                 "sample_steps": self.sample_steps, "sample_seed": self.sample_seed}
 
     def _world_model(self, camera: str, resolution: tuple[int, int]):
-        from tesseract4d.policy.loop import LoopConfig, WorldModelFuture
-
         if self._future is None:
             config = LoopConfig(camera=camera, resolution=tuple(resolution), sample_steps=self.sample_steps,
                                 sample_seed=self.sample_seed)
@@ -69,8 +68,6 @@ class PredictedFutures:
     def pairs(self, ep: df.Episode, camera: str, num_points: int, chunk_len: int,
               rng: np.random.Generator) -> list[PredictedPair]:
         """The predicted pairs of one episode rendered at every step."""
-        from datagen.capture import Frame
-
         cam = ep.cameras[camera]
         num_steps = len(ep.actions)
         if not np.array_equal(ep.frame_steps, np.arange(num_steps + 1)):

@@ -31,7 +31,18 @@ from tesseract4d.configs import knob
 from tesseract4d.errors import UserError
 from tesseract4d.intervals import wilson_interval
 from tesseract4d.precision import precision_field
-from tesseract4d.policy.loop import EpisodeResult, LoopConfig, Trace, observation_episode
+from tesseract4d.policy.loop import (
+    EpisodeResult, LoopConfig, OracleFuture, PolicyRunner, StaticFuture, Trace, WorldModelFuture, observation_episode,
+)
+from tesseract4d.previews import write_preview
+from datagen.simulate import EpisodeSimulator, SimConfig
+from datagen.tasks import get_task
+from tesseract4d.model.text_encoder import TextEncoder
+from tesseract4d.policy.idm import load_idm
+from tesseract4d.outputs import claim_folder
+from tesseract4d.model.predict import load_pipeline
+from tesseract4d.model.draw_choice import check_draws
+from datagen.capture import Frame
 
 DEFAULT_ARMS = ("motion_planner", "oracle_future", "world_model", "behavior_cloning")
 ARMS = DEFAULT_ARMS + ("static_world",)
@@ -137,8 +148,6 @@ def write_video(path: Path, trace: Trace) -> Path:
 def write_viewer_folders(root: Path, trace: Trace, env_id: str, seed: int, instruction: str, camera: str) -> list[Path]:
     """Per replan: observed frames and the predicted frames they were steering toward (same count),
     plus the whole predicted clip, as one-episode dataset folders."""
-    from tesseract4d.previews import write_preview
-
     written = []
     bounds = [i for i, _ in trace.replans] + [len(trace.observed) - 1]
     for r, (start, clip) in enumerate(trace.replans):
@@ -177,12 +186,6 @@ def check_heldout(idm_config, tasks: list[str], seeds: list[int], label: str) ->
 def run_rollouts(cfg: RolloutConfig, progress: bool = True) -> dict:
     from tqdm import tqdm
 
-    from datagen.simulate import EpisodeSimulator, SimConfig
-    from datagen.tasks import get_task
-    from tesseract4d.model.text_encoder import TextEncoder
-    from tesseract4d.policy.idm import load_idm
-    from tesseract4d.policy.loop import OracleFuture, PolicyRunner, StaticFuture, WorldModelFuture
-
     if not cfg.out:
         raise UserError("pass --out DIR for the report, videos and viewer folders")
     unknown = [a for a in cfg.arms if a not in ARMS]
@@ -218,10 +221,8 @@ def run_rollouts(cfg: RolloutConfig, progress: bool = True) -> dict:
     if "world_model" in cfg.arms:
         if not cfg.checkpoint:
             raise UserError("the world_model arm needs --checkpoint (a world-model inference folder)")
-        from tesseract4d.model.predict import load_pipeline
 
         pipeline = load_pipeline(cfg.checkpoint, precision=cfg.precision)
-        from tesseract4d.model.draw_choice import check_draws
 
         lc = dataclasses.replace(lc, draws=check_draws(pipeline.preset.draws if lc.draws is None else lc.draws))
         cfg = dataclasses.replace(cfg, loop=lc)
@@ -235,7 +236,6 @@ def run_rollouts(cfg: RolloutConfig, progress: bool = True) -> dict:
         WorldModelFuture(pipeline, lc)  # checks camera and resolution before any rollout
     text_encoder = TextEncoder("minilm", max_tokens=32)
     out = Path(cfg.out)
-    from tesseract4d.outputs import claim_folder
 
     # A folder of another command's (or the user's) files is refused: the rollout never overwrites them.
     claim_folder(out, "rollout", inputs=[p for p in (cfg.idm, cfg.bc, cfg.checkpoint) if p],
@@ -313,8 +313,6 @@ def _row(r: EpisodeResult) -> dict:
 
 
 def _write_planner_video(path: Path, episode: df.Episode, camera: str) -> Path:
-    from datagen.capture import Frame
-
     cam = episode.cameras[camera]
     trace = Trace()
     for t in range(0, cam.num_frames, max(1, cam.num_frames // 40)):

@@ -8,6 +8,8 @@ import dataclasses
 from pathlib import Path
 
 from tesseract4d.model.presets import CONDITION_REPEAT, PIXEL, PRESETS, ModelPreset
+from tesseract4d.model.text_encoder import minilm_path
+from tesseract4d.training.schedule import StepBudget
 
 MICRO = ModelPreset(
     "micro", PIXEL, 32, 32, 8, CONDITION_REPEAT, "minilm", 8,
@@ -35,8 +37,6 @@ def write_tiny_cogvideox_folder(root: Path) -> Path:
     import torch
     from diffusers import AutoencoderKLCogVideoX, CogVideoXTransformer3DModel
     from transformers import AutoTokenizer, T5Config, T5EncoderModel
-
-    from tesseract4d.model.text_encoder import minilm_path
 
     torch.manual_seed(0)
     lc = 4
@@ -66,8 +66,6 @@ def short_step_budget(monkeypatch, module: str, seconds_per_call: float = 1.0):
     ``seconds_per_call`` each time it is read, so the fitted number of steps is known in advance."""
     import functools
     import importlib
-
-    from tesseract4d.training.schedule import StepBudget
 
     now = [0.0]
 

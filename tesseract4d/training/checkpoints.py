@@ -20,7 +20,7 @@ import numpy as np
 import torch
 
 from tesseract4d.errors import UserError
-from tesseract4d.outputs import files_as_created
+from tesseract4d.outputs import files_as_created, signals_held
 
 CHECKPOINT_PREFIX = "checkpoint-"
 STATE_FILE = "trainer_state.json"
@@ -40,8 +40,6 @@ def write_checkpoint(run: str | os.PathLike, step: int, state: dict, write: Call
     """Write the checkpoint of ``step``: ``write(folder)`` fills a fresh hidden folder, ``state`` (with
     ``step``) becomes its STATE_FILE, and the folder is renamed into place; then all but the newest
     ``keep`` (at least 1) checkpoints are removed. Returns the checkpoint folder."""
-    from tesseract4d.outputs import signals_held
-
     final = checkpoint_dir(run, step)
     tmp = final.with_name(f".{final.name}.tmp")  # this run's own name; one a killed run left is replaced
     shutil.rmtree(tmp, ignore_errors=True)
