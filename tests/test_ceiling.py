@@ -103,3 +103,16 @@ def test_a_cube_lost_behind_the_arm_and_at_the_end():
     assert summary["all"]["permanence_occluded"] == [2, 4]
     assert summary["all"]["whole_at_end"] == [1, 2]
     assert summary["place_right"]["episodes"] == 2
+
+
+def test_the_cached_finder_agrees_with_find_object():
+    from tesseract4d.evaluation.ceiling import ObjectFinder
+    from tesseract4d.evaluation.heldout_believability import find_object
+
+    gt = scene()
+    cam = gt.cameras["c"]
+    finder = ObjectFinder(cam.rgb[0], cam.segmentation[0] == 18)
+    for pred in (cam.rgb, lose(gt, [2, 3, 5, 9])):
+        for t in range(T):
+            found = find_object(cam.rgb[0], cam.segmentation[0] == 18, pred[t])
+            assert finder.whole(pred[t]) == bool(found is not None and found.whole), t

@@ -110,6 +110,51 @@ def moved_object(gt, camera: str) -> int | None:
     return ids[0] if ids else None
 
 
+class ObjectFinder:
+    """:func:`heldout_believability.find_object`'s "whole" for one object of a first frame, against many
+    target frames: the first frame's part (distinctive palette, start, spread, distractors) is computed once
+    and the palette's repeated colours are dropped (the nearest-colour distances are the same), so each
+    target frame costs one colour match. Same result as ``find_object(first_rgb, mask, target).whole``
+    (tests/test_ceiling.py checks it)."""
+
+    def __init__(self, first_rgb: np.ndarray, object_mask: np.ndarray):
+        from tesseract4d.evaluation.heldout_believability import (PRESENCE_SLACK_PX, SEARCH_FRACTION, _rms_radius)
+        from tesseract4d.object_colours import distinctive, matches
+
+        self.mask = np.asarray(object_mask, bool)
+        self.palette = None
+        if self.mask.sum() < MIN_OBJECT_PIXELS:
+            return
+        rgb0 = np.asarray(first_rgb, np.float32)
+        self.search_px = max(24, round(SEARCH_FRACTION * self.mask.shape[1]))
+        keep = distinctive(rgb0, self.mask, PRESENCE_SLACK_PX)
+        palette = rgb0[self.mask][keep]
+        if not len(palette):
+            return
+        self.palette = np.unique(palette, axis=0)
+        self.count = len(palette)
+        vs, us = np.nonzero(self.mask)
+        self.start = np.array([us[keep].mean(), vs[keep].mean()])
+        self.spread0 = _rms_radius(us[keep], vs[keep])
+        self.distractors = matches(rgb0, self.palette) & ~dilate(self.mask, 1)
+        self._rms = _rms_radius
+
+    def whole(self, target_rgb: np.ndarray) -> bool:
+        from tesseract4d.evaluation.heldout_believability import WHOLE_MAX_SPREAD, WHOLE_PIXELS, WHOLE_SPREAD_SLACK_PX
+        from tesseract4d.object_colours import matches
+
+        if self.palette is None:
+            return False
+        v, u = np.nonzero(matches(target_rgb, self.palette) & ~self.distractors)
+        near = (np.abs(u - self.start[0]) < self.search_px) & (np.abs(v - self.start[1]) < self.search_px)
+        if not near.any():
+            return False
+        u, v = u[near], v[near]
+        share = len(u) / self.count
+        return bool(WHOLE_PIXELS[0] <= share <= WHOLE_PIXELS[1]
+                    and self._rms(u, v) <= WHOLE_MAX_SPREAD * self.spread0 + WHOLE_SPREAD_SLACK_PX)
+
+
 def episode_ceiling(gt, camera: str, pred_rgb: np.ndarray, first_scored_frame: int = 1) -> dict:
     """Per-situation counts of one decoded clip against its ground truth (module docstring).
 
@@ -140,18 +185,16 @@ def episode_ceiling(gt, camera: str, pred_rgb: np.ndarray, first_scored_frame: i
     whole_at_end = None
     target = moved_object(gt, camera)
     if target is not None and target in situations:
-        mask0 = seg[0] == target
+        finder = ObjectFinder(gt_rgb[0], seg[0] == target)
         for t in range(f, len(gt_rgb)):
             if (seg[t] == target).sum() < MIN_OBJECT_PIXELS:
                 continue
-            found = find_object(gt_rgb[0], mask0, pred[t])
-            ok = bool(found is not None and found.whole)
+            ok = finder.whole(pred[t])
             for s in SITUATIONS:
                 if situations[target][s][t]:
                     whole[s][0] += int(ok)
                     whole[s][1] += 1
-        found = find_object(gt_rgb[0], mask0, pred[-1])
-        whole_at_end = bool(found is not None and found.whole)
+        whole_at_end = finder.whole(pred[-1])
     n = int(judged_any.sum())
     return {"skill": episode_skill(gt), "episode": gt.episode_id,
             "objects_present": float(all_present[judged_any].mean()) if n else float("nan"),
