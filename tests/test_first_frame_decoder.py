@@ -159,7 +159,7 @@ def test_training_steps_export_a_first_frame_autoencoder_and_resume(tmp_path):
     save_autoencoder(base, tmp_path / "base")
     data = write_segmented_dataset(tmp_path / "data", episodes=2, frames=6, size=32)
     cfg = FirstFrameTrainConfig(data=[data], out=tmp_path / "run", init=tmp_path / "base", injection="concat",
-                                max_steps=2, frames_per_clip=2, ckpt_every=1, precision="fp32")
+                                max_steps=2, warmup_steps=1, frames_per_clip=2, ckpt_every=1, precision="fp32")
     export = train(cfg, log=lambda m: None)
     model = load_autoencoder(export)
     assert isinstance(model, FirstFrameAutoencoder)
