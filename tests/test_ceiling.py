@@ -116,3 +116,14 @@ def test_the_cached_finder_agrees_with_find_object():
         for t in range(T):
             found = find_object(cam.rgb[0], cam.segmentation[0] == 18, pred[t])
             assert finder.whole(pred[t]) == bool(found is not None and found.whole), t
+
+
+def test_without_intent_the_moved_object_is_the_one_that_moves_farthest():
+    import dataclasses
+
+    from tesseract4d.evaluation.ceiling import moved_object
+
+    gt = dataclasses.replace(scene(), intent=None)
+    assert moved_object(gt, "c") == 18
+    row = episode_ceiling(gt, "c", lose(gt, [9]))
+    assert row["whole_at_end"] is False and row["skill"] == "Synthetic-v1"

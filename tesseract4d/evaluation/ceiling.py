@@ -45,6 +45,7 @@ GRIPPER_NEAR_PX = 3
 GRIPPER_SEGMENTS = ("panda_hand", "panda_leftfinger", "panda_rightfinger")  # name prefixes
 OCCLUDED_SHARE = 0.8
 ARM_NEAR_PX = 2
+MOVED_M = 0.01  # an episode without intent: its moved object is the one that moves farthest, beyond this
 MOVING_M = 0.003  # per frame (16 frames over an episode: a push moves a cube 5-15 mm a frame)
 
 
@@ -102,11 +103,25 @@ def episode_skill(gt) -> str:
 
 
 def moved_object(gt, camera: str) -> int | None:
-    """Segment id of the instructed object of an episode whose skill moves one, else None."""
+    """Segment id of the instructed object of an episode whose skill moves one; for an episode without
+    intent (a task's own demonstration), the scene object visible in frame 0 that moves farthest, if it
+    moves more than ``MOVED_M``; else None."""
     intent = gt.intent or {}
-    if not intent or intent.get("skill") in GRIPPER_ONLY_SKILLS or intent.get("skill") == "keep_still":
+    names = gt.cameras[camera].seg_id_to_name
+    if not intent:
+        seg0 = np.asarray(gt.cameras[camera].segmentation[0])
+        best, far = None, MOVED_M
+        for oid in scene_object_ids(names):
+            pose = gt.object_poses.get(names[oid])
+            if pose is None or (seg0 == oid).sum() < MIN_OBJECT_PIXELS:
+                continue
+            d = float(np.linalg.norm(np.asarray(pose)[:, :3] - np.asarray(pose)[:1, :3], axis=1).max())
+            if d > far:
+                best, far = oid, d
+        return best
+    if intent.get("skill") in GRIPPER_ONLY_SKILLS or intent.get("skill") == "keep_still":
         return None
-    ids = [int(i) for i, n in gt.cameras[camera].seg_id_to_name.items() if n == intent.get("target")]
+    ids = [int(i) for i, n in names.items() if n == intent.get("target")]
     return ids[0] if ids else None
 
 
