@@ -163,11 +163,12 @@ def decoder_loss(pred: torch.Tensor, target: torch.Tensor, regions: torch.Tensor
     return total, {"weighted": float(weighted.detach()), "moved": float(moved_term.detach())}
 
 
-def lr_at(step: int, cfg: FirstFrameTrainConfig) -> float:
+def lr_factor(step: int, cfg: FirstFrameTrainConfig) -> float:
+    """Linear warm-up over ``warmup_steps``, then cosine decay to ``min_lr_ratio`` at ``max_steps``."""
     if step < cfg.warmup_steps:
-        return cfg.lr * (step + 1) / cfg.warmup_steps
+        return (step + 1) / cfg.warmup_steps
     progress = min(1.0, (step - cfg.warmup_steps) / max(1, cfg.max_steps - cfg.warmup_steps))
-    return float(cfg.lr * (cfg.min_lr_ratio + (1 - cfg.min_lr_ratio) * 0.5 * (1 + math.cos(math.pi * progress))))
+    return cfg.min_lr_ratio + (1 - cfg.min_lr_ratio) * 0.5 * (1 + math.cos(math.pi * progress))
 
 
 def trained_parameters(model) -> tuple[list[torch.nn.Parameter], list[torch.nn.Parameter]]:
@@ -195,13 +196,15 @@ def train(cfg: FirstFrameTrainConfig, log=print) -> Path:
         p.requires_grad_(True)
     clips = load_clips(folder_list(cfg.data), model, cfg.camera, out / LATENTS_FILE)
     bf16 = resolve_precision(cfg.precision).bf16
-    opt = torch.optim.AdamW([{"params": decoder_params, "scale": cfg.decoder_lr / cfg.lr},
-                             {"params": path_params, "scale": 1.0}], lr=cfg.lr, weight_decay=0.0)
+    opt = torch.optim.AdamW([{"params": decoder_params, "peak_lr": cfg.decoder_lr},
+                             {"params": path_params, "peak_lr": cfg.lr}], lr=cfg.lr, weight_decay=0.0)
     step, history = 0, []
     if (out / STATE_FILE).is_file():
-        state = torch.load(out / STATE_FILE)
+        state = torch.load(out / STATE_FILE, weights_only=False)  # written by this module (numpy scalars in its history)
         model.load_state_dict(state["model"])
         opt.load_state_dict(state["optimizer"])
+        for group, peak in zip(opt.param_groups, (cfg.decoder_lr, cfg.lr)):
+            group["peak_lr"] = peak  # this invocation's rates (a run may be continued with others)
         step, history = state["step"], state["history"]
         log(f"resumed at step {step}")
     E, T = clips.frames.shape[:2]
@@ -224,7 +227,7 @@ def train(cfg: FirstFrameTrainConfig, log=print) -> Path:
         regions = torch.cat([clips.regions[e, t] for e, t in zip(eps, ts)])
         first = clips.frames[eps, 0].float()  # (k, 7, H, W)
         for group in opt.param_groups:
-            group["lr"] = lr_at(step, cfg) * group["scale"]
+            group["lr"] = lr_factor(step, cfg) * group["peak_lr"]
         with torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
             reference = model.reference_features(first)
             reference = [r.repeat_interleave(cfg.frames_per_clip, dim=0) for r in reference]
@@ -256,7 +259,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--max-steps", type=int, default=FirstFrameTrainConfig.max_steps)
     p.add_argument("--ckpt-every", type=int, default=FirstFrameTrainConfig.ckpt_every)
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--lr", type=float, default=FirstFrameTrainConfig.lr, help="the first-frame path's learning rate")
+    p.add_argument("--lr", type=float, default=FirstFrameTrainConfig.lr,
+                   help="the first-frame path's learning rate (0: the path stays zero, a decoder-only fine-tune)")
     p.add_argument("--decoder-lr", type=float, default=FirstFrameTrainConfig.decoder_lr,
                    help="the shipped decoder's learning rate (0: frozen)")
     a = p.parse_args(argv)
