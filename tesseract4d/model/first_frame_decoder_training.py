@@ -65,7 +65,8 @@ class FirstFrameTrainConfig:
     camera: str | None = None
     max_steps: int = 300
     clips_per_step: int = 2
-    frames_per_clip: int = 4  # decoded frames per clip and step, drawn from frames 1.. of the episode
+    frames_per_clip: int = 4  # decoded frames per clip and step, drawn from frames min_frame.. of the episode
+    min_frame: int = 1  # 0: frame 0 too (its latent is the reference's own: the path can learn to copy there)
     lr: float = 1e-3  # the first-frame path's (new, zero-output) weights
     # The shipped decoder's weights (0: frozen). Fine-tuned at 2e-4 they drifted (the online loss on the
     # training batches rose 15 % above the shipped decoder's on the same batches within 100 steps); at 2e-5
@@ -224,7 +225,8 @@ def train(cfg: FirstFrameTrainConfig, log=print) -> Path:
     while step < cfg.max_steps:
         g = torch.Generator().manual_seed(cfg.seed * 1_000_003 + step)
         eps = torch.randint(E, (cfg.clips_per_step,), generator=g)
-        ts = torch.stack([torch.randperm(T - 1, generator=g)[:cfg.frames_per_clip] + 1 for _ in eps])  # (k, f)
+        ts = torch.stack([torch.randperm(T - cfg.min_frame, generator=g)[:cfg.frames_per_clip] + cfg.min_frame
+                          for _ in eps])  # (k, f)
         z = torch.cat([clips.latents[e, t] for e, t in zip(eps, ts)])  # (k f, C, h, w)
         target = torch.cat([clips.frames[e, t] for e, t in zip(eps, ts)]).float()  # (k f, 7, H, W)
         regions = torch.cat([clips.regions[e, t] for e, t in zip(eps, ts)])
@@ -262,6 +264,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--max-steps", type=int, default=FirstFrameTrainConfig.max_steps)
     p.add_argument("--ckpt-every", type=int, default=FirstFrameTrainConfig.ckpt_every)
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--min-frame", type=int, default=FirstFrameTrainConfig.min_frame,
+                   help="first frame index drawn for training (0 includes the given frame itself)")
     p.add_argument("--lr", type=float, default=FirstFrameTrainConfig.lr,
                    help="the first-frame path's learning rate (0: the path stays zero, a decoder-only fine-tune)")
     p.add_argument("--decoder-lr", type=float, default=FirstFrameTrainConfig.decoder_lr,
@@ -269,7 +273,7 @@ def main(argv: list[str] | None = None) -> int:
     a = p.parse_args(argv)
     cfg = FirstFrameTrainConfig(data=a.data, out=a.out, init=a.init, injection=a.injection,
                                 max_steps=a.max_steps, ckpt_every=a.ckpt_every, seed=a.seed, lr=a.lr,
-                                decoder_lr=a.decoder_lr)
+                                decoder_lr=a.decoder_lr, min_frame=a.min_frame)
     print(f"exported {train(cfg, log=lambda m: print(m, flush=True))}")
     return 0
 
