@@ -20,6 +20,11 @@ look, so this decoder is given that frame too:
      projection is zero-initialised; the two finest scales (4096 positions, too dear to attend over on
      a CPU) use ``concat``.
 
+With ``+pixels`` (``attention+pixels``...) one more injection acts in the output space itself, on the decoder's
+pixel-unshuffled output ``y`` (``7 s²`` channels at ``H/s``): ``y <- y + conv(silu(conv([y, frame 0 unshuffled,
+norm(h)])))``, the last convolution zero-initialised: copying a pixel of the given frame is then one linear map,
+where the other injections must pass it through the shipped decoder's frozen output head.
+
 Every injection's last layer starts at zero, so a fresh ``FirstFrameAutoencoder`` initialised from a
 shipped autoencoder decodes exactly as it does (``tests/test_first_frame_decoder.py`` checks this).
 The encoder, its config and the latent statistics are the shipped ones, untouched: the latents are the
@@ -45,7 +50,8 @@ from tesseract4d.errors import UserError
 from tesseract4d.model.autoencoder import AutoencoderConfig, RGBDNAutoencoder
 from tesseract4d.model.model_space import NUM_CHANNELS, renormalize_normals
 
-INJECTIONS = ("concat", "attention")
+INJECTIONS = ("concat", "attention", "concat+pixels", "attention+pixels")
+PIXEL_SKIP = "+pixels"
 # Weight names of the first-frame path (everything a first-frame fine-tune adds to a shipped autoencoder).
 FIRST_FRAME_PREFIX = "first_frame."
 # Width of the cross-attention's queries and keys.
@@ -119,6 +125,22 @@ class AttentionInjection(torch.nn.Module):
         return h + self.proj(out.transpose(1, 2).reshape(n, c, y, x))
 
 
+class PixelSkip(torch.nn.Module):
+    """``y + conv(silu(conv([y, pixels, norm(h)])))`` in the output space (the last convolution zero-initialised):
+    y, pixels (n, 7 s², H/s, W/s) the decoder's output and frame 0, both pixel-unshuffled; h the decoder's last
+    activations (n, c0, H/s, W/s)."""
+
+    def __init__(self, out_channels: int, channels: int, groups: int, hidden: int = 64):
+        super().__init__()
+        self.norm = torch.nn.GroupNorm(_groups(channels, groups), channels)
+        self.conv_in = torch.nn.Conv2d(2 * out_channels + channels, hidden, 3, padding=1)
+        self.conv_out = _zero(torch.nn.Conv2d(hidden, out_channels, 3, padding=1))
+
+    def forward(self, y: torch.Tensor, pixels: torch.Tensor, h: torch.Tensor) -> torch.Tensor:
+        x = torch.cat([y, pixels.to(y.dtype), self.norm(h).to(y.dtype)], dim=1)
+        return y + self.conv_out(F.silu(self.conv_in(x)))
+
+
 class FirstFrameAutoencoder(RGBDNAutoencoder):
     """The RGB-D-N autoencoder whose decoder also reads the clip's first frame (see the module docstring).
 
@@ -140,12 +162,16 @@ class FirstFrameAutoencoder(RGBDNAutoencoder):
         # upsamples except the last, so its output sits one level finer than its input.
         levels = [n - 1] + [max(n - 2 - i, 0) for i in range(n)]
         modules = []
+        kind = config.first_frame_injection.removesuffix(PIXEL_SKIP)
         for ch, level in zip(dec_channels, levels):
             ref_ch = self.reference_channels(level)
-            if config.first_frame_injection == "attention" and level > 0:
+            if kind == "attention" and level > 0:
                 modules.append(AttentionInjection(ch, ref_ch, config.norm_num_groups))
             else:
                 modules.append(ConcatInjection(ch, ref_ch, config.norm_num_groups))
+        if config.first_frame_injection.endswith(PIXEL_SKIP):
+            out_ch = NUM_CHANNELS * config.stem ** 2
+            modules.append(PixelSkip(out_ch, blocks[0], config.norm_num_groups))
         self.first_frame = torch.nn.ModuleList(modules)
         self._levels = levels
 
@@ -201,9 +227,11 @@ class FirstFrameAutoencoder(RGBDNAutoencoder):
             h = up(h, None)
             if reference is not None:
                 h = self.first_frame[i + 1](h, reference[self._levels[i + 1]])
-        h = dec.conv_act(dec.conv_norm_out(h))
-        h = dec.conv_out(h)
-        return F.pixel_shuffle(h, self.config.stem)
+        y = dec.conv_out(dec.conv_act(dec.conv_norm_out(h)))
+        if reference is not None and len(self.first_frame) > len(self._levels):
+            pixels = reference[0][:, :y.shape[1]]  # frame 0 pixel-unshuffled (the finest level's first channels)
+            y = self.first_frame[-1](y, pixels, h)
+        return F.pixel_shuffle(y, self.config.stem)
 
     def decode_with_first_frame(self, z: torch.Tensor, first_frame: torch.Tensor | None) -> torch.Tensor:
         """Normalised latents (n, C, h, w) and each one's clip's first frame (n, 7, H, W) model space ->
@@ -246,7 +274,7 @@ def from_autoencoder(base: RGBDNAutoencoder, injection: str) -> FirstFrameAutoen
     import dataclasses
 
     config = dataclasses.replace(base.config, first_frame_injection=injection,
-                                 name=f"{base.config.name}-ff{injection[:3]}")
+                                 name=f"{base.config.name}-ff{injection[:3]}{'-px' if injection.endswith(PIXEL_SKIP) else ''}")
     model = FirstFrameAutoencoder(config)
     missing, unexpected = model.load_state_dict(base.state_dict(), strict=False)
     if unexpected or any(not k.startswith(FIRST_FRAME_PREFIX) for k in missing):

@@ -260,7 +260,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--data", type=Path, nargs="+", required=True, help="dataset folders with segmentation")
     p.add_argument("--out", type=Path, required=True, help="run folder (resumed if it holds a state)")
     p.add_argument("--init", type=Path, default=FirstFrameTrainConfig.init, help="the autoencoder whose latents are kept")
-    p.add_argument("--injection", choices=("concat", "attention"), default=FirstFrameTrainConfig.injection)
+    p.add_argument("--injection", choices=("concat", "attention", "concat+pixels", "attention+pixels"),
+                   default=FirstFrameTrainConfig.injection)
     p.add_argument("--max-steps", type=int, default=FirstFrameTrainConfig.max_steps)
     p.add_argument("--ckpt-every", type=int, default=FirstFrameTrainConfig.ckpt_every)
     p.add_argument("--seed", type=int, default=0)
