@@ -58,7 +58,7 @@ class AutoencoderConfig:
     latent_channels: int = 16
     norm_num_groups: int = 32
     mid_attention: bool = False  # self-attention in the bottleneck (costly on a CPU)
-    # The decoder also reads the clip's first frame ("concat" or "attention"; first_frame_decoder.py); None: it does not.
+    # The decoder also reads the clip's first frame (first_frame_decoder.INJECTIONS, e.g. "attention"); None: it does not.
     first_frame_injection: str | None = None
     height: int = 128
     width: int = 128

@@ -35,7 +35,7 @@ Decoding needs the first frame, ``(n, 7, H, W)`` in model space: ``decode_clips(
 none is given (a caller that only has latents), frame 0 of the clip decoded by the latent alone stands
 in for it, and the docstring of every such call site says so.
 
-Its config is the autoencoder's with ``first_frame_injection`` set ("concat" or "attention");
+Its config is the autoencoder's with ``first_frame_injection`` set (one of ``INJECTIONS``);
 ``autoencoder.load_autoencoder`` builds this class for such a folder, so checkpoints load it unchanged.
 """
 
