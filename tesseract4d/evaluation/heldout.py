@@ -147,7 +147,8 @@ def autoencoder_round_trip(pipeline, gt: df.Episode, camera: str) -> df.Episode:
     cam = gt.cameras[camera]
     ms = pipeline.model_space
     x = ms.encode(cam.rgb, cam.depth_m, cam.normal_cam)[None].to(pipeline.device)  # (1, T, 7, H, W)
-    rgb, depth_m, normal_cam = ms.decode(pipeline.decode(pipeline.codec.encode(x))[0])  # (T, 7, H, W) decoded
+    # A decoder that reads the first frame (first_frame_decoder.py) is given the truth's, as a prediction's is.
+    rgb, depth_m, normal_cam = ms.decode(pipeline.decode(pipeline.codec.encode(x), first_frame=x[:, 0])[0])  # (T, 7, H, W)
     frames = df.CameraFrames(rgb=rgb, depth_m=depth_m, normal_cam=normal_cam, K=cam.K, T_world_cam=cam.T_world_cam)
     return df.Episode(env_id=gt.env_id, seed=gt.seed, instruction=gt.instruction, cameras={camera: frames},
                       frame_steps=gt.frame_steps, fps=gt.fps, source="autoencoder-round-trip")

@@ -39,7 +39,7 @@ WEIGHTS_FILE = "model.safetensors"
 # The weights that make the latents, and the config fields the latents do not depend on: a decoder-only
 # fine-tune (`train-autoencoder --decoder-only`) changes neither, so its latents are the init's, bit for bit.
 ENCODER_PREFIXES = ("vae.encoder.", "vae.quant_conv.")
-DECODER_FIELDS = ("name",)
+DECODER_FIELDS = ("name", "first_frame_injection")
 # A config field of older autoencoders that this version no longer has: a lighter decoder than the
 # encoder (docs/research/removed_features.md). Saved as null it meant the same depth, and reads as before.
 REMOVED_DECODER_DEPTH = "decoder_layers_per_block"
@@ -58,6 +58,8 @@ class AutoencoderConfig:
     latent_channels: int = 16
     norm_num_groups: int = 32
     mid_attention: bool = False  # self-attention in the bottleneck (costly on a CPU)
+    # The decoder also reads the clip's first frame (first_frame_decoder.INJECTIONS, e.g. "attention"); None: it does not.
+    first_frame_injection: str | None = None
     height: int = 128
     width: int = 128
     model_space: dict = field(default_factory=lambda: ModelSpace().to_dict())
@@ -299,7 +301,13 @@ def _load_weights(folder: Path) -> dict:
 def load_autoencoder(folder: str | os.PathLike) -> RGBDNAutoencoder:
     """Rebuild a saved autoencoder (eval mode, fp32)."""
     folder = Path(folder)
-    model = RGBDNAutoencoder(read_autoencoder_config(folder))
+    config = read_autoencoder_config(folder)
+    if config.first_frame_injection is not None:
+        from tesseract4d.model.first_frame_decoder import FirstFrameAutoencoder  # a subclass of this module's
+
+        model = FirstFrameAutoencoder(config)
+    else:
+        model = RGBDNAutoencoder(config)
     model.load_state_dict(_load_weights(folder))
     return model.eval().requires_grad_(False)
 

@@ -119,7 +119,16 @@ class AutoencoderCodec:
         """(b, t, 7, H, W) -> (b, t, C, h, w) (posterior means: deterministic)."""
         return self.autoencoder.encode_clips(x.float())
 
+    @property
+    def reads_first_frame(self) -> bool:
+        """Whether the decoder also reads each clip's first frame (first_frame_decoder.py)."""
+        return self.autoencoder.config.first_frame_injection is not None
+
     @torch.no_grad()
-    def decode(self, z: torch.Tensor) -> torch.Tensor:
-        """(b, t, C, h, w) -> (b, t, 7, H, W), normals renormalised."""
+    def decode(self, z: torch.Tensor, first_frame: torch.Tensor | None = None) -> torch.Tensor:
+        """(b, t, C, h, w) -> (b, t, 7, H, W), normals renormalised. ``first_frame`` (b, 7, H, W) model
+        space: the clips' given first frames, for a decoder that reads them (without, it reads each
+        clip's frame 0 as decoded from its latent)."""
+        if self.reads_first_frame:
+            return self.autoencoder.decode_clips(z.float(), first_frame=first_frame)
         return self.autoencoder.decode_clips(z.float())

@@ -152,18 +152,21 @@ class RGBDNPipeline:
         return x
 
     @torch.no_grad()
-    def decode(self, z: torch.Tensor) -> torch.Tensor:
+    def decode(self, z: torch.Tensor, first_frame: torch.Tensor | None = None) -> torch.Tensor:
         """Network-space clips (b, t', c, h, w) -> fp32 model-space clips (b, T, 7, H, W) in [-1, 1],
-        in the pipeline's precision."""
+        in the pipeline's precision. ``first_frame`` (b, 7, H, W): the clips' given first frames, read by
+        a decoder that reads them (first_frame_decoder.py; other codecs ignore it)."""
         # A latent codec's decoder is a fifth to a tenth of a clip's time; bf16 decodes it in about
         # 60 % of fp32's time (benchmarks/bench_latent.py).
         with torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=self.bf16):
+            if first_frame is not None and getattr(self.codec, "reads_first_frame", False):
+                return self.codec.decode(z, first_frame=first_frame.to(self.device)).float().clamp(-1.0, 1.0)
             return self.codec.decode(z).float().clamp(-1.0, 1.0)
 
     def _sample_clip(self, first_frame, *args, static_tolerance: float = 0.0, **kwargs):
         """One decoded clip (b, T, 7, H, W) in model space; arguments as :meth:`_denoise_clip`;
         ``static_tolerance`` > 0 puts the first frame back where the clip is still (static_composite.py)."""
-        clip = self.decode(self._denoise_clip(first_frame, *args, **kwargs))
+        clip = self.decode(self._denoise_clip(first_frame, *args, **kwargs), first_frame=first_frame)
         if static_tolerance > 0:
             clip = composite_static(clip, first_frame, static_tolerance)
         return clip
