@@ -17,7 +17,7 @@ from tesseract4d.model.autoencoder import (
 from tesseract4d.model.checkpoint import SHIPPED_CHECKPOINT, V2_CHECKPOINT
 from tesseract4d.model.first_frame_decoder import FIRST_FRAME_PREFIX, INJECTIONS, FirstFrameAutoencoder, from_autoencoder
 
-from synthetic_scene import synthetic_episode, write_segmented_dataset
+from tesseract4d.testing.synthetic_scene import synthetic_episode, write_segmented_dataset
 
 SHIPPED_AE = V2_CHECKPOINT / "autoencoder"
 
