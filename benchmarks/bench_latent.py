@@ -34,7 +34,7 @@ from measure import add_isa_cap_argument, apply_isa_cap, median_seconds, print_t
 def bench_autoencoder_codec(ae_dir: Path, bf16: bool, repeats: int) -> dict:
     import torch
 
-    from tesseract4d.model.autoencoder import load_autoencoder
+    from tesseract4d.model.autoencoder_loading import load_autoencoder
     from tesseract4d.model.codec import AutoencoderCodec
 
     codec = AutoencoderCodec(load_autoencoder(ae_dir))  # as the pipeline and the latent cache use it

@@ -43,7 +43,7 @@ def main() -> int:
 
     from tesseract4d import dataset_format as df
     from tesseract4d.evaluation.ceiling import ceiling_report, report_markdown, round_trip
-    from tesseract4d.model.autoencoder import load_autoencoder
+    from tesseract4d.model.autoencoder_loading import load_autoencoder
 
     aes = dict(s.split("=", 1) for s in a.autoencoder)
     a.out.mkdir(parents=True, exist_ok=True)

@@ -35,9 +35,13 @@ from __future__ import annotations
 import numpy as np
 
 from tesseract4d.evaluation.believability import objects_present
-from tesseract4d.evaluation.heldout_believability import GRIPPER_ONLY_SKILLS, find_object
-from tesseract4d.object_colours import MIN_OBJECT_PIXELS, dilate
+from tesseract4d.evaluation.heldout_believability import (
+    GRIPPER_ONLY_SKILLS, PRESENCE_SLACK_PX, SEARCH_FRACTION, WHOLE_MAX_SPREAD, WHOLE_PIXELS, WHOLE_SPREAD_SLACK_PX,
+    _rms_radius,
+)
+from tesseract4d.object_colours import MIN_OBJECT_PIXELS, dilate, distinctive, matches
 from tesseract4d.segments import scene_object_ids
+from tesseract4d import dataset_format as df
 
 SITUATIONS = ("all", "in_gripper", "occluded", "moving")
 LIFTED_M = 0.01  # higher than this above its start: off the table
@@ -133,9 +137,6 @@ class ObjectFinder:
     (tests/test_ceiling.py checks it)."""
 
     def __init__(self, first_rgb: np.ndarray, object_mask: np.ndarray):
-        from tesseract4d.evaluation.heldout_believability import (PRESENCE_SLACK_PX, SEARCH_FRACTION, _rms_radius)
-        from tesseract4d.object_colours import distinctive, matches
-
         self.mask = np.asarray(object_mask, bool)
         self.palette = None
         if self.mask.sum() < MIN_OBJECT_PIXELS:
@@ -155,9 +156,6 @@ class ObjectFinder:
         self._rms = _rms_radius
 
     def whole(self, target_rgb: np.ndarray) -> bool:
-        from tesseract4d.evaluation.heldout_believability import WHOLE_MAX_SPREAD, WHOLE_PIXELS, WHOLE_SPREAD_SLACK_PX
-        from tesseract4d.object_colours import matches
-
         if self.palette is None:
             return False
         v, u = np.nonzero(matches(target_rgb, self.palette) & ~self.distractors)
@@ -266,8 +264,9 @@ def ceiling_report(autoencoders: dict[str, str], data: list, camera: str | None 
     "autoencoders": {name: {"folder", "latents_hash"}}}``."""
     from pathlib import Path
 
-    from tesseract4d import dataset_format as df
-    from tesseract4d.model.autoencoder import latents_hash, load_autoencoder
+    # deferred: imports torch (heavy)
+    from tesseract4d.model.autoencoder import latents_hash
+    from tesseract4d.model.autoencoder_loading import load_autoencoder
 
     models = {name: load_autoencoder(folder) for name, folder in autoencoders.items()}
     report = {"autoencoders": {n: {"folder": str(f), "latents_hash": latents_hash(f)} for n, f in autoencoders.items()},

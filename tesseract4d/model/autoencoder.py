@@ -285,7 +285,7 @@ def check_weights_whole(folder: str | os.PathLike) -> None:
         raise _weights_damaged(Path(folder), f"{size} bytes where its header lists {8 + n + end}")
 
 
-def _load_weights(folder: Path) -> dict:
+def load_weights(folder: Path) -> dict:
     """A saved autoencoder's tensors; a UserError naming the file when it is not a whole safetensors file."""
     from safetensors import SafetensorError
     from safetensors.torch import load_file
@@ -296,20 +296,6 @@ def _load_weights(folder: Path) -> dict:
     except (SafetensorError, OSError) as e:
         raise UserError(f"autoencoder weights {path} are corrupt or truncated ({e}); copy them again from the run that "
                         f"wrote them (RUN/autoencoder), or train them again with `tesseract4d train-autoencoder`") from e
-
-
-def load_autoencoder(folder: str | os.PathLike) -> RGBDNAutoencoder:
-    """Rebuild a saved autoencoder (eval mode, fp32)."""
-    folder = Path(folder)
-    config = read_autoencoder_config(folder)
-    if config.first_frame_injection is not None:
-        from tesseract4d.model.first_frame_decoder import FirstFrameAutoencoder  # a subclass of this module's
-
-        model = FirstFrameAutoencoder(config)
-    else:
-        model = RGBDNAutoencoder(config)
-    model.load_state_dict(_load_weights(folder))
-    return model.eval().requires_grad_(False)
 
 
 def autoencoder_hash(folder: str | os.PathLike) -> str:
@@ -332,7 +318,7 @@ def latents_hash(folder: str | os.PathLike) -> str:
     folder = Path(folder)
     config = read_autoencoder_config(folder).to_dict()
     h = hashlib.sha256(json.dumps({k: v for k, v in config.items() if k not in DECODER_FIELDS}, sort_keys=True).encode())
-    weights = _load_weights(folder)
+    weights = load_weights(folder)
     for key in sorted(weights):
         if key.startswith(ENCODER_PREFIXES):
             h.update(key.encode())

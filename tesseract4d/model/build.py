@@ -14,7 +14,8 @@ from tesseract4d.errors import UserError
 from tesseract4d.model.presets import AUTOENCODER, LATENT, PIXEL, ModelPreset
 from tesseract4d.model.text_encoder import TextEncoder
 from tesseract4d.model.codec import AutoencoderCodec, PixelCodec, VaeCodec
-from tesseract4d.model.autoencoder import autoencoder_hash, load_autoencoder
+from tesseract4d.model.autoencoder import autoencoder_hash
+from tesseract4d.model.autoencoder_loading import load_autoencoder
 
 # Keys of a plain CogVideoX transformer -> keys inside RGBDNTransformer.
 _KEY_MAP = (("patch_embed.proj.", "backbone.patch_embed.proj.projs.rgb."), ("proj_out.", "backbone.proj_out.heads.rgb."))

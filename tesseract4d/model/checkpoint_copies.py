@@ -12,7 +12,8 @@ from pathlib import Path
 
 from tesseract4d.errors import UserError
 from tesseract4d.model.autoencoder import WEIGHTS_FILE as AE_WEIGHTS
-from tesseract4d.model.autoencoder import ENCODER_PREFIXES, autoencoder_hash, load_autoencoder, read_autoencoder_config
+from tesseract4d.model.autoencoder import ENCODER_PREFIXES, autoencoder_hash, read_autoencoder_config
+from tesseract4d.model.autoencoder_loading import load_autoencoder
 from tesseract4d.model.checkpoint import (
     INFERENCE_CONFIG_FILE, MODEL_CARD_FILE, REMOVED_GUIDE_DIR, SCHEDULER_DIR, TRANSFORMER_DIR, check_sampler_settings,
     copy_checkpoint_files, read_inference_config,

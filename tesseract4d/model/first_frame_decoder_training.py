@@ -45,6 +45,10 @@ from tesseract4d.errors import UserError
 from tesseract4d.object_colours import dilate
 from tesseract4d.segments import robot_object_mask, scene_object_ids
 from tesseract4d.model.model_space import channel_slices
+from tesseract4d.model.autoencoder import save_autoencoder
+from tesseract4d.model.autoencoder_loading import load_autoencoder
+from tesseract4d.model.first_frame_decoder import from_autoencoder
+from tesseract4d.precision import resolve_precision
 
 CONFIG_FILE = "ff_train_config.json"
 STATE_FILE = "state.pt"
@@ -185,10 +189,6 @@ def trained_parameters(model) -> tuple[list[torch.nn.Parameter], list[torch.nn.P
 
 def train(cfg: FirstFrameTrainConfig, log=print) -> Path:
     """Train (or resume) into ``cfg.out``; returns the exported autoencoder folder."""
-    from tesseract4d.model.autoencoder import load_autoencoder, save_autoencoder
-    from tesseract4d.model.first_frame_decoder import from_autoencoder
-    from tesseract4d.precision import resolve_precision
-
     out = Path(cfg.out)
     out.mkdir(parents=True, exist_ok=True)
     (out / CONFIG_FILE).write_text(json.dumps(cfg.to_dict(), indent=2))

@@ -35,7 +35,8 @@ import torch.nn.functional as F
 from tesseract4d import dataset_format as df
 from tesseract4d.errors import UserError
 from tesseract4d.outputs import files_as_created, note_leftovers
-from tesseract4d.model.autoencoder import autoencoder_hash, latents_hash, load_autoencoder
+from tesseract4d.model.autoencoder import autoencoder_hash, latents_hash
+from tesseract4d.model.autoencoder_loading import load_autoencoder
 from tesseract4d.segments import robot_object_mask, scene_object_mask
 from tesseract4d.model.clips import grouped_batch_plan, spread_over_tasks
 

@@ -53,7 +53,8 @@ from tesseract4d.model.latent_checkpoint import (
     autoencoder_entry, checkpoint_autoencoder, copy_autoencoder, encoder_differences,
 )
 from tesseract4d.outputs import OutputDir, claim_folder, release_new_folder
-from tesseract4d.model.autoencoder import WEIGHTS_FILE as AE_WEIGHTS, autoencoder_hash, load_autoencoder
+from tesseract4d.model.autoencoder import WEIGHTS_FILE as AE_WEIGHTS, autoencoder_hash
+from tesseract4d.model.autoencoder_loading import load_autoencoder
 from tesseract4d.previews import write_preview
 from tesseract4d.dataset_format import CameraFrames, Episode
 from tesseract4d.model.recipe import (

@@ -81,7 +81,7 @@ def test_predict_command_on_gpu(tmp_path):
 def test_autoencoder_trains_on_gpu_and_reconstructs_alike_on_cpu(tmp_path):
     from tesseract4d.testing.synthetic_scene import write_segmented_dataset
 
-    from tesseract4d.model.autoencoder import load_autoencoder
+    from tesseract4d.model.autoencoder_loading import load_autoencoder
     from tesseract4d.model.autoencoder_trainer import AutoencoderTrainConfig, AutoencoderTrainer
 
     data = write_segmented_dataset(tmp_path / "data", episodes=2, size=32)

@@ -12,8 +12,9 @@ import torch
 
 from tesseract4d.errors import UserError
 from tesseract4d.model.autoencoder import (
-    get_autoencoder_preset, latents_hash, load_autoencoder, RGBDNAutoencoder, save_autoencoder,
+    get_autoencoder_preset, latents_hash, RGBDNAutoencoder, save_autoencoder,
 )
+from tesseract4d.model.autoencoder_loading import load_autoencoder
 from tesseract4d.model.checkpoint import SHIPPED_CHECKPOINT, V2_CHECKPOINT
 from tesseract4d.model.first_frame_decoder import FIRST_FRAME_PREFIX, INJECTIONS, FirstFrameAutoencoder, from_autoencoder
 
@@ -95,7 +96,7 @@ def test_an_unknown_injection_is_a_user_error():
 @pytest.fixture(scope="module")
 def swapped(tmp_path_factory):
     """The shipped v2 with a first-frame decoder whose path is not zero, swapped in with `swap-decoder`."""
-    from tesseract4d.model.latent_checkpoint import replace_decoder
+    from tesseract4d.model.checkpoint_copies import replace_decoder
 
     root = tmp_path_factory.mktemp("swap")
     model = from_autoencoder(load_autoencoder(SHIPPED_AE), "concat").eval()
@@ -115,7 +116,7 @@ def test_the_swap_keeps_the_latent_space(swapped):
 
 
 def test_the_swap_refuses_a_first_frame_decoder_with_another_encoder(tmp_path):
-    from tesseract4d.model.latent_checkpoint import replace_decoder
+    from tesseract4d.model.checkpoint_copies import replace_decoder
 
     model = from_autoencoder(load_autoencoder(SHIPPED_AE), "concat")
     with torch.no_grad():
@@ -131,7 +132,7 @@ def test_the_shipped_checkpoints_load_and_predict_with_the_new_decoder(swapped, 
     """The transformer of v2 (and of its 2-step student, which shares v2's latent space) predicts with the
     swapped decoder; the pipeline hands the decoder the given first frame: the predicted clip is the
     returned latents decoded with that frame, not with another."""
-    from tesseract4d.model.latent_checkpoint import replace_decoder
+    from tesseract4d.model.checkpoint_copies import replace_decoder
     from tesseract4d.model.predict import load_pipeline
 
     to, root = swapped

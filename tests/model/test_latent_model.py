@@ -390,7 +390,7 @@ def test_decoder_only_fine_tune_swaps_into_the_checkpoint_with_the_same_latents(
     checkpoint swap-decoder puts the new decoder into a copy of the checkpoint: same latents, new pixels; an
     autoencoder that encodes differently, or --decoder-only without --init, is refused."""
     from tesseract4d import cli
-    from tesseract4d.model.autoencoder import load_autoencoder
+    from tesseract4d.model.autoencoder_loading import load_autoencoder
     from tesseract4d.model.predict import load_pipeline
     from tesseract4d.model.trainer import Trainer
 
