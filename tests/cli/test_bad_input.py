@@ -314,7 +314,7 @@ def test_second_datagen_on_a_locked_folder_refuses(sandbox, capsys):
 def test_two_datagen_processes_on_one_folder(tmp_path, capsys):
     out = tmp_path / "ds"
     first = subprocess.Popen([sys.executable, "-m", "tesseract4d.cli", "datagen", "--tasks", "PushCube-v1", "--episodes",
-                              "20", "--out", str(out), "--resolution", "32", "--frames", "4", "--no-previews", "--quiet"],
+                              "20", "--out", str(out), "--resolution", "32", "--frames", "4", "--set", "previews=false", "--quiet"],
                              cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     try:
         deadline = time.time() + 60
@@ -322,7 +322,7 @@ def test_two_datagen_processes_on_one_folder(tmp_path, capsys):
             time.sleep(0.05)
         assert first.poll() is None and (out / df.LOCK_FILE).read_text().strip() == str(first.pid)
         rc, _, err = run_cli(capsys, "datagen", "--tasks", "PushCube-v1", "--episodes", "20", "--out", out,
-                             "--resolution", "32", "--frames", "4", "--no-previews", "--quiet")
+                             "--resolution", "32", "--frames", "4", "--set", "previews=false", "--quiet")
         assert_one_line_error(rc, err, "another datagen", f"pid {first.pid}")
         assert first.poll() is None  # the first run goes on
     finally:
@@ -843,7 +843,7 @@ def test_commands_that_read_episodes_refuse_bad_content(sandbox, capsys, how, co
     path = _bad_episode(sandbox, how)
     argv = {"predict": ["predict", "--checkpoint", "ckpt", "--episode", "data/Synthetic-v0/0", "--out", "pred", "--steps", "1"],
             "reconstruct": ["reconstruct", "data/Synthetic-v0/0", "--out", "recon", "--no-refine", "--no-mesh", "--quiet"],
-            "train": ["train", "--preset", MICRO.name, "--data", "data", "--out", "newrun", "--no-progress", "--max-steps",
+            "train": ["train", "--preset", MICRO.name, "--data", "data", "--out", "newrun", "--quiet", "--max-steps",
                       "1", "--val-every", "0"]}[command]
     before = snapshot(sandbox)
     rc, _, err = run_cli(capsys, *argv)

@@ -88,7 +88,7 @@ def test_the_objects_of_rendered_first_frames_are_found_as_their_segmentation_na
     out = tmp_path / "scenes"
     assert cli.main(["datagen", "--tasks", "Tesseract4dTabletop-v1,PushCube-v1", "--episodes", "1", "--seed-start",
                      "100003", "--instruction-split", "heldout", "--resolution", "128", "--frames", "2", "--out",
-                     str(out), "--no-previews", "--quiet"]) == 0
+                     str(out), "--set", "previews=false", "--quiet"]) == 0
     paths = df.list_episode_files(out)
     assert len(paths) == 2
     for path in paths:

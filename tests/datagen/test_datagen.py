@@ -156,7 +156,7 @@ def test_dataset_info_and_check(small_dataset, capsys, tmp_path):
 def test_resume_after_a_killed_run(tmp_path):
     out = tmp_path / "ds"
     cmd = [sys.executable, "-m", "tesseract4d.cli", "datagen", "--tasks", "PushCube-v1", "--episodes", "3",
-           "--out", str(out), "--resolution", "32", "--frames", "4", "--no-previews", "--quiet"]
+           "--out", str(out), "--resolution", "32", "--frames", "4", "--set", "previews=false", "--quiet"]
     proc = subprocess.Popen(cmd, cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     try:
         deadline = time.time() + 120

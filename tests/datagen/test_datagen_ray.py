@@ -25,7 +25,7 @@ from tesseract4d.dataset_format import list_episode_files
 REPO = Path(__file__).resolve().parents[2]
 RAY = str(Path(sys.executable).with_name("ray"))
 DATAGEN = [sys.executable, "-m", "tesseract4d.cli", "datagen", "--tasks", "PushCube-v1", "--episodes", "1",
-           "--resolution", "32", "--frames", "4", "--no-previews", "--quiet"]
+           "--resolution", "32", "--frames", "4", "--set", "previews=false", "--quiet"]
 
 
 def _free_port() -> int:

@@ -15,7 +15,7 @@ import pytest
 
 REPO = Path(__file__).resolve().parents[2]
 DATAGEN = [sys.executable, "-m", "tesseract4d.cli", "datagen", "--tasks", "PushCube-v1", "--resolution", "32",
-           "--frames", "4", "--no-previews", "--quiet", "--workers", "2"]
+           "--frames", "4", "--set", "previews=false", "--quiet", "--workers", "2"]
 
 
 def _tree(pid: int) -> list[psutil.Process]:

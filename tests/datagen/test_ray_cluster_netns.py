@@ -34,7 +34,7 @@ REPO = Path(__file__).resolve().parents[2]
 RAY = str(Path(sys.executable).with_name("ray"))
 SUBNET = "10.213.77"  # /24 inside the namespaces only
 PORT = 6379
-TASK_ARGS = ["--tasks", "PushCube-v1", "--resolution", "32", "--frames", "4", "--no-previews", "--quiet"]
+TASK_ARGS = ["--tasks", "PushCube-v1", "--resolution", "32", "--frames", "4", "--set", "previews=false", "--quiet"]
 EPISODES = 6
 
 pytestmark = [

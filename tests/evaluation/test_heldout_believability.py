@@ -229,7 +229,7 @@ def test_several_noise_seeds_pool_the_single_seed_scores(two_checkpoints, tmp_pa
     single = [evaluate_heldout(HeldoutConfig(checkpoint=a, data=heldout, num_steps=2, precision="fp32", sample_seed=s),
                                progress=False) for s in (0, 1)]
     out = tmp_path / "seeds"
-    assert cli.main(["evaluate", "--heldout", str(heldout), "--checkpoint", str(a), "--steps", "2", "--precision", "fp32",
+    assert cli.main(["evaluate", "--heldout", str(heldout), "--checkpoint", str(a), "--steps", "2", "--set", "precision=fp32",
                      "--sample-seed", "0", "1", "--out", str(out)]) == 0
     both = json.loads((out / "report.json").read_text())
     assert both["episodes"] == single[0]["episodes"] == len(GROUP) and both["sample_seeds"] == [0, 1]
@@ -430,7 +430,7 @@ def test_checkpoints_of_two_resolutions_are_scored_on_one_heldout_set(two_checkp
     v2, heldout64 = checkpoint_64
     out = tmp_path / "eval"
     assert cli.main(["evaluate", "--heldout", str(heldout64), "--checkpoint", str(a), "--checkpoint", str(v2),
-                     "--out", str(out), "--steps", "2", "--precision", "fp32"]) == 0
+                     "--out", str(out), "--steps", "2", "--set", "precision=fp32"]) == 0
     report = json.loads((out / "report.json").read_text())
     assert report["resolutions"] == {a.name: {"model": [SIZE, SIZE], "data": [2 * SIZE, 2 * SIZE], "resized": "upsampled"},
                                      "v2": {"model": [2 * SIZE, 2 * SIZE], "data": [2 * SIZE, 2 * SIZE], "resized": None}}
@@ -577,7 +577,7 @@ def test_ground_truth_of_a_simulated_group_is_believed(tmp_path):
     out = tmp_path / "groups"
     assert cli.main(["datagen", "--tasks", "Tesseract4dTabletop-v1", "--instructions-per-scene", "2", "--skills",
                      "push_left,keep_still", "--episodes", "1", "--seed-start", "100000", "--instruction-split",
-                     "heldout", "--resolution", "64", "--frames", "8", "--out", str(out), "--no-previews",
+                     "heldout", "--resolution", "64", "--frames", "8", "--out", str(out), "--set", "previews=false",
                      "--quiet"]) == 0
     gt_entries, static_entries = [], []
     for path in df.list_episode_files(out):

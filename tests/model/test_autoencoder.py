@@ -178,7 +178,7 @@ def test_train_autoencoder_command_writes_the_gate_and_a_reconstruction_sheet(tm
     data = write_segmented_dataset(tmp_path / "data", episodes=2)
     out = tmp_path / "run"
     assert cli.main(["train-autoencoder", "--data", str(data), "--heldout", str(data), "--out", str(out),
-                     "--preset", "ae-test", "--max-steps", "2", "--batch-size", "2", "--precision", "fp32",
+                     "--preset", "ae-test", "--max-steps", "2", "--batch-size", "2", "--set", "precision=fp32",
                      "--heldout-frames", "8", "--quiet"]) == 0
     assert json.loads((out / "autoencoder" / "fidelity.json").read_text())["step"] == 2
     assert capsys.readouterr().out.count("fidelity gate on 8 held-out frames (step 2;") == 1  # printed once

@@ -106,9 +106,9 @@ def test_distill_samples_pairs_and_trains_the_student_on_gpu(tmp_path, monkeypat
                                   ckpt_every=0, quiet=True)).train()
     run = tmp_path / "student"
     assert cli.main(["distill", "--teacher", str(teacher), "--data", str(data), "--pairs", str(tmp_path / "pairs"),
-                     "--num-pairs", "4", "--teacher-steps", "2", "--precision", "fp32", "--out", str(run),
+                     "--num-pairs", "4", "--teacher-steps", "2", "--set", "precision=fp32", "--out", str(run),
                      "--max-steps", "4", "--val-every", "2", "--ckpt-every", "0", "--batch-size", "2",
-                     "--no-progress"]) == 0
+                     "--quiet"]) == 0
     state = json.loads((run / "checkpoint-000004" / "trainer_state.json").read_text())
     assert state["step"] == 4 and state["config"]["val_every"] == 2
     monkeypatch.setattr(torch.cuda, "is_available", lambda: False)  # the same pairs sampled on the CPU

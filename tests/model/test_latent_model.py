@@ -366,7 +366,7 @@ def test_a_latent_teacher_distils_into_a_few_step_student_that_carries_its_autoe
     run = tmp_path / "student"
     assert cli.main(["distill", "--teacher", str(teacher), "--pairs", str(pairs), "--out", str(run), "--student-steps",
                      "2", "--max-steps", "120", "--batch-size", "4", "--lr", "1e-3", "--val-every", "0",
-                     "--ckpt-every", "0", "--no-progress"]) == 0
+                     "--ckpt-every", "0", "--quiet"]) == 0
     student = load_pipeline(run / "final")
     teacher_cfg = json.loads((teacher / "tesseract4d_config.json").read_text())
     assert student.config["autoencoder"]["hash"] == teacher_cfg["autoencoder"]["hash"]
@@ -399,7 +399,7 @@ def test_decoder_only_fine_tune_swaps_into_the_checkpoint_with_the_same_latents(
     dec = tmp_path / "dec"
     assert cli.main(["train-autoencoder", "--init", str(final / "autoencoder"), "--decoder-only", "--data", str(data),
                      "--out", str(dec), "--preset", "ae-test", "--max-steps", "3", "--batch-size", "2",
-                     "--lr", "1e-2", "--warmup-steps", "1", "--precision", "fp32", "--quiet"]) == 0
+                     "--lr", "1e-2", "--warmup-steps", "1", "--set", "precision=fp32", "--quiet"]) == 0
     old, new = load_autoencoder(final / "autoencoder"), load_autoencoder(dec / "autoencoder")
     assert new.config.latent_mean == old.config.latent_mean and new.config.latent_std == old.config.latent_std
     so, sn = old.state_dict(), new.state_dict()

@@ -120,7 +120,7 @@ def test_bad_training_inputs(dataset, tmp_path):
 def test_train_cli_and_export(dataset, tmp_path, capsys):
     run = tmp_path / "run"
     assert cli.main(["train", "--preset", MICRO.name, "--data", str(dataset), "--out", str(run), "--max-steps", "2",
-                     "--val-every", "0", "--no-progress"]) == 0
+                     "--val-every", "0", "--quiet"]) == 0
     assert (run / "final" / "transformer" / "diffusion_pytorch_model.safetensors").is_file()
     assert cli.main(["checkpoint", "export", str(run), "--to", str(tmp_path / "exported")]) == 0
     assert (tmp_path / "exported" / "tesseract4d_config.json").is_file()
@@ -221,7 +221,7 @@ def test_a_train_command_stopped_by_sigterm_ends_143_with_its_checkpoint_and_exp
     sigterm_after_step(monkeypatch, Trainer, 2)
     run = tmp_path / "run"
     assert cli.main(["train", "--preset", MICRO.name, "--data", str(dataset), "--out", str(run), "--max-steps", "100",
-                     "--val-every", "0", "--no-progress"]) == 143
+                     "--val-every", "0", "--quiet"]) == 143
     assert [c.name for c in list_checkpoints(run)] == ["checkpoint-000002"]
     assert (run / "final" / "transformer" / "diffusion_pytorch_model.safetensors").is_file()
     assert "terminated; finished work is kept on disk" in capsys.readouterr().err

@@ -77,7 +77,7 @@ def test_distill_student_follows_teacher_in_few_steps(teacher, tmp_path, capsys)
                                teacher_steps=TEACHER_STEPS, text_guidance=TEACHER_GUIDANCE), progress=False)
     argv = ["distill", "--teacher", str(ckpt), "--pairs", str(pairs), "--out", str(run), "--student-steps",
             str(STUDENT_STEPS), "--max-steps", "150", "--batch-size", "4", "--lr", "1e-3", "--val-every", "150",
-            "--ckpt-every", "0", "--no-progress"]
+            "--ckpt-every", "0", "--quiet"]
     assert main(argv) == 0
     student = load_pipeline(run / "final")
     p = student.preset
@@ -108,7 +108,7 @@ def test_pairs_from_several_dataset_folders(teacher, tmp_path):
     ckpt, data = teacher
     more = write_synthetic_dataset(tmp_path / "more", episodes=2, seed_start=100)
     argv = ["distill", "--pairs-only", "--teacher", str(ckpt), "--pairs", str(tmp_path / "p"), "--num-pairs", "4",
-            "--teacher-steps", "2", "--pair-batch-size", "2", "--no-progress", "--data", str(data), str(more)]
+            "--teacher-steps", "2", "--pair-batch-size", "2", "--quiet", "--data", str(data), str(more)]
     assert main([*argv, "--teacher-guidance", "2.5"]) == 0
     pairs = ReflowPairs(tmp_path / "p")
     assert len(pairs) == 4 and pairs.manifest["data"] == [str(data), str(more)]
@@ -117,7 +117,7 @@ def test_pairs_from_several_dataset_folders(teacher, tmp_path):
     assert main(argv) == 2  # the teacher preset's guidance is another setting: refused
     # Reused without --data (a student trained on them), the pairs are checked against the teacher all the same.
     student = ["distill", "--teacher", str(ckpt), "--pairs", str(tmp_path / "p"), "--teacher-steps", "2",
-               "--out", str(tmp_path / "student"), "--max-steps", "1", "--no-progress", "--val-every", "0"]
+               "--out", str(tmp_path / "student"), "--max-steps", "1", "--quiet", "--val-every", "0"]
     assert main([*student, "--teacher-guidance", "1.5"]) == 2 and not (tmp_path / "student").exists()  # not 2.5
     from tesseract4d.model.checkpoint_copies import write_sampler_copy
 
@@ -142,7 +142,7 @@ def test_distill_resumes_and_refuses_an_existing_run(teacher, tmp_path):
     ckpt, data = teacher
     argv = ["distill", "--teacher", str(ckpt), "--data", str(data), "--pairs", str(tmp_path / "p"), "--num-pairs", "4",
             "--teacher-steps", "2", "--out", str(tmp_path / "run"), "--batch-size", "2", "--val-every", "0",
-            "--ckpt-every", "0", "--no-progress"]
+            "--ckpt-every", "0", "--quiet"]
     assert main([*argv, "--max-steps", "2"]) == 0
     assert main([*argv, "--max-steps", "4"]) == 2  # a run is there: --resume or a new --out
     assert main([*argv, "--max-steps", "4", "--resume"]) == 0  # the pairs are complete: nothing resampled
@@ -162,7 +162,7 @@ def test_distill_never_writes_into_its_inputs(teacher, tmp_path, capsys):
     ckpt = shutil.copytree(teacher[0], tmp_path / "teacher")
     data = shutil.copytree(teacher[1], tmp_path / "data")
     quick = ["--num-pairs", "2", "--teacher-steps", "2", "--pair-batch-size", "2", "--max-steps", "1",
-             "--batch-size", "2", "--val-every", "0", "--ckpt-every", "0", "--no-progress"]
+             "--batch-size", "2", "--val-every", "0", "--ckpt-every", "0", "--quiet"]
     cases = [
         (["--data", data, "--pairs", tmp_path / "p", "--out", data / "student"],
          f"--out {data / 'student'} lies inside the input {data}"),
@@ -191,7 +191,7 @@ def test_distill_names_its_pairs_folder(teacher, tmp_path, capsys):
     mine.mkdir()
     (mine / "notes.txt").write_text("the user's own notes")
     argv = ["distill", "--pairs-only", "--teacher", str(ckpt), "--data", str(data), "--num-pairs", "2",
-            "--teacher-steps", "2", "--no-progress", "--pairs"]
+            "--teacher-steps", "2", "--quiet", "--pairs"]
     assert main([*argv, str(mine)]) == 2
     err = capsys.readouterr().err
     assert f"--pairs {mine} holds files that are not reflow pairs; choose a new or empty --pairs folder" in err, err
@@ -211,7 +211,7 @@ def test_distill_training_options_are_checked_before_the_pairs(teacher, tmp_path
     """A student run that cannot start is refused before the teacher spends its time on the pairs."""
     ckpt, data = teacher
     rc = main(["distill", "--teacher", str(ckpt), "--data", str(data), "--pairs", str(tmp_path / "p"), "--num-pairs",
-               "2", "--teacher-steps", "2", "--out", str(tmp_path / "run"), "--no-progress", *extra])
+               "2", "--teacher-steps", "2", "--out", str(tmp_path / "run"), "--quiet", *extra])
     assert rc == 2 and said in capsys.readouterr().err
     assert not (tmp_path / "p").exists() and not (tmp_path / "run").exists()
 
@@ -289,7 +289,7 @@ def test_distill_with_counterfactual_swap(teacher, tmp_path, monkeypatch):
     monkeypatch.setattr(ReflowPairs, "sample_group_batch", spy_batch)
     argv = ["distill", "--teacher", str(ckpt), "--data", str(groups), "--pairs", str(tmp_path / "p"), "--group-pairs",
             "--num-pairs", "8", "--teacher-steps", "2", "--out", str(tmp_path / "run"), "--batch-size", "4",
-            "--max-steps", "12", "--val-every", "0", "--ckpt-every", "0", "--no-progress", "--counterfactual-swap", "1",
+            "--max-steps", "12", "--val-every", "0", "--ckpt-every", "0", "--quiet", "--counterfactual-swap", "1",
             "--rephrase", "1"]  # (no train template writes the synthetic instructions: they keep their words)
     assert main(argv) == 0
     assert len(seen) == 12
@@ -312,7 +312,7 @@ def test_distill_with_counterfactual_swap(teacher, tmp_path, monkeypatch):
     plain = tmp_path / "plain"
     generate_pairs(_pairs_cfg(ckpt, data, plain, 2), progress=False)
     assert main(["distill", "--teacher", str(ckpt), "--pairs", str(plain), "--out", str(tmp_path / "r2"),
-                 "--counterfactual-swap", "0.5", "--no-progress"]) == 2
+                 "--counterfactual-swap", "0.5", "--quiet"]) == 2
     assert not (tmp_path / "r2").exists()
 
 

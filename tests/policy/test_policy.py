@@ -127,7 +127,7 @@ def episodes(tmp_path_factory):
     """Two PushCube episodes rendered at every step (the IDM's training data)."""
     out = tmp_path_factory.mktemp("idm") / "ds"
     assert main(["datagen", "--tasks", "PushCube-v1", "--episodes", str(SEEDS), "--out", str(out), "--resolution", "64",
-                 "--frames", "0", "--cameras", "close", "--quiet", "--no-previews"]) == 0
+                 "--frames", "0", "--cameras", "close", "--quiet", "--set", "previews=false"]) == 0
     return out
 
 
@@ -276,7 +276,7 @@ def test_rollout_bad_inputs(overfit, tmp_path, capsys):
     assert "training episode" in capsys.readouterr().err
     # an IDM passed as the behaviour-cloning model, an unknown arm, an unsupported task
     assert main(["rollout", "--bc", idm, "--arms", "behavior_cloning", "--tasks", "PushCube-v1", "--out", str(tmp_path / "r3")]) == 2
-    assert "--no-future" in capsys.readouterr().err
+    assert "--recipe bc" in capsys.readouterr().err
     assert main(["rollout", "--arms", "dreaming", "--out", str(tmp_path / "r4")]) == 2
     assert "unknown arm" in capsys.readouterr().err
     assert main(["rollout", "--idm", idm, "--tasks", "PickSingleYCB-v1", "--out", str(tmp_path / "r5")]) == 2
@@ -370,7 +370,7 @@ def test_idm_trains_on_the_world_models_predicted_futures(episodes, text_encoder
     training = json.loads((tmp_path / "run" / "final" / "idm_config.json").read_text())["training"]
     assert training["predicted_pairs"] == expected and training["predicted_futures"]["starts"] == 2
     assert training["fit_predicted"]["pairs"] == expected
-    with pytest.raises(UserError, match="--no-future"):
+    with pytest.raises(UserError, match="use_future=false"):
         IDMTrainer(cfg(tmp_path / "bc", use_future=False), text_encoder=text_encoder)
     assert not (tmp_path / "bc").exists()  # a refused run leaves nothing behind
 
@@ -395,7 +395,7 @@ def test_the_motion_planner_gets_the_same_step_budget_as_the_other_arms(tmp_path
     for budget, expected in ((40, False), (200, True)):
         out = tmp_path / f"r{budget}"
         assert main(["rollout", "--arms", "motion_planner", "--tasks", "PushCube-v1", "--episodes", "1",
-                     "--max-steps", str(budget), "--out", str(out), "--no-progress"]) == 0
+                     "--max-sim-steps", str(budget), "--out", str(out), "--quiet"]) == 0
         (episode,) = json.loads((out / "report.json").read_text())["episodes"]
         assert episode["steps"] == 65 and episode["success"] is expected
         assert ("beyond --max-steps 40" in episode["error"]) is (not expected)

@@ -36,7 +36,7 @@ def heldout(tmp_path_factory) -> Path:
     out = tmp_path_factory.mktemp("heldout") / "data"
     size = read_inference_config(SHIPPED_CHECKPOINT)["preset"]["height"]  # the shipped model's resolution
     cli("datagen", "--tasks", HELDOUT_TASKS, "--episodes", HELDOUT_EPISODES, "--seed-start", HELDOUT_SEED_START,
-        "--instruction-split", "heldout", "--resolution", size, "--out", out, "--no-previews", "--quiet")
+        "--instruction-split", "heldout", "--resolution", size, "--out", out, "--set", "previews=false", "--quiet")
     return out
 
 
