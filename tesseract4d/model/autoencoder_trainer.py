@@ -40,7 +40,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
 
-import numpy as np
 import torch
 import torch.nn.functional as F
 
@@ -55,8 +54,8 @@ from tesseract4d.training.config import TrainingLoopConfig, option
 from tesseract4d.training.loop import (check_finite, learning_rate, loop_state, restore_loop_state, run_loop,
                                        set_learning_rate, write_config_file)
 from tesseract4d.model.autoencoder import (
-    FIDELITY_FILE, WEIGHTS_FILE, AutoencoderConfig, RGBDNAutoencoder, get_autoencoder_preset, load_autoencoder,
-    read_autoencoder_config, save_autoencoder,
+    FIDELITY_FILE, WEIGHTS_FILE, AutoencoderConfig, RGBDNAutoencoder, get_autoencoder_preset, read_autoencoder_config,
+    save_autoencoder,
 )
 from tesseract4d.model.model_space import ModelSpace, channel_slices
 from tesseract4d.model.trainer import EMA
@@ -453,4 +452,4 @@ def load_heldout_frames(root: str | os.PathLike, model: RGBDNAutoencoder, count:
                          camera=camera, max_frames=count)
 
 
-__all__ = ["AutoencoderTrainConfig", "AutoencoderTrainer", "FrameSet", "load_autoencoder", "reconstruction_loss"]
+__all__ = ["AutoencoderTrainConfig", "AutoencoderTrainer", "FrameSet", "reconstruction_loss"]

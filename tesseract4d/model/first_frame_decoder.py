@@ -36,7 +36,7 @@ none is given (a caller that only has latents), frame 0 of the clip decoded by t
 in for it, and the docstring of every such call site says so.
 
 Its config is the autoencoder's with ``first_frame_injection`` set (one of ``INJECTIONS``);
-``autoencoder.load_autoencoder`` builds this class for such a folder, so checkpoints load it unchanged.
+``autoencoder_loading.load_autoencoder`` builds this class for such a folder, so checkpoints load it unchanged.
 """
 
 from __future__ import annotations

@@ -11,8 +11,9 @@ import torch
 from tesseract4d import dataset_format as df
 from tesseract4d.errors import UserError
 from tesseract4d.model.autoencoder import (
-    RGBDNAutoencoder, autoencoder_hash, get_autoencoder_preset, load_autoencoder, save_autoencoder,
+    RGBDNAutoencoder, autoencoder_hash, get_autoencoder_preset, save_autoencoder,
 )
+from tesseract4d.model.autoencoder_loading import load_autoencoder
 from tesseract4d.model.model_space import ModelSpace, channel_slices
 
 from tesseract4d.testing.model_fixtures import sigterm_after_step
