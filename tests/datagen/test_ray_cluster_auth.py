@@ -1,4 +1,4 @@
-"""`datagen --ray-address` warns about a Ray cluster that asks for no authentication token (anyone
+"""`datagen --set ray_address=HEAD:PORT` warns about a Ray cluster that asks for no authentication token (anyone
 reaching it can run code on its machines), and says nothing of the kind for a token cluster."""
 
 from __future__ import annotations

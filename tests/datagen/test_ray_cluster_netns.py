@@ -1,6 +1,6 @@
 """A real multi-machine datagen on one host: three network namespaces with their own addresses,
 joined by veth pairs to a bridge in a fourth, a Ray head in one and a Ray worker node in each of
-the others, token authentication on. `datagen --ray-address` spreads episodes over all of them;
+the others, token authentication on. `datagen --set ray_address=HEAD:PORT` spreads episodes over all of them;
 the episodes are bit-identical to a one-process run of the same seeds; a machine killed mid-run
 loses no finished episode and the run completes. The test makes and removes every namespace and
 link itself; the cluster's addresses exist only inside the namespaces, so its traffic stays there.
@@ -160,7 +160,7 @@ def reference(tmp_path_factory) -> Path:
 
 def _datagen(cluster: NetnsCluster, out: Path, workers: int, env: dict | None = None) -> subprocess.Popen:
     argv = [sys.executable, "-m", "tesseract4d.cli", "datagen", *TASK_ARGS, "--episodes", str(EPISODES),
-            "--out", str(out), "--workers", str(workers), "--ray-address", cluster.address]
+            "--out", str(out), "--workers", str(workers), "--set", f"ray_address={cluster.address}"]
     return subprocess.Popen(cluster.exec(0, argv), cwd=REPO, env=env or cluster.env, stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True)
 
@@ -278,9 +278,11 @@ def test_a_machine_killed_mid_run_loses_no_finished_episode(cluster, reference, 
         finished = {p: hashlib.sha256(p.read_bytes()).hexdigest() for p in list_episode_files(out)}
         cluster.kill_node(2)
         _, err = proc.communicate(timeout=1800)
-        if proc.returncode == 0:  # the attempt running on the lost machine went to another one
-            assert "a Ray worker was lost" in err, err[-2000:]
-            assert cluster.addresses[2] not in _attempt_nodes(out)[len(finished):]
+        if proc.returncode == 0:  # completed on the machines left
+            # An attempt in flight on the killed machine is handed to another ("a Ray worker was lost");
+            # whether one was in flight at the kill is a matter of timing, so only that case is checked.
+            if "a Ray worker was lost" in err:
+                assert cluster.addresses[2] not in _attempt_nodes(out)[len(finished) + 1:], err[-2000:]
         else:  # stopped: the same command resumes it on the machines left
             resumed = _datagen(cluster, out, 2)
             _, err2 = resumed.communicate(timeout=1800)
