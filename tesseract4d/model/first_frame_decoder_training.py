@@ -48,6 +48,7 @@ from tesseract4d.model.model_space import channel_slices
 from tesseract4d.model.autoencoder import save_autoencoder
 from tesseract4d.model.autoencoder_loading import load_autoencoder
 from tesseract4d.model.first_frame_decoder import from_autoencoder
+from tesseract4d.outputs import claim_folder
 from tesseract4d.precision import resolve_precision
 
 CONFIG_FILE = "ff_train_config.json"
@@ -190,7 +191,8 @@ def trained_parameters(model) -> tuple[list[torch.nn.Parameter], list[torch.nn.P
 def train(cfg: FirstFrameTrainConfig, log=print) -> Path:
     """Train (or resume) into ``cfg.out``; returns the exported autoencoder folder."""
     out = Path(cfg.out)
-    out.mkdir(parents=True, exist_ok=True)
+    # A folder holding anything but this trainer's own run is refused before its state is read or written.
+    claim_folder(out, "first-frame-decoder", inputs=[cfg.init, *folder_list(cfg.data)], legacy_marker=CONFIG_FILE)
     (out / CONFIG_FILE).write_text(json.dumps(cfg.to_dict(), indent=2))
     model = from_autoencoder(load_autoencoder(cfg.init), cfg.injection)
     model.requires_grad_(False)

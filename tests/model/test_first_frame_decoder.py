@@ -173,3 +173,15 @@ def test_training_steps_export_a_first_frame_autoencoder_and_resume(tmp_path):
     train(cfg, log=lambda m: None)
     assert torch.load(tmp_path / "run" / "state.pt")["step"] == 3
     assert np.isfinite([h["loss"] for h in torch.load(tmp_path / "run" / "state.pt")["history"]]).all()
+
+
+def test_training_refuses_an_out_holding_files_it_did_not_write(tmp_path):
+    from tesseract4d.model.first_frame_decoder_training import STATE_FILE, FirstFrameTrainConfig, train
+
+    out = tmp_path / "mine"
+    out.mkdir()
+    (out / STATE_FILE).write_bytes(b"a user's file")  # the name the trainer would read and replace
+    cfg = FirstFrameTrainConfig(data=[tmp_path / "data"], out=out, init=tmp_path / "base", injection="concat")
+    with pytest.raises(UserError, match="did not write"):
+        train(cfg, log=lambda *_: None)
+    assert (out / STATE_FILE).read_bytes() == b"a user's file" and sorted(p.name for p in out.iterdir()) == [STATE_FILE]
