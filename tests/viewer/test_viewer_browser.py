@@ -12,7 +12,7 @@ import time
 import pytest
 
 from reconstruction.recon4d import Recon4D
-from tesseract4d.testing.browser import canvas_image, chromium, drawn_fraction, image_change, wait_until_changed, wait_until_drawn
+from tesseract4d.testing.browser import canvas_image, drawn_fraction, image_change, wait_until_changed, wait_until_drawn
 from reconstruction.backproject import recon_from_episode
 from tesseract4d.testing.synthetic_scene import analytic_episode
 
@@ -45,13 +45,6 @@ def app(recon_dir):
     viewer.start()
     yield viewer
     viewer.stop()
-
-
-@pytest.fixture(scope="module")
-def page(app):
-    with chromium() as p:
-        p.goto(app.url)
-        yield p
 
 
 def control(page, label: str):

@@ -10,7 +10,7 @@ import time
 import numpy as np
 import pytest
 
-from tesseract4d.testing.browser import canvas_image, chromium, drawn_fraction, image_change, wait_until_changed, wait_until_drawn
+from tesseract4d.testing.browser import canvas_image, drawn_fraction, image_change, wait_until_changed, wait_until_drawn
 from reconstruction.backproject import recon_from_episode
 from tesseract4d.testing.synthetic_objects import Box, box_episode, moving, still
 from test_viewer_browser import click_slider, select, wait_for
@@ -41,13 +41,6 @@ def app():
     viewer.start()
     yield viewer
     viewer.stop()
-
-
-@pytest.fixture(scope="module")
-def page(app):
-    with chromium() as p:
-        p.goto(app.url)
-        yield p
 
 
 def test_objects_are_drawn_whole_named_with_their_paths(page, app, artifacts_dir):
