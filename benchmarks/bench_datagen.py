@@ -1,4 +1,5 @@
-"""Benchmark RGB-D-N(-seg) capture of datagen: frames/s per worker and scaling over Ray workers.
+"""Benchmark RGB-D-N(-seg) capture of datagen: frames/s per worker and scaling over local worker
+processes (what `datagen --workers K` starts: no server, nothing listens).
 
 What one "frame" is: for one camera at HxW, set the recorded simulator state, render RGB, depth,
 normals and segmentation, and convert them to the dataset's conventions (depth_m, normal_cam,
@@ -57,13 +58,22 @@ class BenchWorker:
         return time.perf_counter() - t0
 
 
+def _measure(env_id: str, resolution: int, camera: str, render_threads: int, frames: int, start, results) -> None:
+    """One worker process: plan and warm up, wait for the others, render ``frames`` frames."""
+    worker = BenchWorker(env_id, resolution, camera, render_threads)
+    worker.render(10)
+    start.wait()
+    results.put(worker.render(frames))
+    worker.sim.close()
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--task", default="PickCube-v1")
     parser.add_argument("--resolution", type=int, default=128)
     parser.add_argument("--camera", default="close")
     parser.add_argument("--frames", type=int, default=150, help="frames rendered per worker per measurement")
-    parser.add_argument("--workers", default="1,2", help="worker counts to measure with Ray")
+    parser.add_argument("--workers", default="1,2", help="worker-process counts to measure")
     args = parser.parse_args()
 
     from tesseract4d import runtime
@@ -79,21 +89,28 @@ def main() -> None:
     w.sim.close()
     del w
 
-    import ray
+    import multiprocessing as mp
 
     cpus = os.cpu_count() or 1
+    ctx = mp.get_context("spawn")  # a fresh interpreter per worker, as datagen's worker processes
     for k in [int(x) for x in args.workers.split(",")]:
-        ray.init(address="local", num_cpus=k, include_dashboard=False, log_to_driver=False, configure_logging=False)
+        start, results = ctx.Barrier(k + 1), ctx.Queue()
+        procs = [ctx.Process(target=_measure, args=(args.task, args.resolution, args.camera, max(1, cpus // k),
+                                                    args.frames, start, results), daemon=True) for _ in range(k)]
+        for p in procs:
+            p.start()
         try:
-            actor = ray.remote(num_cpus=1)(BenchWorker)
-            workers = [actor.remote(args.task, args.resolution, args.camera, max(1, cpus // k)) for _ in range(k)]
-            ray.get([a.render.remote(10) for a in workers])  # warm
+            start.wait(timeout=600)  # every worker planned and warm
             t0 = time.perf_counter()
-            ray.get([a.render.remote(args.frames) for a in workers])
+            for _ in range(k):
+                results.get(timeout=600)
             wall = time.perf_counter() - t0
-            rows.append((f"ray x{k}", k, k * args.frames, wall, k * args.frames / wall))
         finally:
-            ray.shutdown()
+            for p in procs:
+                p.join(timeout=30)
+                if p.is_alive():
+                    p.terminate()
+        rows.append((f"procs x{k}", k, k * args.frames, wall, k * args.frames / wall))
 
     print(f"\nRGB-D-N + segmentation capture, {args.task}, camera '{args.camera}', "
           f"{args.resolution}x{args.resolution}, {cpus} CPU cores (load when measured: {os.getloadavg()[0]:.2f})")

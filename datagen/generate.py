@@ -76,7 +76,7 @@ class DatagenConfig:
     seed_start: int = 0
     max_attempts: int | None = knob(None, "seeds tried per task at most (none: 4 * episodes + 4)")
     workers: int = 1
-    ray_address: str | None = knob(None, "address of a running Ray cluster (none: a local Ray instance when workers > 1)")
+    ray_address: str | None = knob(None, "address of a running Ray cluster, HEAD:PORT (none: local worker processes when workers > 1)")
     previews: bool = knob(True, "write MP4 previews of every episode")
     instructions_per_scene: int = 1  # K futures per initial state (skill mode)
     skills: list[str] | None = None  # skill specs (datagen/skills.py); None = all that apply
