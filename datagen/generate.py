@@ -398,14 +398,14 @@ def check_ray_cluster(address: str, timeout_s: float = 5.0) -> None:
 
     host, _, port = address.removeprefix("ray://").rpartition(":")
     if not host or not port.isdigit():
-        raise UserError(f"--ray-address {address!r}: give the head's HOST:PORT as printed by `ray start --head` "
+        raise UserError(f"--set ray_address={address!r}: give the head's HOST:PORT as printed by `ray start --head` "
                         f"(e.g. 10.0.0.5:6379)")
     try:
         socket.create_connection((host, int(port)), timeout=timeout_s).close()
     except OSError as e:
         raise UserError(f"no Ray cluster answers at {address} ({e.strerror or e}); start one on the head machine with "
                         f"`ray start --head --port {port}` (see docs/ray_cluster.md) or fix "
-                        f"--ray-address") from None
+                        f"--set ray_address=HEAD:PORT") from None
     try:
         from ray._raylet import GcsClient  # the first call ray.init() makes; fails fast on a bad token
         from ray.exceptions import AuthenticationError

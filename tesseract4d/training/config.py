@@ -57,7 +57,7 @@ class TrainingLoopConfig:
         if self.warmup_steps is not None and self.warmup_steps < 0:
             raise UserError(f"--warmup-steps must be >= 0, got {self.warmup_steps}")
         if not (math.isfinite(self.min_lr_ratio) and 0 <= self.min_lr_ratio <= 1):
-            raise UserError(f"--min-lr-ratio must be between 0 and 1, got {self.min_lr_ratio}")
+            raise UserError(f"--set min_lr_ratio=R must be between 0 and 1, got {self.min_lr_ratio}")
         if self.max_minutes is not None and not (math.isfinite(self.max_minutes) and self.max_minutes >= 0):
             raise UserError(f"--max-minutes must be a finite number >= 0, got {self.max_minutes}")
         if self.stop_at_step is not None and self.max_steps != AUTO and not 1 <= self.stop_at_step <= self.max_steps:
@@ -65,4 +65,4 @@ class TrainingLoopConfig:
         if self.ckpt_every < 0:
             raise UserError(f"--ckpt-every must be >= 0 (0: only at the end), got {self.ckpt_every}")
         if self.keep_checkpoints < 1:
-            raise UserError(f"--keep-checkpoints must be at least 1, got {self.keep_checkpoints}")
+            raise UserError(f"--set keep_checkpoints=N must be at least 1, got {self.keep_checkpoints}")
