@@ -267,8 +267,10 @@ def run(args: argparse.Namespace) -> int:
     schedule, instruction = _schedule_and_instruction(cfg, first)
     if schedule is not None and not frames_given and schedule[-1].frame_end is not None:
         cfg = dataclasses.replace(cfg, num_frames=schedule[-1].frame_end + 1)  # the chained episode's own length
-    if isinstance(instruction, str) and (note := instruction_budget_note(pipe, instruction.strip())):
-        print(note, file=sys.stderr)
+    # The words that reach the model: each segment's with a schedule, else the one instruction.
+    for words in ([s.instruction for s in schedule] if schedule is not None else [instruction]):
+        if isinstance(words, str) and (note := instruction_budget_note(pipe, words.strip())):
+            print(note, file=sys.stderr)
     bars = []  # made at the first step, so that a first frame refused before sampling leaves no empty bar
 
     def progress(step: int, total: int) -> None:

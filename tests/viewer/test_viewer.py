@@ -388,3 +388,22 @@ def test_generate_from_a_first_frame_alone_predicts_the_models_clip(tmp_path):
     assert recon.num_frames == info["num_frames"] == 16
     # One step asked for; the analytic scene's plain box stands out by no colour, so one draw is sampled.
     assert "denoising step 1/1" in messages and messages[-1] == "reconstructing the 4D point cloud"
+
+
+def test_a_chained_scene_shows_its_instruction_timeline():
+    from tesseract4d.instruction_schedule import SCHEDULE_KEY, Segment
+    from viewer.app import ViewerApp
+
+    recon = recon_from_episode(analytic_episode(num_frames=7, height=32, width=32, seed=1))
+    recon.metadata[SCHEDULE_KEY] = [Segment("push the red cube left", 0, 3).to_dict(),
+                                    Segment("lift the blue cylinder", 3, 6).to_dict()]
+    with ViewerApp(recon, port=0) as app:
+        lines = app.timeline_md.content.split("  \n")
+        assert lines == ["▶ **1. push the red cube left (frames 0–3)**", "2. lift the blue cylinder (frames 3–6)"]
+        app.frame_slider.value = 3  # the boundary frame ends the first segment
+        assert app.timeline_md.content.startswith("▶ **1.")
+        app.frame_slider.value = 4
+        assert app.timeline_md.content.split("  \n")[1] == "▶ **2. lift the blue cylinder (frames 3–6)**"
+    plain = recon_from_episode(analytic_episode(num_frames=3, height=32, width=32, seed=1))
+    with ViewerApp(plain, port=0) as app:
+        assert app.timeline_md.content == ""
