@@ -65,3 +65,39 @@ def test_the_rollout_streams_clip_by_clip(pipe):
     assert [len(rgb) for _, rgb in streamed] == [8, 15, 22]
     for _, rgb in streamed:  # every clip shown is the final rollout's beginning
         assert np.array_equal(rgb, ep.cameras["close"].rgb[:len(rgb)])
+
+
+def test_predict_cli_follows_a_chained_episodes_schedule_or_the_users(micro_checkpoint, tmp_path, capsys):
+    import dataclasses
+    import json
+
+    from tesseract4d import cli
+    from tesseract4d import dataset_format as df
+
+    schedule = parse_schedule("0:push the square to the left;12:push the square to the right")
+    chained = synthetic_episode(0, frames=15)
+    chained = dataclasses.replace(chained, instruction="push the square left, then right",
+                                  metadata={SCHEDULE_KEY: [dataclasses.replace(s, frame_end=s.frame_end or 14).to_dict()
+                                                           for s in schedule]})
+    df.init_dataset(tmp_path / "data", df.DatasetInfo(height=32, width=32, cameras=["close"]))
+    df.write_episode(tmp_path / "data", chained)
+    out = tmp_path / "out"
+    assert cli.main(["predict", "--checkpoint", str(micro_checkpoint), "--episode", f"{tmp_path / 'data'}/Synthetic-v0/0",
+                     "--out", str(out), "--steps", "1"]) == 0
+    ep = df.read_episode(df.resolve_episode(out))
+    assert ep.num_frames == 15  # the chained episode's own length
+    # clips add 1-7 and 8-14; frames 13-14 are "right", 8-12 "left": both clips follow the first words
+    assert ep.metadata["prediction"]["clip_instructions"] == ["push the square to the left"] * 2
+    assert "clip 2: frames 0-14 ready after" in capsys.readouterr().err
+
+    out2 = tmp_path / "out2"
+    assert cli.main(["predict", "--checkpoint", str(micro_checkpoint), "--episode", f"{tmp_path / 'data'}/Synthetic-v0/0",
+                     "--out", str(out2), "--steps", "1", "--set", "schedule=0:push the square to the left;7:push the "
+                     "square to the right", "--set", "num_frames=15"]) == 0
+    ep2 = df.read_episode(df.resolve_episode(out2))
+    assert ep2.metadata["prediction"]["clip_instructions"] == ["push the square to the left", "push the square to the right"]
+    assert ep2.instruction == "push the square to the left, then push the square to the right"
+    assert json.loads((out2 / "predict_config.json").read_text())["schedule"].startswith("0:push")
+    assert cli.main(["predict", "--checkpoint", str(micro_checkpoint), "--episode", f"{tmp_path / 'data'}/Synthetic-v0/0",
+                     "--out", str(tmp_path / "out3"), "--set", "schedule=5:push"]) == 2
+    assert "must start at frame 0" in capsys.readouterr().err
