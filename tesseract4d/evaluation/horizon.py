@@ -38,7 +38,10 @@ import numpy as np
 from tesseract4d import dataset_format as df
 from tesseract4d.errors import UserError
 from tesseract4d.evaluation.believability import objects_present
+from tesseract4d.evaluation.episode import json_safe
+from tesseract4d.evaluation.heldout import scene_noise_seed, select_episodes, static_world
 from tesseract4d.evaluation.metrics import depth_metrics, moving_region_mask, rgb_psnr
+from tesseract4d.evaluation.object_tracks import layer_of, match_tracks, recorded_objects
 from tesseract4d.instruction_schedule import schedule_of
 from tesseract4d.segments import scene_object_ids
 
@@ -81,8 +84,6 @@ def frame_curves(pred: df.CameraFrames, gt: df.CameraFrames, max_depth_m: float 
 def object_error_curve(output: df.Episode, gt: df.Episode, camera: str) -> np.ndarray | None:
     """(T,) the object layer's position error per frame (metres, mean over the matched recorded
     objects; see ``object_tracks``), or None when the truth records no object poses to score."""
-    from tesseract4d.evaluation.object_tracks import layer_of, match_tracks, recorded_objects
-
     names = recorded_objects(gt, camera)
     if not names:
         return None
@@ -204,7 +205,6 @@ def evaluate_horizon(cfg: HorizonConfig, progress: bool = True) -> dict:
     from tqdm import tqdm
 
     # deferred: imports torch (heavy)
-    from tesseract4d.evaluation.heldout import scene_noise_seed, select_episodes, static_world
     from tesseract4d.model.predict import load_pipeline, predict_scenes
 
     files = select_episodes(Path(cfg.data), cfg.max_episodes)
@@ -344,8 +344,6 @@ def plot_curves(report: dict, path: str | os.PathLike, panel_px: tuple[int, int]
 
 def write_horizon_report(report: dict, out: str | os.PathLike) -> None:
     """horizon.json, horizon.md and horizon.png into the folder ``out`` (which exists)."""
-    from tesseract4d.evaluation.episode import json_safe
-
     out = Path(out)
     (out / REPORT_JSON).write_text(json.dumps(json_safe(report), indent=2))
     (out / REPORT_MD).write_text(format_markdown(report) + "\n")
