@@ -20,7 +20,9 @@ Per method the report holds the mean curve over episodes (NaN-aware: a frame cou
 that measure it) and two windows: the first clip's predicted frames (1 .. clip - 1) and the same
 number of frames at the end of the horizon (e.g. 49-63 of 64 frames with 16-frame clips), and the
 change from the first window to the last. For chained episodes it also holds, per segment, the mean
-of every curve over the segment's frames. Curves are written as ``horizon.json``, the table as
+of every curve over the segment's frames and how often the segment's instructed object moved the
+commanded way (its track's displacement over the segment's frames within 60° of the commanded one and
+at least half as long; gripper-only segments are not counted). Curves are written as ``horizon.json``, the table as
 ``horizon.md`` and a plot of the curves as ``horizon.png``.
 """
 
@@ -37,11 +39,11 @@ import numpy as np
 
 from tesseract4d import dataset_format as df
 from tesseract4d.errors import UserError
-from tesseract4d.evaluation.believability import objects_present
+from tesseract4d.evaluation.believability import RIGHT_WAY_COSINE, objects_present
 from tesseract4d.evaluation.episode import json_safe
 from tesseract4d.evaluation.heldout import scene_noise_seed, select_episodes, static_world
 from tesseract4d.evaluation.metrics import depth_metrics, moving_region_mask, rgb_psnr
-from tesseract4d.evaluation.object_tracks import layer_of, match_tracks, recorded_objects
+from tesseract4d.evaluation.object_tracks import NO_OBJECT_SKILLS, layer_of, match_tracks, recorded_objects
 from tesseract4d.instruction_schedule import schedule_of
 from tesseract4d.segments import scene_object_ids
 
@@ -81,39 +83,71 @@ def frame_curves(pred: df.CameraFrames, gt: df.CameraFrames, max_depth_m: float 
     return {"rgb_psnr_db_moving": psnr, "depth_abs_rel": abs_rel, "objects_present": present}
 
 
-def object_error_curve(output: df.Episode, gt: df.Episode, camera: str) -> np.ndarray | None:
-    """(T,) the object layer's position error per frame (metres, mean over the matched recorded
-    objects; see ``object_tracks``), or None when the truth records no object poses to score."""
+def object_paths(output: df.Episode, gt: df.Episode, camera: str) -> dict[str, np.ndarray] | None:
+    """Per recorded object a track matched: where the track carries the object's recorded first-frame
+    origin in every frame, (T, 3) world metres (as ``object_tracks`` scores it); None when the truth
+    records no object poses to score."""
     names = recorded_objects(gt, camera)
     if not names:
         return None
     layer = layer_of(output, gt, camera)
-    matched = match_tracks(layer, gt, names)
-    errors = []
-    for name, k in matched.items():
+    paths = {}
+    for name, k in match_tracks(layer, gt, names).items():
         T_pred = layer.tracks[k].T_world_object  # (T, 4, 4) object -> world
-        true = np.asarray(gt.object_poses[name], np.float64)  # (T, 7) xyz + wxyz
-        n = min(len(T_pred), len(true))
-        # The recorded origin at frame 0 carried by the track's motion (as object_tracks scores it).
-        origin = np.linalg.inv(T_pred[0]) @ np.r_[true[0, :3], 1.0]
-        carried = np.einsum("tij,j->ti", T_pred[:n], origin)[:, :3]
-        errors.append(np.linalg.norm(carried - true[:n, :3], axis=1))
-    if not errors:
+        origin = np.linalg.inv(T_pred[0]) @ np.r_[np.asarray(gt.object_poses[name][0, :3], np.float64), 1.0]
+        paths[name] = np.einsum("tij,j->ti", T_pred, origin)[:, :3]
+    return paths
+
+
+def object_error_curve(paths: dict[str, np.ndarray] | None, gt: df.Episode) -> np.ndarray | None:
+    """(T,) the object layer's position error per frame (metres, mean over the matched objects of
+    :func:`object_paths` against the recorded poses), or None when nothing is matched."""
+    if not paths:
         return None
+    errors = []
+    for name, carried in paths.items():
+        true = np.asarray(gt.object_poses[name][:, :3], np.float64)  # (T, 3)
+        n = min(len(carried), len(true))
+        errors.append(np.linalg.norm(carried[:n] - true[:n], axis=1))
     n = min(len(e) for e in errors)
     return np.mean([e[:n] for e in errors], axis=0)
+
+
+def segment_following(paths: dict[str, np.ndarray] | None, schedule: list | None) -> list[bool | None]:
+    """Per segment of a chained episode: did the instructed object's track move the commanded way over
+    the segment's frames (cos(moved, commanded) > ``RIGHT_WAY_COSINE`` and at least half the commanded
+    distance)? None for a segment that moves no object (gripper-only skills) or whose object has no track."""
+    out: list[bool | None] = []
+    for seg in schedule or []:
+        intent = seg.intent or {}
+        target = intent.get("target")
+        cmd = np.asarray(intent.get("commanded_displacement_world_m") or [0.0, 0.0, 0.0], np.float64)
+        if intent.get("skill") in NO_OBJECT_SKILLS or target is None or not paths or target not in paths \
+                or np.linalg.norm(cmd) < 1e-6:
+            out.append(None)
+            continue
+        path = paths[target]
+        end = min(seg.frame_end if seg.frame_end is not None else len(path) - 1, len(path) - 1)
+        moved = path[end] - path[min(seg.frame_start, end)]
+        norm = float(np.linalg.norm(moved) * np.linalg.norm(cmd))
+        cos = float(moved @ cmd / norm) if norm > 0 else 0.0
+        out.append(bool(cos > RIGHT_WAY_COSINE and np.linalg.norm(moved) >= 0.5 * np.linalg.norm(cmd)))
+    return out
 
 
 def episode_curves(output: df.Episode, gt: df.Episode, camera: str, max_depth_m: float | None,
                    with_objects: bool = True) -> dict[str, np.ndarray]:
     """Every curve of :data:`CURVES` of one output (an Episode) against its truth; the object-layer
-    curve is all NaN where it is not measured."""
+    curve is all NaN where it is not measured. With a schedule in the truth, ``"followed"`` holds
+    :func:`segment_following` per segment."""
     curves = frame_curves(output.cameras[camera], gt.cameras[camera], max_depth_m)
     T = len(curves["depth_abs_rel"])
-    err = object_error_curve(output, gt, camera) if with_objects else None
+    paths = object_paths(output, gt, camera) if with_objects else None
+    err = object_error_curve(paths, gt)
     curves["object_error_m"] = np.full(T, np.nan)
     if err is not None:
         curves["object_error_m"][1:min(T, len(err))] = err[1:T]  # frame 0 is given
+    curves["followed"] = segment_following(paths, schedule_of(gt.metadata))
     return curves
 
 
@@ -166,18 +200,25 @@ def segment_means(per_episode: list[dict[str, np.ndarray]], schedules: list) -> 
     """For chained episodes: per segment index, each curve's mean over the segment's new frames, over
     the episodes that have that segment."""
     sums: dict[int, dict[str, list[float]]] = {}
+    followed: dict[int, list[bool]] = {}
     for curves, schedule in zip(per_episode, schedules):
         if not schedule:
             continue
         for i, seg in enumerate(schedule):
             end = seg.frame_end if seg.frame_end is not None else len(curves["depth_abs_rel"]) - 1
-            for key, c in curves.items():
-                values = np.asarray(c[seg.frame_start + 1:end + 1], np.float64)
+            sums.setdefault(i, {})
+            for key in CURVES:
+                values = np.asarray(curves[key][seg.frame_start + 1:end + 1], np.float64)
                 values = values[np.isfinite(values)]
                 if len(values):
-                    sums.setdefault(i, {}).setdefault(key, []).append(float(values.mean()))
+                    sums[i].setdefault(key, []).append(float(values.mean()))
+            verdicts = curves.get("followed") or []
+            if i < len(verdicts) and verdicts[i] is not None:
+                followed.setdefault(i, []).append(verdicts[i])
     return [{"segment": i + 1, **{k: float(np.mean(v)) for k, v in sums[i].items()},
-             "episodes": max(len(v) for v in sums[i].values())} for i in sorted(sums)]
+             "episodes": max((len(v) for v in sums[i].values()), default=0),
+             "followed": int(sum(followed.get(i, []))), "followed_of": len(followed.get(i, []))}
+            for i in sorted(sums)]
 
 
 # --------------------------------------------------------------------------- the evaluation
@@ -285,12 +326,14 @@ def format_markdown(report: dict) -> str:
     segs = {method: m["segments"] for method, m in methods.items() if m["segments"]}
     if segs:
         lines += ["", "Per segment of the chained episodes (mean over the segment's frames):", "",
-                  "| method | segment | episodes | " + " | ".join(CURVES[k][0] for k in CURVES) + " |",
-                  "|---|---|---|" + "---|" * len(CURVES)]
+                  "| method | segment | episodes | " + " | ".join(CURVES[k][0] for k in CURVES)
+                  + " | instructed object moved the commanded way |",
+                  "|---|---|---|" + "---|" * (len(CURVES) + 1)]
         for method, rows in segs.items():
             for r in rows:
                 lines.append(f"| {method} | {r['segment']} | {r['episodes']} | "
-                             + " | ".join(_fmt(r.get(k, float("nan")), k) for k in CURVES) + " |")
+                             + " | ".join(_fmt(r.get(k, float("nan")), k) for k in CURVES)
+                             + f" | {r['followed']} of {r['followed_of']} |")
     return "\n".join(lines)
 
 

@@ -12,10 +12,10 @@ from tesseract4d.testing.synthetic_objects import Box, box_episode, moving, stil
 
 from tesseract4d.evaluation.heldout import static_world
 from tesseract4d.evaluation.horizon import (
-    build_report, episode_curves, format_markdown, frame_curves, mean_curves, object_error_curve, plot_curves,
-    summarize, window_frames, write_horizon_report,
+    build_report, episode_curves, format_markdown, frame_curves, mean_curves, object_error_curve, object_paths,
+    segment_following, summarize, window_frames, write_horizon_report,
 )
-from tesseract4d.instruction_schedule import Segment
+from tesseract4d.instruction_schedule import SCHEDULE_KEY, Segment
 
 T = 8
 
@@ -57,13 +57,28 @@ def test_permanence_drops_by_the_share_of_objects_lost(truth):
 
 
 def test_the_static_worlds_object_error_is_the_truths_displacement(truth):
-    err = object_error_curve(static_world(truth, "close", T), truth, "close")
+    err = object_error_curve(object_paths(static_world(truth, "close", T), truth, "close"), truth)
     red = truth.object_poses["cube_red"][:, :3]
     moved = np.linalg.norm(red - red[0], axis=1)
     # two objects: the red one's error is how far it went, the green one's 0
     np.testing.assert_allclose(err, moved / 2, atol=1e-4)
     assert moved[-1] > 0.09  # the red cube went 10 cm
-    assert object_error_curve(truth, dataclasses.replace(truth, object_poses={}), "close") is None  # nothing recorded
+    assert object_paths(truth, dataclasses.replace(truth, object_poses={}), "close") is None  # nothing recorded
+    assert object_error_curve(None, truth) is None
+
+
+def test_a_segment_is_followed_when_its_object_moves_the_commanded_way(truth):
+    push = {"skill": "push", "target": "cube_red", "commanded_displacement_world_m": [0.0, 0.1, 0.0]}
+    wrong = dict(push, commanded_displacement_world_m=[0.1, 0.0, 0.0])  # forward: the truth went left
+    reach = {"skill": "reach", "target": None, "commanded_displacement_world_m": [0.0, 0.0, 0.0]}
+    # the red cube moves 10 cm left over frames 1-7: 6.7 cm by frame 5, 3.3 cm from 5 to 7
+    schedule = [Segment("push the red cube left", 0, 5, push), Segment("reach left", 5, 6, reach),
+                Segment("push the red cube left", 5, 7, push), Segment("push the red cube forward", 0, 7, wrong)]
+    on_truth = object_paths(truth, truth, "close")  # the tracker on the truth's own frames
+    assert segment_following(on_truth, schedule) == [True, None, False, False]  # less than half is not followed
+    assert segment_following(object_paths(static_world(truth, "close", T), truth, "close"), schedule[:1]) == [False]
+    chained = dataclasses.replace(truth, metadata={SCHEDULE_KEY: [s.to_dict() for s in schedule[:2]]})
+    assert episode_curves(truth, chained, "close", 1.5)["followed"] == [True, None]
 
 
 def test_pooling_windows_and_segments():
