@@ -5,8 +5,7 @@ resolution: five 16-frame clips, each continuing from the last frame of the one 
 The first frame is a synthetic scene at the checkpoint's resolution (speed does not depend on the
 content) or frame 0 of --episode (a chained episode is predicted with its instruction schedule). Rows:
 one noise draw per rollout, and the checkpoint preset's draws (the shipped default keeps the better
-of 2, so `predict` pays twice the sampling); --anchor adds rows with every clip after the first
-re-anchored on the given first frame. The first line names the CPU, its ISA and the precision.
+of 2, so `predict` pays twice the sampling). The first line names the CPU, its ISA and the precision.
 
   .venv/bin/python benchmarks/bench_horizon.py [--checkpoint tesseract4d/checkpoints/v2] [--frames 64] [--repeats 2]
   .venv/bin/python benchmarks/bench_horizon.py --episode data/heldout_chained/Tesseract4dTabletop-v1/100001
@@ -31,8 +30,6 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--frames", type=int, default=64, help="frames per rollout (default %(default)s)")
     parser.add_argument("--repeats", type=int, default=2, help="timed rollouts per row (median)")
     parser.add_argument("--episode", help="first frame (and schedule) from this dataset episode instead of a synthetic one")
-    parser.add_argument("--anchor", type=float, default=0.0,
-                        help="also time rollouts re-anchored on the first frame at this tolerance (default: not)")
     parser.add_argument("--precision", default="auto", choices=("auto", "fp32", "bf16"))
     add_isa_cap_argument(parser)
     args = parser.parse_args(argv)
@@ -65,7 +62,7 @@ def main(argv: list[str] | None = None) -> int:
         first, schedule = _segment(synthetic_episode(0, frames=1, size=p.height)), None
     predict_scenes(pipe, [first], [first.instruction], num_frames=p.num_frames, draws=1)  # warm-up
 
-    def rollout(draws: int, anchor: float, seed: int) -> list[float]:
+    def rollout(draws: int, seed: int) -> list[float]:
         """Seconds from the call to each clip's decoded frames; the last is the whole rollout."""
         marks: list[float] = []
         original = pipe.decode
@@ -79,27 +76,24 @@ def main(argv: list[str] | None = None) -> int:
         try:
             t0 = time.perf_counter()
             predict_scenes(pipe, [first], [first.instruction], num_frames=args.frames, seed=seed, draws=draws,
-                           schedules=[schedule], anchor_tolerance=anchor)
+                           schedules=[schedule])
             marks.append(time.perf_counter() - t0)
         finally:
             pipe.decode = original
         return marks
 
-    settings = [(1, 0.0), (p.draws, 0.0)] if p.draws > 1 else [(1, 0.0)]
-    if args.anchor > 0:
-        settings += [(d, args.anchor) for d, _ in settings]
     rows = []
-    for draws, anchor in settings:
-        runs = [rollout(draws, anchor, r) for r in range(args.repeats)]
+    for draws in sorted({1, p.draws}):
+        runs = [rollout(draws, r) for r in range(args.repeats)]
         first_clip = statistics.median(r[0] for r in runs)  # the first draw's first clip
         total = statistics.median(r[-1] for r in runs)
         per_clip = (total - first_clip) / max(clips * draws - 1, 1)
-        rows.append((str(draws), f"{anchor:g}", f"{first_clip:.2f}", f"{per_clip:.2f}", f"{total:.2f}",
+        rows.append((str(draws), f"{first_clip:.2f}", f"{per_clip:.2f}", f"{total:.2f}",
                      f"{args.frames / total:.1f}"))
         print(*rows[-1], sep=" | ", flush=True)
     print()
     print(f"CPU: {describe_cpu()}")
-    print_table(("draws", "anchor", "s to first clip", "s per later clip", f"s for {args.frames} frames", "frames/s"), rows)
+    print_table(("draws", "s to first clip", "s per later clip", f"s for {args.frames} frames", "frames/s"), rows)
     return 0
 
 

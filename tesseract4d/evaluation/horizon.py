@@ -237,7 +237,6 @@ class HorizonConfig:
     max_episodes: int | None = None
     precision: str = "auto"
     objects: bool = True  # the object-layer curve (tracks the first frame's objects through every frame)
-    anchor_tolerance: float = 0.0  # > 0: clips after the first re-anchored on the first frame (model/pipeline.py)
 
 
 def evaluate_horizon(cfg: HorizonConfig, progress: bool = True) -> dict:
@@ -270,7 +269,7 @@ def evaluate_horizon(cfg: HorizonConfig, progress: bool = True) -> dict:
         pred = predict_scenes(pipe, [first], [gt.instruction], num_frames=T, num_steps=cfg.num_steps,
                               seed=cfg.sample_seed, camera=camera, batch_size=cfg.batch_size,
                               noise_seeds=[scene_noise_seed(cfg.sample_seed, gt.env_id, gt.seed)],
-                              schedules=[schedule], anchor_tolerance=cfg.anchor_tolerance)[0]
+                              schedules=[schedule])[0]
         per_method["model"].append(episode_curves(pred, gt, camera, max_depth_m, cfg.objects))
         per_method["static"].append(episode_curves(static_world(first, camera, T), gt, camera, max_depth_m, cfg.objects))
         schedules.append(schedule)

@@ -27,7 +27,7 @@ import torch
 from tesseract4d.instruction_schedule import clip_new_frames
 from tesseract4d.model.codec import make_condition
 from tesseract4d.model.presets import ModelPreset
-from tesseract4d.model.static_composite import composite_anchor, composite_static
+from tesseract4d.model.static_composite import composite_static
 
 def make_scheduler():
     """The few-step sampler: flow-matching Euler over sigmas 1 -> 0."""
@@ -193,7 +193,6 @@ class RGBDNPipeline:
         start: tuple[torch.Tensor, float] | None = None,
         clip_instructions: list[list[str]] | None = None,
         on_clip: Callable[[int, torch.Tensor], None] | None = None,
-        anchor_tolerance: float = 0.0,
     ) -> torch.Tensor:
         """Sample a batch of clips.
 
@@ -220,9 +219,6 @@ class RGBDNPipeline:
         on_clip: called as ``on_clip(k, frames)`` once clip k is decoded, with the frames it adds to
         the rollout, (b, n, 7, H, W) on the CPU (frame 0 included for clip 0): frames can be shown or
         written while the next clip is sampled.
-        anchor_tolerance: > 0 re-anchors every clip after the first on the given first frame
-        (static_composite.composite_anchor): what stays within this of it is put back as given, also
-        in the frame the next clip is conditioned on (0 = off).
         Returns (b, num_frames, 7, H, W) model-space clips; frame 0 is the model's reconstruction
         of the first frame (the first frame itself with static compositing on).
         """
@@ -281,8 +277,6 @@ class RGBDNPipeline:
                                      latents=latents if k == 0 else None,
                                      guidance_min_sigma=guidance_min_sigma, start=start,
                                      static_tolerance=static_tolerance).cpu()
-            if anchor_tolerance > 0 and k > 0:
-                clip = composite_anchor(clip, first_frame.float().cpu(), anchor_tolerance)
             frames.append(clip[:, :len(new_frames[k]) + 1] if k == 0 else clip[:, 1:len(new_frames[k]) + 1])
             if on_clip is not None:
                 on_clip(k, frames[-1])

@@ -240,14 +240,12 @@ def predict_scenes(
     start_sigma: float | None = None,
     draws: int | None = None,
     schedules: list[list[Segment] | None] | None = None,
-    anchor_tolerance: float = 0.0,
 ) -> list[df.Episode]:
     """One prediction per scene (``first_frames[i]`` with ``instructions[i]``, clip by clip the words of
     ``schedules[i]`` when given and not None), ``batch_size`` scenes
     per network call (default :data:`DEFAULT_SCENE_BATCH`): the throughput path for evaluations.
     ``start_clips`` (one (1, t', c, h, w) clean clip per scene in the network's space) and
     ``start_sigma``: the pipeline's ``start`` diagnostic, each scene from its own clip.
-    ``anchor_tolerance``: the pipeline's re-anchoring of clips after the first (0 = off).
 
     Scene i's initial noise comes from a generator seeded with (``seed``, i), or with
     ``noise_seeds[i]`` when given, so its first clip does not depend on ``batch_size`` or on the
@@ -289,8 +287,7 @@ def predict_scenes(
             out += _predict_batch(pipeline, [scenes[i] for i in chunk], [0] * len(chunk), num_frames=num_frames,
                                   num_steps=num_steps, text_guidance=text_guidance, image_guidance=image_guidance,
                                   seed=seed, generator=torch.Generator().manual_seed(draw_noise_seed(int(seed) + b, k)),
-                                  latents=latents, progress=step_progress, start=start,
-                                  anchor_tolerance=anchor_tolerance)
+                                  latents=latents, progress=step_progress, start=start)
         return out
 
     return _best_of_draws(pipeline, scenes, draw, draws, progress)
@@ -377,8 +374,7 @@ def _clip_words(pipeline: RGBDNPipeline, scenes: list, num_frames: int) -> list[
 def _predict_batch(pipeline: RGBDNPipeline, scenes: list, sample_indices: list[int], *, num_frames: int,
                    num_steps: int, text_guidance, image_guidance, seed: int, generator: torch.Generator,
                    latents: torch.Tensor | None = None, progress=None, start=None,
-                   on_clip: Callable[[int, df.Episode], None] | None = None,
-                   anchor_tolerance: float = 0.0) -> list[df.Episode]:
+                   on_clip: Callable[[int, df.Episode], None] | None = None) -> list[df.Episode]:
     """One pipeline call for the given scenes (from :func:`_scene`), returned as predicted episodes.
     ``on_clip(k, episode)``: the first scene's rollout so far, after each decoded clip."""
     x = torch.cat([s[4] for s in scenes])  # (n, 7, H, W)
@@ -396,7 +392,7 @@ def _predict_batch(pipeline: RGBDNPipeline, scenes: list, sample_indices: list[i
     clips = pipeline(x, [s[1] for s in scenes], num_frames=num_frames, num_inference_steps=num_steps,
                      text_guidance=text_guidance, image_guidance=image_guidance, generator=generator,
                      progress=progress, latents=latents, start=start, clip_instructions=clip_words,
-                     on_clip=stream, anchor_tolerance=anchor_tolerance)  # (n, T, 7, H, W)
+                     on_clip=stream)  # (n, T, 7, H, W)
     return _episodes(pipeline, scenes, clips, sample_indices, num_steps, text_guidance, image_guidance, seed, start,
                      clip_words)
 

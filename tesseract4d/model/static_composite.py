@@ -56,16 +56,3 @@ def composite_static(clip: torch.Tensor, first_frame: torch.Tensor, tolerance: f
     m = stillness(clip, tolerance, margin_px)[:, :, None]
     return torch.lerp(clip, first_frame.to(clip)[:, None], m).clamp(-1.0, 1.0)
 
-
-def composite_anchor(clip: torch.Tensor, anchor: torch.Tensor, tolerance: float,
-                     margin_px: int = STATIC_MARGIN_PX) -> torch.Tensor:
-    """``clip`` (b, T, C, H, W) with ``anchor`` (b, C, H, W), the rollout's given first frame, put back
-    wherever a frame stays within the tolerance of it (the same blend as :func:`composite_static`, the
-    change measured from the anchor instead of the clip's own frame 0). Re-anchors a clip that
-    continues a rollout: what has not changed since the given first frame is shown as given again, so
-    a redrawn background does not drift from clip to clip."""
-    if anchor.shape != clip[:, 0].shape:
-        raise ValueError(f"anchor must be {tuple(clip[:, 0].shape)}, got {tuple(anchor.shape)}")
-    anchor = anchor.to(clip)
-    m = stillness(torch.cat([anchor[:, None], clip], dim=1), tolerance, margin_px)[:, 1:, None]
-    return torch.lerp(clip, anchor[:, None], m).clamp(-1.0, 1.0)
