@@ -282,8 +282,8 @@ def run(args: argparse.Namespace) -> int:
     started = time.perf_counter()
 
     def clip_done(k: int, so_far) -> None:  # streaming: each clip's frames are final once it is decoded
-        print(f"clip {k + 1}: frames 0-{so_far.num_frames - 1} ready after {time.perf_counter() - started:.2f} s",
-              file=sys.stderr)
+        tqdm.write(f"clip {k + 1}: frames 0-{so_far.num_frames - 1} ready after {time.perf_counter() - started:.2f} s",
+                   file=sys.stderr)  # above the progress bar
 
     episodes = predict_episodes(pipe, first, instruction, num_samples=cfg.num_samples, num_frames=cfg.num_frames,
                                 seed=cfg.sample_seed, num_steps=cfg.steps, text_guidance=cfg.text_guidance,
