@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 from tesseract4d.testing.synthetic_objects import Box, box_episode, moving, still
 
+from tesseract4d import dataset_format as df
 from tesseract4d.evaluation.heldout import static_world
 from tesseract4d.evaluation.horizon import (
     build_report, episode_curves, format_markdown, frame_curves, mean_curves, object_error_curve, object_paths,
@@ -116,3 +117,29 @@ def test_report_files(tmp_path, truth):
 
     image = cv2.imread(str(tmp_path / "horizon.png"))
     assert image is not None and image.shape[0] > 200 and image.std() > 5  # a drawn plot, not a blank
+
+
+def test_evaluate_horizon_command_writes_its_report(micro_checkpoint, tmp_path, capsys):
+    from tesseract4d import cli
+    from tesseract4d.testing.synthetic_scene import synthetic_episode
+
+    data = tmp_path / "heldout"
+    df.init_dataset(data, df.DatasetInfo(height=32, width=32, cameras=["close"]))
+    chained = synthetic_episode(0, frames=15)
+    schedule = [Segment("push the square to the right", 0, 7), Segment("push the square to the left", 7, 14)]
+    df.write_episode(data, dataclasses.replace(chained, metadata={SCHEDULE_KEY: [s.to_dict() for s in schedule]}))
+    df.write_episode(data, synthetic_episode(1, frames=15, direction=-1))  # one instruction, no schedule
+    out = tmp_path / "horizon"
+    assert cli.main(["evaluate", "--horizon", "--heldout", str(data), "--checkpoint", str(micro_checkpoint),
+                     "--steps", "1", "--out", str(out)]) == 0
+    report = json.loads((out / "horizon.json").read_text())
+    assert report["num_frames"] == 15 and report["clip_frames"] == 8 and len(report["episodes"]) == 2
+    assert [e["segments"] for e in report["episodes"]] == [2, 1]
+    model = report["methods"]["model"]
+    assert len(model["curves"]["depth_abs_rel"]["mean"]) == 15 and model["curves"]["depth_abs_rel"]["episodes"][1:] == [2] * 14
+    assert model["summary"]["windows"] == {"first": [1, 7], "last": [8, 14]}
+    assert [r["segment"] for r in model["segments"]] == [1, 2]  # the chained episode's segments
+    assert (out / "horizon.png").stat().st_size > 1000 and "# Drift over 15 frames" in (out / "horizon.md").read_text()
+    assert "| depth AbsRel | static |" in capsys.readouterr().out
+    assert cli.main(["evaluate", "--horizon", "--out", str(tmp_path / "x")]) == 2
+    assert "--horizon scores a held-out dataset" in capsys.readouterr().err
