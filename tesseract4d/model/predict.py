@@ -379,20 +379,18 @@ def _predict_batch(pipeline: RGBDNPipeline, scenes: list, sample_indices: list[i
     ``on_clip(k, episode)``: the first scene's rollout so far, after each decoded clip."""
     x = torch.cat([s[4] for s in scenes])  # (n, 7, H, W)
     clip_words = _clip_words(pipeline, scenes, num_frames)
-    stream = None
-    if on_clip is not None:
-        decoded: list[torch.Tensor] = []
+    decoded: list[torch.Tensor] = []
 
-        def stream(k: int, frames: torch.Tensor) -> None:  # frames (n, t_k, 7, H, W)
-            decoded.append(frames[:1])
-            so_far = torch.cat(decoded, dim=1)[0]  # (t, 7, H, W)
-            on_clip(k, _episodes(pipeline, scenes[:1], so_far[None], [sample_indices[0]], num_steps, text_guidance,
-                                 image_guidance, seed, start, clip_words)[0])
+    def stream(k: int, frames: torch.Tensor) -> None:  # frames (n, t_k, 7, H, W)
+        decoded.append(frames[:1])
+        so_far = torch.cat(decoded, dim=1)[0]  # (t, 7, H, W)
+        on_clip(k, _episodes(pipeline, scenes[:1], so_far[None], [sample_indices[0]], num_steps, text_guidance,
+                             image_guidance, seed, start, clip_words)[0])
 
     clips = pipeline(x, [s[1] for s in scenes], num_frames=num_frames, num_inference_steps=num_steps,
                      text_guidance=text_guidance, image_guidance=image_guidance, generator=generator,
                      progress=progress, latents=latents, start=start, clip_instructions=clip_words,
-                     on_clip=stream)  # (n, T, 7, H, W)
+                     on_clip=None if on_clip is None else stream)  # (n, T, 7, H, W)
     return _episodes(pipeline, scenes, clips, sample_indices, num_steps, text_guidance, image_guidance, seed, start,
                      clip_words)
 
