@@ -37,7 +37,8 @@ from viewer.timeline import scene_schedule, timeline_markdown
 from viewer.compare import format_metrics, image_metrics, load_report_per_frame
 from viewer.generate import checkpoint_steps, model_generator
 
-# generate(instruction, seed, steps, progress(fraction in [0, 1], message)) -> a new source.
+# generate(instruction, seed, steps, progress(fraction in [0, 1], message[, rgb])) -> a new source; a
+# generator that streams passes each newly decoded RGB frame (H, W, 3) uint8 as ``rgb``, shown at once.
 Generator = Callable[[str, int, int, Callable[[float, str], None]], Recon4D]
 PANEL_IMAGE_MAX_SIDE = 256
 MAX_FPS = 30
@@ -473,11 +474,13 @@ class ViewerApp:
         print("viewer: stopping the generation at its next step", file=sys.stderr, flush=True)
         thread.join(timeout=GENERATION_STOP_WAIT_S)
 
-    def _progress(self, fraction: float, message: str) -> None:
+    def _progress(self, fraction: float, message: str, rgb: np.ndarray | None = None) -> None:
         if self._cancel.is_set():
             raise GenerationCancelled()
         self.progress_bar.value = float(np.clip(100.0 * fraction, 0.0, 100.0))
         self.status_md.content = f"Generating: {message}"
+        if rgb is not None:  # streaming: the newest decoded frame, before the whole future is reconstructed
+            self.rgb_image.image = _panel_image(rgb)
 
     def _run_generation(self, instruction: str, seed: int, steps: int) -> None:
         self.generate_button.disabled = True
