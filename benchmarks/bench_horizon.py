@@ -7,7 +7,7 @@ content) or frame 0 of --episode (a chained episode is predicted with its instru
 one noise draw per rollout, and the checkpoint preset's draws (the shipped default keeps the better
 of 2, so `predict` pays twice the sampling). The first line names the CPU, its ISA and the precision.
 
-  .venv/bin/python benchmarks/bench_horizon.py [--checkpoint tesseract4d/checkpoints/v2] [--frames 64] [--repeats 2]
+  .venv/bin/python benchmarks/bench_horizon.py [--checkpoint tesseract4d/checkpoints/v2] [--frames 64] [--steps 1] [--repeats 2]
   .venv/bin/python benchmarks/bench_horizon.py --episode data/heldout_chained/Tesseract4dTabletop-v1/100001
 """
 
@@ -29,6 +29,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--checkpoint", type=Path, default=SHIPPED_CHECKPOINT)
     parser.add_argument("--frames", type=int, default=64, help="frames per rollout (default %(default)s)")
     parser.add_argument("--repeats", type=int, default=2, help="timed rollouts per row (median)")
+    parser.add_argument("--steps", type=int, help="sampler steps (default: the checkpoint preset's)")
     parser.add_argument("--episode", help="first frame (and schedule) from this dataset episode instead of a synthetic one")
     parser.add_argument("--precision", default="auto", choices=("auto", "fp32", "bf16"))
     add_isa_cap_argument(parser)
@@ -52,7 +53,8 @@ def main(argv: list[str] | None = None) -> int:
     print(f"CPU: {describe_cpu()}; precision {chosen.name}; torch {torch.__version__}, {torch.get_num_threads()} threads, "
           f"OMP_WAIT_POLICY={os.environ.get('OMP_WAIT_POLICY')}, load average {os.getloadavg()[0]:.1f}")
     clips = len(clip_new_frames(args.frames, p.num_frames))
-    print(f"checkpoint {args.checkpoint}: {p.name} {p.height}x{p.width}, clips of {p.num_frames} frames, {p.num_steps} "
+    steps = args.steps or p.num_steps
+    print(f"checkpoint {args.checkpoint}: {p.name} {p.height}x{p.width}, clips of {p.num_frames} frames, {steps} "
           f"steps; a {args.frames}-frame rollout is {clips} clips")
     if args.episode:
         path = df.resolve_episode(args.episode)
@@ -76,7 +78,7 @@ def main(argv: list[str] | None = None) -> int:
         try:
             t0 = time.perf_counter()
             predict_scenes(pipe, [first], [first.instruction], num_frames=args.frames, seed=seed, draws=draws,
-                           schedules=[schedule])
+                           num_steps=steps, schedules=[schedule])
             marks.append(time.perf_counter() - t0)
         finally:
             pipe.decode = original
