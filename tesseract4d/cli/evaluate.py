@@ -199,7 +199,7 @@ def run_horizon(args: argparse.Namespace) -> int:
     options = _options(args)
     cfg = HorizonConfig(checkpoint=checkpoints[0], data=args.heldout, camera=args.camera, sample_seed=args.sample_seed[0],
                         num_steps=args.steps, batch_size=options.batch_size, max_episodes=args.max_per_task,
-                        precision=options.precision)
+                        precision=options.precision, max_depth_m=options.max_depth, text_guidance=options.text_guidance)
     report = evaluate_horizon(cfg)
     if output is not None:
         with output as stage:

@@ -236,6 +236,8 @@ class HorizonConfig:
     batch_size: int | None = None
     max_episodes: int | None = None
     precision: str = "auto"
+    max_depth_m: float | None = None  # depth counted up to this (none: the checkpoint's depth range)
+    text_guidance: float | None = None  # none: the checkpoint preset's
     objects: bool = True  # the object-layer curve (tracks the first frame's objects through every frame)
 
 
@@ -249,7 +251,7 @@ def evaluate_horizon(cfg: HorizonConfig, progress: bool = True) -> dict:
 
     files = select_episodes(Path(cfg.data), cfg.max_episodes)
     pipe = load_pipeline(cfg.checkpoint, precision=cfg.precision)
-    max_depth_m = float(pipe.model_space.far_m)
+    max_depth_m = float(pipe.model_space.far_m) if cfg.max_depth_m is None else float(cfg.max_depth_m)
     clip_len = pipe.num_frames
     per_method: dict[str, list] = {"model": [], "static": []}
     schedules, episodes = [], []
@@ -267,6 +269,7 @@ def evaluate_horizon(cfg: HorizonConfig, progress: bool = True) -> dict:
         schedule = schedule_of(gt.metadata)
         T = gt.num_frames
         pred = predict_scenes(pipe, [first], [gt.instruction], num_frames=T, num_steps=cfg.num_steps,
+                              text_guidance=cfg.text_guidance,
                               seed=cfg.sample_seed, camera=camera, batch_size=cfg.batch_size,
                               noise_seeds=[scene_noise_seed(cfg.sample_seed, gt.env_id, gt.seed)],
                               schedules=[schedule])[0]
