@@ -55,4 +55,3 @@ def composite_static(clip: torch.Tensor, first_frame: torch.Tensor, tolerance: f
         raise ValueError(f"first_frame must be {tuple(clip[:, 0].shape)}, got {tuple(first_frame.shape)}")
     m = stillness(clip, tolerance, margin_px)[:, :, None]
     return torch.lerp(clip, first_frame.to(clip)[:, None], m).clamp(-1.0, 1.0)
-
