@@ -21,6 +21,8 @@ Semantics
   futures of one seed's initial state (``datagen/counterfactual.py``), written as
   ``seed_<seed>_k<k>.h5``; ``episodes`` then counts groups (scenes) per task, and a seed counts as
   done once all K of its files exist. The report adds per-skill planner success rates.
+- Chained episodes (``chain_skills`` = 2-4, tabletop only, ``datagen/chains.py``): a job is one
+  episode of that many skills in a row with an instruction schedule, written as ``seed_<seed>.h5``.
 - Outputs besides episodes: ``datagen_config.json`` (resolved config), ``datagen_report.json``
   (per-task planner success rates and throughput) and MP4 previews.
 """
@@ -49,6 +51,7 @@ from tesseract4d.previews import write_preview
 from datagen.skills import check_group_size, parse_skill_list
 from tesseract4d import runtime
 from datagen.counterfactual import run_group
+from datagen.chains import check_chain, run_chain
 from tesseract4d.stopping import handlers_kept
 
 CONFIG_FILE = "datagen_config.json"
@@ -80,13 +83,15 @@ class DatagenConfig:
     previews: bool = knob(True, "write MP4 previews of every episode")
     instructions_per_scene: int = 1  # K futures per initial state (skill mode)
     skills: list[str] | None = None  # skill specs (datagen/skills.py); None = all that apply
+    chain_skills: int = knob(0, "skills in a row per tabletop episode, 2-4 (a chained episode with one instruction "
+                                "per segment, datagen/chains.py); 0 = one skill per episode")
 
     def skill_mode(self, env_id: str) -> bool:
         return skill_mode(env_id, self.instructions_per_scene, self.skills)
 
     def group_size(self, env_id: str) -> int:
-        """Episode files per seed: K in skill mode, else 1."""
-        return self.instructions_per_scene if self.skill_mode(env_id) else 1
+        """Episode files per seed: K in skill mode, else 1 (a chained episode is one file)."""
+        return self.instructions_per_scene if self.skill_mode(env_id) and not self.chain_skills else 1
 
     def attempts_cap(self) -> int:
         return self.max_attempts if self.max_attempts is not None else 4 * self.episodes + 4
@@ -114,6 +119,11 @@ class DatagenConfig:
                             f"got {self.instructions_per_scene}")
         if self.attempts_cap() < self.episodes:
             raise UserError(f"--max-attempts ({self.attempts_cap()}) must be at least --episodes ({self.episodes})")
+        if self.chain_skills:
+            if self.instructions_per_scene != 1:
+                raise UserError("chained episodes (chain_skills) are one future per scene; drop --instructions-per-scene")
+            check_chain(self.chain_skills, self.tasks, self.sim.frames, self.skills)
+            return
         skill_tasks = [t for t in self.tasks if self.skill_mode(t)]
         if skill_tasks:
             parse_skill_list(",".join(self.skills) if self.skills is not None else None, skill_tasks)
@@ -133,7 +143,7 @@ class Worker:
     """Runs attempts in one process: keeps one task's env alive, writes episodes and previews."""
 
     def __init__(self, out: str, sim: dict, previews: bool, render_threads: int | None = None,
-                 instructions_per_scene: int = 1, skills: list[str] | None = None):
+                 instructions_per_scene: int = 1, skills: list[str] | None = None, chain_skills: int = 0):
         runtime.configure()
         if render_threads:  # lavapipe's rasteriser threads; one per worker avoids oversubscription
             os.environ.setdefault("LP_NUM_THREADS", str(render_threads))
@@ -145,6 +155,7 @@ class Worker:
         self.previews = previews
         self.instructions_per_scene = instructions_per_scene
         self.skills = skills
+        self.chain_skills = chain_skills
         self._sim = None
 
     def attempt(self, env_id: str, seed: int) -> dict:
@@ -161,7 +172,10 @@ class Worker:
         group = skill_mode(env_id, self.instructions_per_scene, self.skills)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            if group:
+            if self.chain_skills:
+                result = run_chain(self._sim, seed, self.chain_skills, self.skills)
+                episodes = result.episodes
+            elif group:
                 result = run_group(self._sim, seed, self.instructions_per_scene, self.skills)
                 episodes = result.episodes
             else:
@@ -195,7 +209,8 @@ class _LocalPool:
 
     def __init__(self, cfg: DatagenConfig):
         self.worker = Worker(str(cfg.out), dataclasses.asdict(cfg.sim), cfg.previews,
-                             instructions_per_scene=cfg.instructions_per_scene, skills=cfg.skills)
+                             instructions_per_scene=cfg.instructions_per_scene, skills=cfg.skills,
+                             chain_skills=cfg.chain_skills)
         self.capacity = 1
         self._done: list[tuple[object, dict]] = []
 
@@ -210,14 +225,14 @@ class _LocalPool:
 
 
 def _worker_process(conn, parent_pid: int, out: str, sim: dict, previews: bool, render_threads: int,
-                    instructions_per_scene: int, skills: list[str] | None) -> None:
+                    instructions_per_scene: int, skills: list[str] | None, chain_skills: int = 0) -> None:
     """Main of one local worker process: attempts in, outcomes out, over ``conn`` until None."""
     import signal
     import traceback
 
     _die_with_parent(parent_pid)
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C reaches the whole group: the driver decides
-    worker = Worker(out, sim, previews, render_threads, instructions_per_scene, skills)
+    worker = Worker(out, sim, previews, render_threads, instructions_per_scene, skills, chain_skills)
     try:
         while (job := conn.recv()) is not None:
             try:
@@ -262,7 +277,7 @@ class _ProcessPool:
             here, there = ctx.Pipe()
             proc = ctx.Process(target=_worker_process, name="datagen-worker", daemon=True,
                                args=(there, os.getpid(), str(cfg.out), dataclasses.asdict(cfg.sim), cfg.previews,
-                                     threads, cfg.instructions_per_scene, cfg.skills))
+                                     threads, cfg.instructions_per_scene, cfg.skills, cfg.chain_skills))
             proc.start()
             there.close()
             self.procs.append(proc)
@@ -332,7 +347,7 @@ class _RayPool:
                 ray.init(address=cfg.ray_address, log_to_driver=False)
         actor_cls = ray.remote(num_cpus=1, max_restarts=0)(Worker)
         self.actors = [actor_cls.remote(str(cfg.out), dataclasses.asdict(cfg.sim), cfg.previews, 1,
-                                        cfg.instructions_per_scene, cfg.skills)
+                                        cfg.instructions_per_scene, cfg.skills, cfg.chain_skills)
                        for _ in range(cfg.workers)]
         self.free = list(self.actors)
         self.capacity = len(self.actors)
@@ -488,6 +503,8 @@ def open_dataset(cfg: DatagenConfig) -> DatasetInfo:
     """Create or reopen cfg.out; refuse a folder written with different episode-defining options."""
     defining = {k: getattr(cfg.sim, k) for k in _DATASET_DEFINING}
     defining.update(instructions_per_scene=cfg.instructions_per_scene, skills=cfg.skills)
+    if cfg.chain_skills:  # only chained folders name it, so folders written before it existed still resume
+        defining["chain_skills"] = cfg.chain_skills
     info = DatasetInfo(fps=20.0, height=cfg.sim.height, width=cfg.sim.width, cameras=list(cfg.sim.cameras),
                        extra={"datagen": defining})
     on_disk = init_dataset(cfg.out, info)

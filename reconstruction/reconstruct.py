@@ -38,6 +38,7 @@ from tesseract4d.configs import knob
 from tesseract4d.dataset_format import CameraFrames, Episode
 from tesseract4d.errors import UserError
 from tesseract4d.geometry import MIN_NORMAL_LENGTH, normals_from_depth
+from tesseract4d.instruction_schedule import SCHEDULE_KEY
 from reconstruction.consistency import add_temporal_rows
 from reconstruction.normal_integration import LeastSquares, add_normal_rows
 from reconstruction.flow import motion_masks
@@ -232,6 +233,8 @@ def reconstruct_episode(
         "objects": None if layer is None else {"source": layer.source, "names": layer.names(), "instructed": layer.instructed},
         **stats,
     }
+    if episode.metadata.get(SCHEDULE_KEY):  # a chained episode's instructions by frame (the viewer's timeline)
+        metadata[SCHEDULE_KEY] = episode.metadata[SCHEDULE_KEY]
     return Recon4D(
         points_world=points, colors=colors, normals_world=normals, dynamic=dyn,
         rgb=rgb, depth_m=depth.astype(np.float32), normal_cam=normal_cam.astype(np.float32),

@@ -33,10 +33,12 @@ from viewer.origin import own_origin_only
 from viewer.scene import (DEFAULT_MAX_POINTS, POINT_MODES, SCENE_MODES, SceneLayer, configure_rendering, initial_view,
                           make_server, stop_server)
 from viewer.sources import load_source
+from viewer.timeline import scene_schedule, timeline_markdown
 from viewer.compare import format_metrics, image_metrics, load_report_per_frame
 from viewer.generate import checkpoint_steps, model_generator
 
-# generate(instruction, seed, steps, progress(fraction in [0, 1], message)) -> a new source.
+# generate(instruction, seed, steps, progress(fraction in [0, 1], message[, rgb])) -> a new source; a
+# generator that streams passes each newly decoded RGB frame (H, W, 3) uint8 as ``rgb``, shown at once.
 Generator = Callable[[str, int, int, Callable[[float, str], None]], Recon4D]
 PANEL_IMAGE_MAX_SIDE = 256
 MAX_FPS = 30
@@ -248,6 +250,8 @@ class ViewerApp:
             self.fps_slider = gui.add_slider("FPS", min=1, max=MAX_FPS, step=1,
                                              initial_value=int(np.clip(round(self.layer.recon.fps), 1, MAX_FPS)))
             self.loop_checkbox = gui.add_checkbox("Loop", initial_value=True)
+            # A chained scene's instructions by frame (viewer/timeline.py); empty for one instruction.
+            self.timeline_md = gui.add_markdown("")
 
     def _build_display(self, gui) -> None:
         with gui.add_folder("Display"):
@@ -337,6 +341,8 @@ class ViewerApp:
         self.rgb_image.image = _panel_image(r.rgb[i])
         self.depth_image.image = _panel_image(colorize_depth(r.depth_m[i], *self.layer.depth_limits))
         self.normal_image.image = _panel_image(colorize_normals(r.normal_cam[i]))
+        schedule = scene_schedule(r.metadata)
+        self.timeline_md.content = "" if schedule is None else timeline_markdown(schedule, t, self.num_frames)
         if self.metrics_md is not None:
             rows = self._metrics or []
             self.metrics_md.content = format_metrics(rows[t] if t < len(rows) else None, t)
@@ -468,11 +474,13 @@ class ViewerApp:
         print("viewer: stopping the generation at its next step", file=sys.stderr, flush=True)
         thread.join(timeout=GENERATION_STOP_WAIT_S)
 
-    def _progress(self, fraction: float, message: str) -> None:
+    def _progress(self, fraction: float, message: str, rgb: np.ndarray | None = None) -> None:
         if self._cancel.is_set():
             raise GenerationCancelled()
         self.progress_bar.value = float(np.clip(100.0 * fraction, 0.0, 100.0))
         self.status_md.content = f"Generating: {message}"
+        if rgb is not None:  # streaming: the newest decoded frame, before the whole future is reconstructed
+            self.rgb_image.image = _panel_image(rgb)
 
     def _run_generation(self, instruction: str, seed: int, steps: int) -> None:
         self.generate_button.disabled = True

@@ -2,7 +2,8 @@
 
 :func:`model_generator` returns a ``generate(instruction, seed, steps, progress) -> Recon4D``
 callable (see ``viewer.app.Generator``) that conditions the model on frame 0 of the loaded
-source. The model loads on the first click, not at start-up.
+source. The model loads on the first click, not at start-up. A future longer than one clip streams:
+each clip's last frame goes to ``progress`` as its third argument as soon as the clip is decoded.
 """
 
 from __future__ import annotations
@@ -44,10 +45,19 @@ def model_generator(checkpoint: str | os.PathLike, source: Recon4D,
         first = first_frame_episode(source)
         # A source of one frame (a first frame alone) gets the model's own clip length.
         num_frames = source.num_frames if source.num_frames > 1 else None
-        pred = predict_episode(
-            cache["pipeline"], first, instruction, num_frames=num_frames, seed=seed, num_steps=steps,
-            progress=lambda step, total: progress(PREDICT_SHARE * step / max(total, 1), denoising_message(step, total, steps)),
-        )
+        done = [0.0]  # the share of the denoising finished, for the streamed frames' progress line
+
+        def step_done(step: int, total: int) -> None:
+            done[0] = PREDICT_SHARE * step / max(total, 1)
+            progress(done[0], denoising_message(step, total, steps))
+
+        def clip_done(k: int, so_far) -> None:  # streaming: show each clip's last frame as it is decoded
+            cam = next(iter(so_far.cameras.values()))
+            progress(done[0], f"clip {k + 1} decoded: frames 0–{so_far.num_frames - 1}", cam.rgb[-1])
+
+        long_future = num_frames is not None and num_frames > cache["pipeline"].num_frames  # more than one clip
+        pred = predict_episode(cache["pipeline"], first, instruction, num_frames=num_frames, seed=seed, num_steps=steps,
+                               progress=step_done, on_clip=clip_done if long_future else None)
         progress(PREDICT_SHARE, "reconstructing the 4D point cloud")
         recon = reconstruct_episode(pred, config=ReconConfig(), objects_from=first)  # objects named as in the source
         recon.metadata.update({"instruction": instruction, "sample_seed": seed, "steps": steps})

@@ -28,11 +28,18 @@ resolution and its prediction back; every metric is taken at the data's resoluti
 draw decides much of an instruction's outcome, so compare checkpoints on several. Writes
 report.json and report.md (every row explained in docs/evaluation.md) to --out.
 
+With --horizon, --heldout is scored for drift over long rollouts: every episode is predicted at its
+own length (a chained episode clip by clip with its instruction schedule) and the model and the
+static world are scored frame by frame (moving-region PSNR, depth AbsRel, object permanence, the
+object layer's position error), with the first clip's frames set against the last as many frames;
+writes horizon.json, horizon.md and horizon.png (the curves) to --out.
+
 Examples:
   tesseract4d evaluate out/recon --gt data/test/episodes/PickCube-v1/seed_100000.h5 --json out/report.json
   tesseract4d evaluate --heldout data/heldout --out outputs/heldout_eval      # the shipped default (v2-2step)
   tesseract4d evaluate --heldout data/heldout_groups --checkpoint tesseract4d/checkpoints/v2 \\
       --checkpoint tesseract4d/checkpoints/v2-2step --sample-seed 0 1 2 --out outputs/heldout_compare
+  tesseract4d evaluate --horizon --heldout data/heldout_chained --out outputs/horizon
 """
 
 from __future__ import annotations
@@ -116,6 +123,13 @@ def add_heldout_arguments(parser: argparse.ArgumentParser, full: bool = False) -
                       help=f"held-out dataset folder (datagen --seed-start {HELDOUT_SEED_START} --instruction-split heldout)")
     held.add_argument("--out", type=Path, help="folder for report.json and report.md")
     if full:
+        held.add_argument("--horizon", action="store_true",
+                          help="score drift instead: every episode predicted at its own length (with its instruction "
+                               "schedule), per-frame curves of the model and the static world; writes horizon.json, "
+                               "horizon.md and horizon.png to --out")
+    else:
+        parser.set_defaults(horizon=False)
+    if full:
         held.add_argument("--steps", type=whole(1),
                           help="sampler steps of every checkpoint (default: each checkpoint preset's own, e.g. 2 for a "
                                "distilled student beside 10 for its teacher)")
@@ -172,6 +186,30 @@ def _is_episode_report(path: Path) -> bool:
     return isinstance(d, dict) and {"pred", "gt", "num_frames"} <= set(d)
 
 
+def run_horizon(args: argparse.Namespace) -> int:
+    from tesseract4d.errors import UserError
+    from tesseract4d.evaluation.horizon import HorizonConfig, evaluate_horizon, format_markdown, write_horizon_report
+    from tesseract4d.outputs import OutputDir
+
+    checkpoints = args.checkpoint if isinstance(args.checkpoint, list) else [args.checkpoint]
+    if len(checkpoints) != 1 or len(args.sample_seed) != 1:
+        raise UserError("--horizon scores one --checkpoint with one --sample-seed; run it once per checkpoint")
+    output = None if args.out is None else OutputDir(args.out, "evaluate", inputs=[*checkpoints, args.heldout],
+                                                     overwrite=args.overwrite)
+    options = _options(args)
+    cfg = HorizonConfig(checkpoint=checkpoints[0], data=args.heldout, camera=args.camera, sample_seed=args.sample_seed[0],
+                        num_steps=args.steps, batch_size=options.batch_size, max_episodes=args.max_per_task,
+                        precision=options.precision, max_depth_m=options.max_depth, text_guidance=options.text_guidance)
+    report = evaluate_horizon(cfg)
+    if output is not None:
+        with output as stage:
+            write_horizon_report(report, stage)
+    print(format_markdown(report))
+    if args.out:
+        print(f"wrote {args.out / 'horizon.json'}, {args.out / 'horizon.md'} and {args.out / 'horizon.png'}")
+    return 0
+
+
 def run_heldout(args: argparse.Namespace) -> int:
     from tesseract4d.evaluation.heldout import HeldoutConfig, evaluate_heldout, format_markdown, write_heldout_report
 
@@ -203,10 +241,13 @@ def run(args: argparse.Namespace) -> int:
     from tesseract4d.dataset_format import read_episode, resolve_episode
     from tesseract4d.errors import UserError
 
+    if args.horizon and args.heldout is None:
+        raise UserError("--horizon scores a held-out dataset: give --heldout DIR (e.g. chained episodes from "
+                        "`datagen --set chain_skills=4 --frames 64`) and --out")
     if args.heldout is not None:
         if args.pred is not None:
             raise UserError("held-out evaluation takes --heldout DIR [--checkpoint CKPT] (and no PRED)")
-        return run_heldout(args)
+        return run_horizon(args) if args.horizon else run_heldout(args)
     if args.pred is None or args.gt is None:
         raise UserError("give PRED --gt EPISODE, or --checkpoint CKPT --heldout DIR; see `tesseract4d evaluate --help`")
 

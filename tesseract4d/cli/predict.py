@@ -14,6 +14,10 @@ refused with the sizes that work.
   tesseract4d predict --checkpoint runs/tiny/final --task PickCube-v1 --seed 100000 \\
       --instruction "pick up the red cube" --out out/pred
 
+A chained --episode (datagen `--set chain_skills=N`) is predicted with its instruction schedule and
+length: each clip of the rollout gets the words of the segment it continues; `--set schedule=...`
+gives a schedule of your own. Each clip's time is printed as it is decoded.
+
 Writes OUT as a dataset folder (episodes/<env>/seed_*.h5 + previews/*.mp4), one folder per sample
 (OUT/sample_XX) with --num-samples > 1, and OUT/predict_config.json.
 """
@@ -24,6 +28,7 @@ import argparse
 import dataclasses
 import json
 import sys
+import time
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -51,7 +56,12 @@ class PredictConfig:
     normal: Path | None = None
     out: Path = Path("prediction")
     num_frames: int | None = knob(None, "frames to predict; more than one clip continues autoregressively "
-                                        "(none: one clip, the checkpoint preset's length)")
+                                        "(none: one clip, the checkpoint preset's length; a chained --episode's "
+                                        "length when it has a schedule)")
+    schedule: str | None = knob(None, "instructions by frame, 'FRAME:WORDS;FRAME:WORDS' from frame 0, e.g. "
+                                      "'0:push the red cube left;30:lift the blue cylinder': each clip of a long "
+                                      "rollout gets the words of the segment it continues (none: a chained "
+                                      "--episode's own schedule, unless --instruction is given)")
     steps: int | None = None  # None: the checkpoint preset's
     draws: int | None = knob(None, "noise draws per sample, the one whose objects keep their colours best kept; N "
                                    "times the sampling (none: the checkpoint preset's; 1 = a single draw)")
@@ -224,6 +234,19 @@ def _input_paths(cfg: PredictConfig) -> list:
     return paths
 
 
+def _schedule_and_instruction(cfg: PredictConfig, first) -> tuple[list | None, str | None]:
+    """The instruction schedule (``--set schedule``, else a chained episode's own unless --instruction
+    is given) and the episode's one instruction."""
+    from tesseract4d.instruction_schedule import chained_instruction, parse_schedule, schedule_of
+
+    if cfg.schedule is not None:
+        schedule = parse_schedule(cfg.schedule)
+        return schedule, cfg.instruction or chained_instruction([s.instruction for s in schedule])
+    if cfg.instruction is not None:
+        return None, cfg.instruction
+    return schedule_of(first.metadata), first.instruction
+
+
 def run(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
@@ -236,13 +259,18 @@ def run(args: argparse.Namespace) -> int:
     check_device(cfg.device)
     output = OutputDir(cfg.out, "predict", inputs=_input_paths(cfg), overwrite=args.overwrite)
     pipe = load_pipeline(cfg.checkpoint, device=cfg.device, precision=cfg.precision)
+    frames_given = cfg.num_frames is not None
     # The resolved config: frames and steps the checkpoint's preset gives when not set.
     cfg = dataclasses.replace(cfg, num_frames=cfg.num_frames or pipe.num_frames, steps=cfg.steps or pipe.preset.num_steps,
                               draws=pipe.preset.draws if cfg.draws is None else cfg.draws)
     first = load_first_frame(cfg, pipe.resolution, pipe.camera_name)
-    instruction = cfg.instruction if cfg.instruction is not None else first.instruction
-    if isinstance(instruction, str) and (note := instruction_budget_note(pipe, instruction.strip())):
-        print(note, file=sys.stderr)
+    schedule, instruction = _schedule_and_instruction(cfg, first)
+    if schedule is not None and not frames_given and schedule[-1].frame_end is not None:
+        cfg = dataclasses.replace(cfg, num_frames=schedule[-1].frame_end + 1)  # the chained episode's own length
+    # The words that reach the model: each segment's with a schedule, else the one instruction.
+    for words in ([s.instruction for s in schedule] if schedule is not None else [instruction]):
+        if isinstance(words, str) and (note := instruction_budget_note(pipe, words.strip())):
+            print(note, file=sys.stderr)
     bars = []  # made at the first step, so that a first frame refused before sampling leaves no empty bar
 
     def progress(step: int, total: int) -> None:
@@ -251,9 +279,16 @@ def run(args: argparse.Namespace) -> int:
         bars[0].total = total
         bars[0].update(step - bars[0].n)
 
+    started = time.perf_counter()
+
+    def clip_done(k: int, so_far) -> None:  # streaming: each clip's frames are final once it is decoded
+        tqdm.write(f"clip {k + 1}: frames 0-{so_far.num_frames - 1} ready after {time.perf_counter() - started:.2f} s",
+                   file=sys.stderr)  # above the progress bar
+
     episodes = predict_episodes(pipe, first, instruction, num_samples=cfg.num_samples, num_frames=cfg.num_frames,
                                 seed=cfg.sample_seed, num_steps=cfg.steps, text_guidance=cfg.text_guidance,
-                                image_guidance=cfg.image_guidance, progress=progress, draws=cfg.draws)
+                                image_guidance=cfg.image_guidance, progress=progress, draws=cfg.draws,
+                                schedule=schedule, on_clip=clip_done if cfg.num_frames > pipe.num_frames else None)
     for bar in bars:
         bar.close()
     if resized := episodes[0].metadata["prediction"].get("first_frame_resized_from"):

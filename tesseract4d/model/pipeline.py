@@ -13,7 +13,9 @@ change from its frame 0, the given first frame's own pixels are put back, so the
 scene is shown as given instead of as the decoder redraws it.
 
 Clips longer than the preset's clip continue autoregressively: each next clip is conditioned on the
-last frame predicted so far.
+last frame predicted so far. An instruction schedule gives each clip its own words (``clip_instructions``,
+see tesseract4d/instruction_schedule.py), and ``on_clip`` receives each clip's new frames as soon as
+it is decoded (streaming).
 """
 
 from __future__ import annotations
@@ -22,6 +24,7 @@ from typing import Callable
 
 import torch
 
+from tesseract4d.instruction_schedule import clip_new_frames
 from tesseract4d.model.codec import make_condition
 from tesseract4d.model.presets import ModelPreset
 from tesseract4d.model.static_composite import composite_static
@@ -188,6 +191,8 @@ class RGBDNPipeline:
         latents: torch.Tensor | None = None,
         output_type: str = "clip",
         start: tuple[torch.Tensor, float] | None = None,
+        clip_instructions: list[list[str]] | None = None,
+        on_clip: Callable[[int, torch.Tensor], None] | None = None,
     ) -> torch.Tensor:
         """Sample a batch of clips.
 
@@ -208,6 +213,12 @@ class RGBDNPipeline:
         as a true future through ``codec.encode``, and a noise level 0 < sigma ≤ 1): the sampler begins
         at its first noise level ``s`` ≤ sigma (its last, if none is) from ``(1 - s) clips + s noise``
         and runs only the steps from there; how much of a right future the network keeps.
+        clip_instructions: per clip of the rollout (``instruction_schedule.clip_new_frames``), one
+        instruction per sample: clip k is sampled with ``clip_instructions[k]`` (an instruction
+        schedule); default: ``instructions`` for every clip.
+        on_clip: called as ``on_clip(k, frames)`` once clip k is decoded, with the frames it adds to
+        the rollout, (b, n, 7, H, W) on the CPU (frame 0 included for clip 0): frames can be shown or
+        written while the next clip is sampled.
         Returns (b, num_frames, 7, H, W) model-space clips; frame 0 is the model's reconstruction
         of the first frame (the first frame itself with static compositing on).
         """
@@ -234,30 +245,41 @@ class RGBDNPipeline:
             raise ValueError("output_type='latent' returns exactly one clip; leave num_frames at the preset's")
         if start is not None and (num_frames != p.num_frames or not 0.0 < float(start[1]) <= 1.0):
             raise ValueError("start needs exactly one clip (num_frames at the preset's) and a noise level in (0, 1]")
+        new_frames = clip_new_frames(num_frames, p.num_frames)
+        if clip_instructions is not None:
+            if len(clip_instructions) != len(new_frames) or any(len(c) != b for c in clip_instructions):
+                raise ValueError(f"clip_instructions must hold {len(new_frames)} clips of {b} instructions each")
+            if output_type == "latent" or start is not None:
+                raise ValueError("clip_instructions schedule a rollout of decoded clips; not with output_type='latent' "
+                                 "or start")
         generator = generator if generator is not None else torch.Generator().manual_seed(0)
 
-        # 2. Encode the instructions (cached per instruction).
+        # 2. Encode the instructions (cached per instruction): one text batch per clip.
         text = self.text_encoder.encode(list(instructions)).to(self.device)
         null_text = torch.zeros_like(text)
+        texts = [text] * len(new_frames)
+        if clip_instructions is not None:
+            texts = [self.text_encoder.encode(list(words)).to(self.device) for words in clip_instructions]
 
         if output_type == "latent":
             return self._denoise_clip(first_frame.float(), text, null_text, num_steps, text_guidance, image_guidance,
                                       generator, progress, 0, num_steps, latents=latents,
                                       guidance_min_sigma=guidance_min_sigma, start=start).cpu()
 
-        # 3. Sample clip after clip, each conditioned on the last frame so far.
-        clip_len = p.num_frames
-        num_clips = 1 if num_frames <= clip_len else 1 + -(-(num_frames - clip_len) // (clip_len - 1))
+        # 3. Sample clip after clip, each conditioned on the last frame so far, with its words.
+        num_clips = len(new_frames)
         total = num_clips * num_steps
         frames = []
         current = first_frame.float()
         for k in range(num_clips):
-            clip = self._sample_clip(current, text, null_text, num_steps, text_guidance, image_guidance,
+            clip = self._sample_clip(current, texts[k], null_text, num_steps, text_guidance, image_guidance,
                                      generator, progress, k * num_steps, total,
                                      latents=latents if k == 0 else None,
                                      guidance_min_sigma=guidance_min_sigma, start=start,
                                      static_tolerance=static_tolerance).cpu()
-            frames.append(clip if k == 0 else clip[:, 1:])
+            frames.append(clip[:, :len(new_frames[k]) + 1] if k == 0 else clip[:, 1:len(new_frames[k]) + 1])
+            if on_clip is not None:
+                on_clip(k, frames[-1])
             current = clip[:, -1]
         # 4. Stitch the clips.
         return torch.cat(frames, dim=1)[:, :num_frames]

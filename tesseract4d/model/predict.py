@@ -13,6 +13,12 @@ A checkpoint whose preset has ``draws`` N > 1 predicts every future from N noise
 one whose objects keep their colours best (draw_choice.py; ``draws=`` overrides the preset); the
 kept draw and every draw's score are in the episode's ``metadata["prediction"]["draws"]``.
 
+An instruction schedule (``schedule=``, tesseract4d/instruction_schedule.py; a chained episode's own)
+gives each clip of a long rollout the words of the segment it continues; the predicted episode keeps
+the schedule in ``metadata["instruction_schedule"]`` and the words each clip got in
+``metadata["prediction"]["clip_instructions"]``. ``on_clip(k, episode_so_far)`` receives the rollout
+as each clip is decoded (streaming).
+
 A first frame at a whole multiple or divisor of the model's resolution (256² or 64² for a 128² model)
 is resized to it with its K (resize.py) and predicted there; ``metadata["prediction"]["first_frame_resized_from"]``
 keeps its size.
@@ -30,6 +36,7 @@ import torch
 
 from tesseract4d import dataset_format as df
 from tesseract4d.errors import UserError
+from tesseract4d.instruction_schedule import SCHEDULE_KEY, Segment, check_schedule, clip_instructions, clip_new_frames
 from tesseract4d.precision import announce, resolve_precision
 from tesseract4d.resize import episode_at_resolution, resize_factor
 from tesseract4d.model.model_space import ModelSpace
@@ -110,16 +117,18 @@ def predict_episode(
     camera: str | None = None,
     progress: Callable[[int, int], None] | None = None,
     draws: int | None = None,
+    schedule: list[Segment] | None = None,
+    on_clip: Callable[[int, df.Episode], None] | None = None,
 ) -> df.Episode:
     """Predict ``num_frames`` RGB-D-N frames from frame 0 of ``first_frame`` (its first camera, or
     ``camera``) and ``instruction``. Frames (one clip), sampler steps and guidance scales default to
-    the checkpoint's preset.
+    the checkpoint's preset. ``schedule``/``on_clip``: see the module docstring.
 
     Raises UserError for an empty instruction or a first frame whose resolution is not the model's.
     """
     episodes = predict_episodes(pipeline, first_frame, instruction, num_samples=1, num_frames=num_frames, seed=seed,
                                 num_steps=num_steps, text_guidance=text_guidance, image_guidance=image_guidance,
-                                camera=camera, progress=progress, draws=draws)
+                                camera=camera, progress=progress, draws=draws, schedule=schedule, on_clip=on_clip)
     return episodes[0]
 
 
@@ -146,17 +155,22 @@ def predict_episodes(
     camera: str | None = None,
     progress: Callable[[int, int], None] | None = None,
     draws: int | None = None,
+    schedule: list[Segment] | None = None,
+    on_clip: Callable[[int, df.Episode], None] | None = None,
 ) -> list[df.Episode]:
     """``num_samples`` different predictions of the same first frame, sampled as one batch from the
-    generator seeded with ``seed`` (same arguments, same episodes); each the best of ``draws``."""
+    generator seeded with ``seed`` (same arguments, same episodes); each the best of ``draws``.
+    ``schedule``: the instructions by frame (then ``instruction`` is the episode's one line);
+    ``on_clip(k, episode)``: the first sample's rollout up to clip k, as each clip is decoded (with
+    several draws, the first draw's)."""
     num_frames, num_steps = _check_sampling(pipeline, num_frames, num_steps, num_samples)
-    scenes = [_scene(pipeline, first_frame, instruction, camera)] * num_samples
+    scenes = [_scene(pipeline, first_frame, instruction, camera, schedule)] * num_samples
 
     def draw(k: int, step_progress) -> list[df.Episode]:
         return _predict_batch(pipeline, scenes, list(range(num_samples)), num_frames=num_frames,
                               num_steps=num_steps, text_guidance=text_guidance, image_guidance=image_guidance,
                               seed=seed, generator=torch.Generator().manual_seed(draw_noise_seed(seed, k)),
-                              progress=step_progress)
+                              progress=step_progress, on_clip=on_clip if k == 0 else None)
 
     return _best_of_draws(pipeline, scenes, draw, draws, progress)
 
@@ -225,8 +239,10 @@ def predict_scenes(
     start_clips: list[torch.Tensor] | None = None,
     start_sigma: float | None = None,
     draws: int | None = None,
+    schedules: list[list[Segment] | None] | None = None,
 ) -> list[df.Episode]:
-    """One prediction per scene (``first_frames[i]`` with ``instructions[i]``), ``batch_size`` scenes
+    """One prediction per scene (``first_frames[i]`` with ``instructions[i]``, clip by clip the words of
+    ``schedules[i]`` when given and not None), ``batch_size`` scenes
     per network call (default :data:`DEFAULT_SCENE_BATCH`): the throughput path for evaluations.
     ``start_clips`` (one (1, t', c, h, w) clean clip per scene in the network's space) and
     ``start_sigma``: the pipeline's ``start`` diagnostic, each scene from its own clip.
@@ -249,7 +265,11 @@ def predict_scenes(
     if batch_size < 1:
         raise UserError(f"--batch-size must be at least 1, got {batch_size}")
     num_frames, num_steps = _check_sampling(pipeline, num_frames, num_steps, 1)
-    scenes = [_scene(pipeline, f, i, camera) for f, i in zip(first_frames, instructions)]
+    if schedules is not None and len(schedules) != len(first_frames):
+        raise UserError(f"{len(schedules)} instruction schedules for {len(first_frames)} scenes; give one per scene "
+                        f"(None for a scene with one instruction)")
+    scenes = [_scene(pipeline, f, i, camera, None if schedules is None else schedules[j])
+              for j, (f, i) in enumerate(zip(first_frames, instructions))]
     num_batches = -(-len(scenes) // batch_size)
     noise_shape = pipeline.latent_shape(1)  # (1, t', c, h, w); asks the codec once, not per scene
     scene_seeds = [int(seed) * 1_000_003 + i if noise_seeds is None else int(noise_seeds[i]) for i in range(len(scenes))]
@@ -288,7 +308,7 @@ def _best_of_draws(pipeline: RGBDNPipeline, scenes: list, draw: Callable, draws:
                                             cam.seg_id_to_name)
         return found[id(cam)]
 
-    windows = [windows_of(cam) for _, _, _, cam, _ in scenes] if draws > 1 else []
+    windows = [windows_of(cam) for _, _, _, cam, _, _ in scenes] if draws > 1 else []
     if not any(windows):
         draws = 1
     candidates = []
@@ -300,7 +320,7 @@ def _best_of_draws(pipeline: RGBDNPipeline, scenes: list, draw: Callable, draws:
     if draws == 1:
         return candidates[0]
     out = []
-    for i, (_, _, cam_name, _, _) in enumerate(scenes):
+    for i, (_, _, cam_name, _, _, _) in enumerate(scenes):
         kept, scores = choose(windows[i], [c[i].cameras[cam_name].rgb for c in candidates])
         episode = candidates[kept][i]
         episode.metadata["prediction"]["draws"] = {"count": draws, "kept": kept, "objects_kept": scores}
@@ -316,8 +336,12 @@ def _check_sampling(pipeline: RGBDNPipeline, num_frames, num_steps, num_samples)
     return num_frames, num_steps
 
 
-def _scene(pipeline: RGBDNPipeline, first_frame: df.Episode, instruction: str, camera: str | None):
-    """(first-frame episode, instruction, camera name, its frames, model-space frame 0 (1, 7, H, W))."""
+def _scene(pipeline: RGBDNPipeline, first_frame: df.Episode, instruction: str, camera: str | None,
+           schedule: list[Segment] | None = None):
+    """(first-frame episode, instruction, camera name, its frames, model-space frame 0 (1, 7, H, W),
+    instruction schedule or None)."""
+    if schedule is not None:
+        check_schedule(schedule)
     if not isinstance(instruction, str) or not instruction.strip():
         raise UserError("the instruction is empty; say what should happen, e.g. --instruction \"pick up the red cube\"")
     cam_name, cam = _first_frame_arrays(first_frame, camera)
@@ -333,19 +357,50 @@ def _scene(pipeline: RGBDNPipeline, first_frame: df.Episode, instruction: str, c
         first_frame = dataclasses.replace(first_frame, metadata={**first_frame.metadata, RESIZED_FROM: [h, w]})
         cam = first_frame.cameras[cam_name]
     x = pipeline.model_space.encode(cam.rgb[:1], cam.depth_m[:1], cam.normal_cam[:1])  # (1, 7, H, W)
-    return first_frame, instruction.strip(), cam_name, cam, x
+    return first_frame, instruction.strip(), cam_name, cam, x, schedule
+
+
+def _clip_words(pipeline: RGBDNPipeline, scenes: list, num_frames: int) -> list[list[str]] | None:
+    """Per clip of the rollout, each scene's words (its schedule's, else its instruction); None when
+    no scene has a schedule."""
+    if all(s[5] is None for s in scenes):
+        return None
+    num_clips = len(clip_new_frames(num_frames, pipeline.num_frames))
+    per_scene = [[s[1]] * num_clips if s[5] is None else clip_instructions(s[5], num_frames, pipeline.num_frames)
+                 for s in scenes]
+    return [list(words) for words in zip(*per_scene)]
 
 
 def _predict_batch(pipeline: RGBDNPipeline, scenes: list, sample_indices: list[int], *, num_frames: int,
                    num_steps: int, text_guidance, image_guidance, seed: int, generator: torch.Generator,
-                   latents: torch.Tensor | None = None, progress=None, start=None) -> list[df.Episode]:
-    """One pipeline call for the given scenes (from :func:`_scene`), returned as predicted episodes."""
+                   latents: torch.Tensor | None = None, progress=None, start=None,
+                   on_clip: Callable[[int, df.Episode], None] | None = None) -> list[df.Episode]:
+    """One pipeline call for the given scenes (from :func:`_scene`), returned as predicted episodes.
+    ``on_clip(k, episode)``: the first scene's rollout so far, after each decoded clip."""
     x = torch.cat([s[4] for s in scenes])  # (n, 7, H, W)
+    clip_words = _clip_words(pipeline, scenes, num_frames)
+    decoded: list[torch.Tensor] = []
+
+    def stream(k: int, frames: torch.Tensor) -> None:  # frames (n, t_k, 7, H, W)
+        decoded.append(frames[:1])
+        so_far = torch.cat(decoded, dim=1)[0]  # (t, 7, H, W)
+        on_clip(k, _episodes(pipeline, scenes[:1], so_far[None], [sample_indices[0]], num_steps, text_guidance,
+                             image_guidance, seed, start, clip_words)[0])
+
     clips = pipeline(x, [s[1] for s in scenes], num_frames=num_frames, num_inference_steps=num_steps,
                      text_guidance=text_guidance, image_guidance=image_guidance, generator=generator,
-                     progress=progress, latents=latents, start=start)  # (n, T, 7, H, W)
+                     progress=progress, latents=latents, start=start, clip_instructions=clip_words,
+                     on_clip=None if on_clip is None else stream)  # (n, T, 7, H, W)
+    return _episodes(pipeline, scenes, clips, sample_indices, num_steps, text_guidance, image_guidance, seed, start,
+                     clip_words)
+
+
+def _episodes(pipeline: RGBDNPipeline, scenes: list, clips: torch.Tensor, sample_indices: list[int], num_steps: int,
+              text_guidance, image_guidance, seed: int, start, clip_words: list[list[str]] | None) -> list[df.Episode]:
+    """Model-space clips (n, T, 7, H, W) of ``scenes`` as predicted episodes."""
+    num_frames = clips.shape[1]
     out = []
-    for k, (first_frame, instruction, cam_name, cam, _) in enumerate(scenes):
+    for k, (first_frame, instruction, cam_name, cam, _, schedule) in enumerate(scenes):
         rgb, depth_m, normal_cam = pipeline.model_space.decode(clips[k])
         # Frame 0 is the given first frame, exactly.
         rgb[0], depth_m[0], normal_cam[0] = cam.rgb[0], cam.depth_m[0], cam.normal_cam[0]
@@ -365,7 +420,8 @@ def _predict_batch(pipeline: RGBDNPipeline, scenes: list, sample_indices: list[i
                 **({RESIZED_FROM: first_frame.metadata[RESIZED_FROM]} if RESIZED_FROM in first_frame.metadata else {}),
                 "depth_range_m": [pipeline.model_space.near_m, pipeline.model_space.far_m],
                 "training": pipeline.config.get("training"),
-            }},
+                **({} if schedule is None else {"clip_instructions": [words[k] for words in clip_words]}),
+            }, **({} if schedule is None else {SCHEDULE_KEY: [seg.to_dict() for seg in schedule]})},
         ))
     return out
 

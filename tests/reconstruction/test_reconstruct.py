@@ -118,6 +118,18 @@ def test_no_refine_is_plain_back_projection(scene):
     assert calls[-1] == (len(STAGES), len(STAGES)) and len(calls) == len(STAGES)
 
 
+def test_a_chained_episodes_schedule_is_kept_for_the_viewer(scene, tmp_path):
+    import dataclasses
+
+    from tesseract4d.instruction_schedule import SCHEDULE_KEY, Segment
+
+    schedule = [Segment("push it", 0, 4).to_dict(), Segment("lift it", 4, len(scene.frame_steps) - 1).to_dict()]
+    chained = dataclasses.replace(scene, metadata={**scene.metadata, SCHEDULE_KEY: schedule})
+    recon = reconstruct_episode(chained, config=ReconConfig(refine=False, fuse_background=False))
+    assert Recon4D.load(recon.save(tmp_path / "recon", write_ply=False)).metadata[SCHEDULE_KEY] == schedule
+    assert SCHEDULE_KEY not in reconstruct_episode(scene, config=ReconConfig(refine=False, fuse_background=False)).metadata
+
+
 def test_clean_depth_stays_close(scene):
     """Refining exact depth must not damage it much (the normals agree with it)."""
     report = evaluate_episode(reconstruct_episode(scene, config=ReconConfig(fuse_background=False)), scene)["mean"]

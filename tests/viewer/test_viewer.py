@@ -388,3 +388,57 @@ def test_generate_from_a_first_frame_alone_predicts_the_models_clip(tmp_path):
     assert recon.num_frames == info["num_frames"] == 16
     # One step asked for; the analytic scene's plain box stands out by no colour, so one draw is sampled.
     assert "denoising step 1/1" in messages and messages[-1] == "reconstructing the 4D point cloud"
+
+
+def test_a_chained_scene_shows_its_instruction_timeline():
+    from tesseract4d.instruction_schedule import SCHEDULE_KEY, Segment
+    from viewer.app import ViewerApp
+
+    recon = recon_from_episode(analytic_episode(num_frames=7, height=32, width=32, seed=1))
+    recon.metadata[SCHEDULE_KEY] = [Segment("push the red cube left", 0, 3).to_dict(),
+                                    Segment("lift the blue cylinder", 3, 6).to_dict()]
+    with ViewerApp(recon, port=0) as app:
+        lines = app.timeline_md.content.split("  \n")
+        assert lines == ["▶ **1. push the red cube left (frames 0–3)**", "2. lift the blue cylinder (frames 3–6)"]
+        app.frame_slider.value = 3  # the boundary frame ends the first segment
+        assert app.timeline_md.content.startswith("▶ **1.")
+        app.frame_slider.value = 4
+        assert app.timeline_md.content.split("  \n")[1] == "▶ **2. lift the blue cylinder (frames 3–6)**"
+    plain = recon_from_episode(analytic_episode(num_frames=3, height=32, width=32, seed=1))
+    with ViewerApp(plain, port=0) as app:
+        assert app.timeline_md.content == ""
+
+
+def test_a_streaming_generator_shows_each_decoded_frame_at_once():
+    from viewer.app import ViewerApp
+
+    shown = []
+
+    def generate(instruction, seed, steps, progress):
+        for k, colour in enumerate(([200, 30, 30], [30, 30, 200])):
+            progress(0.4 * (k + 1), f"clip {k + 1} decoded", np.full((32, 32, 3), colour, np.uint8))
+            shown.append((np.asarray(app.rgb_image.image).reshape(-1, 3).mean(0), app.status_md.content))
+        return recon_from_episode(analytic_episode(num_frames=3, height=32, width=32, instruction=instruction))
+
+    with ViewerApp(recon_from_episode(analytic_episode(num_frames=3, height=32, width=32)), port=0,
+                   generate=generate) as app:
+        app._run_generation("push the box", 0, 1)
+    assert [tuple(np.round(c).astype(int)) for c, _ in shown] == [(200, 30, 30), (30, 30, 200)]
+    assert shown[1][1] == "Generating: clip 2 decoded"
+
+
+def test_generate_streams_a_long_future_clip_by_clip():
+    """The shipped checkpoint on a 17-frame source predicts two clips and hands each one's last frame
+    to the progress callback as soon as it is decoded."""
+    from tesseract4d.model.checkpoint import SHIPPED_CHECKPOINT, read_inference_config
+    from viewer.generate import model_generator
+
+    h, w = read_inference_config(SHIPPED_CHECKPOINT)["resolution"]
+    source = recon_from_episode(analytic_episode(num_frames=17, height=h, width=w))
+    streamed = []
+    recon = model_generator(SHIPPED_CHECKPOINT, source)(
+        "push the box to the left", 0, 1, lambda f, m, rgb=None: streamed.append((m, rgb)) if rgb is not None else None)
+    assert recon.num_frames == 17
+    assert [m for m, _ in streamed] == ["clip 1 decoded: frames 0–15", "clip 2 decoded: frames 0–16"]
+    assert all(rgb.shape == (h, w, 3) and rgb.dtype == np.uint8 for _, rgb in streamed)
+    np.testing.assert_array_equal(streamed[-1][1], recon.rgb[-1])  # the last streamed frame is the future's last
