@@ -24,7 +24,8 @@ from dataclasses import dataclass
 import numpy as np
 
 MOVED_M = 0.02  # an object moving less than this over the clip counts as still
-LIFT_M = 0.03  # raised at least this far above its start: lifted
+LIFT_M = 0.03  # raised at least this far above its start ...
+LIFT_FRAMES = 2  # ... in this many frames in a row: lifted
 ON_XY_M = 0.03  # stacked: centres this close in the table plane at the end ...
 ON_DZ_M = (0.015, 0.08)  # ... and its origin this much higher than the other's
 
@@ -62,7 +63,9 @@ def read_goal(layer, up=(0.0, 0.0, 1.0)) -> Goal:
     p = tr.positions_world()
     disp = p[-1] - p[0]
     rise = (p - p[0]) @ up  # (T,)
-    lifted = bool(rise.max() >= LIFT_M)
+    # lifted: up for at least LIFT_FRAMES frames in a row (one frame's rise is a predicted clip's noise)
+    up_run = np.convolve((rise >= LIFT_M).astype(int), np.ones(LIFT_FRAMES, int), mode="valid")
+    lifted = bool(len(up_run) and up_run.max() >= LIFT_FRAMES)
     on = None
     for other in layer.tracks:
         if other.name == name:
@@ -72,7 +75,7 @@ def read_goal(layer, up=(0.0, 0.0, 1.0)) -> Goal:
         dz = float(gap @ up)
         if np.linalg.norm(gap - dz * up) <= ON_XY_M and ON_DZ_M[0] <= dz <= ON_DZ_M[1]:
             on = other.name
-    held = on is None and bool(rise[-1] >= LIFT_M)
+    held = on is None and lifted and bool(rise[-1] >= LIFT_M)
     if on is not None:
         skill = "stack"
     elif held:

@@ -80,3 +80,10 @@ def test_the_instructed_object_wins_when_it_moves_even_if_another_moves_more():
     assert read_goal(layer).target == "b"
     layer.instructed = None
     assert read_goal(layer).target == "a"
+
+
+def test_a_rise_in_one_frame_only_is_noise_not_a_lift():
+    p = path([0, 0, 0.02], [0.1, 0, 0.02])
+    p[8, 2] += 0.04
+    goal = read_goal(ObjectLayer([track("cube", p)], source="test"))
+    assert goal.skill == "push" and not goal.lifted
