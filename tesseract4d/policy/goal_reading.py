@@ -3,7 +3,7 @@
 From the object layer of a clip that starts at the current observation (frame 0 = now;
 :class:`reconstruction.objects.ObjectLayer`), :func:`read_goal` finds the object the future moves (the
 instructed one when it moves, else the one that moves most), where it ends (its displacement, world
-metres), whether it was lifted on the way (``lifted``) or is still up at the end (``held_at_end``), and
+metres), whether it was lifted on the way (``lifted``: up in two frames in a row, or at the end) or is still up at the end (``held_at_end``), and
 for stacking, on what it ends: another object under it at the end (centres within ``ON_XY_M`` in the
 table plane, its origin ``ON_DZ_M`` higher). The skill follows from those:
 
@@ -65,7 +65,7 @@ def read_goal(layer, up=(0.0, 0.0, 1.0)) -> Goal:
     rise = (p - p[0]) @ up  # (T,)
     # lifted: up for at least LIFT_FRAMES frames in a row (one frame's rise is a predicted clip's noise)
     up_run = np.convolve((rise >= LIFT_M).astype(int), np.ones(LIFT_FRAMES, int), mode="valid")
-    lifted = bool(len(up_run) and up_run.max() >= LIFT_FRAMES)
+    lifted = bool(len(up_run) and up_run.max() >= LIFT_FRAMES) or bool(rise[-1] >= LIFT_M)
     on = None
     for other in layer.tracks:
         if other.name == name:
@@ -75,7 +75,7 @@ def read_goal(layer, up=(0.0, 0.0, 1.0)) -> Goal:
         dz = float(gap @ up)
         if np.linalg.norm(gap - dz * up) <= ON_XY_M and ON_DZ_M[0] <= dz <= ON_DZ_M[1]:
             on = other.name
-    held = on is None and lifted and bool(rise[-1] >= LIFT_M)
+    held = on is None and bool(rise[-1] >= LIFT_M)
     if on is not None:
         skill = "stack"
     elif held:

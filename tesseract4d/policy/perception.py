@@ -31,12 +31,15 @@ import numpy as np
 
 from reconstruction.objects import first_frame_masks, plane_step, rotation_about, track_objects, yaw_about
 from tesseract4d.geometry import scene_up_axis, transform_points, unproject_depth
+from tesseract4d.segments import SCENERY_SEGMENTS
 
 TABLE_Z_M = 0.0  # ManiSkill's table top (world z)
 TOP_FACE_M = 0.006  # points this close below an object's highest point form its top face
 MIN_PIXELS = 6  # fewer pixels of an object: not seen in this observation (its last pose is kept)
 ICP_ITERATIONS = 20
 TRIM_SHARE = 0.8  # the share of nearest-point pairs kept (the closest)
+PALETTE_SIZE = 48
+COLOUR_SEARCH_M = 0.35  # a frame without segmentation: the object's colours this close to where it started
 CENTRE_TOL_M = 0.01  # what the sim test asserts
 FACE_TOL_DEG = 10.0
 
@@ -65,6 +68,17 @@ class _Model:
     centre_object: np.ndarray  # (3,) the object's centre in its own frame
     face_yaw0: float
     half_height_m: float
+    palette: np.ndarray  # (M, 3) float32: the object's own colours (the object layer's model)
+    start_world_m: np.ndarray  # (3,) its origin at the first frame
+
+
+@dataclass
+class _FrameView:
+    rgb: np.ndarray
+    depth_m: np.ndarray
+    normal_cam: np.ndarray
+    K: np.ndarray
+    T_world_cam: np.ndarray
 
 
 def _world_points(frame, mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -111,6 +125,11 @@ class ObjectPerception:
                               f.T_world_cam[None], masks, source)
         ids = {str(n): int(i) for i, n in seg_id_to_name.items()}
         self.up = scene_up_axis(f.T_world_cam)
+        # the colours of what is not an object nor the robot (table, ground): a frame without segmentation
+        # tells an object from them by which palette is nearer
+        scenery = np.isin(f.segmentation, [i for i, n in seg_id_to_name.items() if str(n) in SCENERY_SEGMENTS])
+        cols = np.asarray(f.rgb)[scenery].astype(np.float32)
+        self.scenery_palette = cols[np.random.default_rng(0).choice(len(cols), min(len(cols), 4 * PALETTE_SIZE), replace=False)]
         self.models: list[_Model] = []
         self.last: dict[str, PerceivedObject] = {}
         for tr in layer.tracks:
@@ -120,8 +139,11 @@ class ObjectPerception:
             top = pts_w[pts_w[:, 2] >= top_z - TOP_FACE_M]
             half = max((top_z - TABLE_Z_M) / 2, 0.005)
             centre = np.array([*top[:, :2].mean(0), top_z - half])
+            cols = np.asarray(tr.colors, np.float32)
+            palette = cols[np.random.default_rng(0).choice(len(cols), min(len(cols), PALETTE_SIZE), replace=False)]
             m = _Model(tr.name, ids[tr.name], tr.colour_name, np.asarray(tr.points_object, np.float64),
-                       np.asarray(tr.normals_object, np.float64), centre - T0[:3, 3], face_yaw(nrm_w), half)
+                       np.asarray(tr.normals_object, np.float64), centre - T0[:3, 3], face_yaw(nrm_w), half, palette,
+                       T0[:3, 3].copy())
             self.models.append(m)
             self.last[m.name] = PerceivedObject(m.name, m.colour_name, centre, m.face_yaw0, half, T0.copy(),
                                                 len(pts_w), 0.0)
@@ -154,6 +176,37 @@ class ObjectPerception:
         self.last = out
         return out
 
+    def fit_by_colour(self, name: str, rgb: np.ndarray, depth_m: np.ndarray, normal_cam: np.ndarray, K: np.ndarray,
+                      T_world_cam: np.ndarray) -> tuple[np.ndarray, float] | None:
+        """The object's pose (T_world_object (4, 4), fit rms) in a frame without a segmentation (a predicted
+        one): the largest connected patch of its own colours within ``COLOUR_SEARCH_M`` of where it started,
+        fitted as in :meth:`perceive`; None when too few of its colours are seen."""
+        import cv2  # OpenCV loads with this fit only
+
+        from tesseract4d.object_colours import OBJECT_COLOUR_TOL, min_colour_distance
+
+        m = next(mm for mm in self.models if mm.name == name)
+        frame = _FrameView(np.asarray(rgb), np.asarray(depth_m, np.float32), np.asarray(normal_cam, np.float32), K, T_world_cam)
+        valid = (frame.depth_m > 0) & np.isfinite(frame.depth_m)
+        pts = transform_points(T_world_cam, unproject_depth(frame.depth_m, K))
+        near = valid & (np.linalg.norm(pts - m.start_world_m, axis=-1) <= COLOUR_SEARCH_M)
+        H, W = near.shape
+        match = np.zeros((H, W), bool)
+        colours = frame.rgb[near].astype(np.float32)
+        d_own = min_colour_distance(colours, m.palette)
+        match[near] = (d_own < OBJECT_COLOUR_TOL) & (d_own < min_colour_distance(colours, self.scenery_palette))
+        n, labels, stats, _ = cv2.connectedComponentsWithStats(match.astype(np.uint8), connectivity=8)
+        if n < 2:
+            return None
+        biggest = 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))
+        mask = labels == biggest
+        if mask.sum() < MIN_PIXELS:
+            return None
+        obs, obs_n = _world_points(frame, mask)
+        sides = int((np.abs(obs_n[:, 2]) < 0.5).sum())
+        turns = [0.0] + ([wrap_quarter(face_yaw(obs_n) - m.face_yaw0)] if sides >= MIN_PIXELS else [])
+        return self._fit(m, obs, obs_n, turns)
+
     def _fit(self, m: _Model, obs: np.ndarray, obs_n: np.ndarray, turns: list[float]) -> tuple[np.ndarray, float]:
         tree = self._tree(m.points)
         best = (None, np.inf)
@@ -169,7 +222,11 @@ class ObjectPerception:
                 dist, idx = tree.query(local)
                 keep = dist <= np.quantile(dist, TRIM_SHARE)
                 src = transform_points(T, m.points[idx[keep]]).astype(np.float64)
-                step = plane_step(src, obs[keep], obs_n[keep], self.up)
+                # point-to-plane pairs, and the same pairs point to point: a patch seen from one side only
+                # (a top face) leaves point-to-plane steps free along it, and they diverged
+                dst, nrm = obs[keep], obs_n[keep]
+                step = plane_step(np.concatenate([src, src]), np.concatenate([dst, dst]),
+                                  np.concatenate([nrm, np.zeros_like(nrm)]), self.up)
                 T = step @ T
                 rms = float(np.sqrt(np.mean(dist[keep] ** 2)))
                 if np.linalg.norm(step[:3, 3]) < 1e-5:

@@ -36,6 +36,7 @@ from tesseract4d.policy.perception import ObjectPerception, PerceivedObject
 PLAN_ARMS = ("world_model_plan", "oracle_plan", "words_plan")
 PLAN_STAGES = ("observe", "predict", "reconstruct", "plan", "execute", "simulate")
 REACHED_M = 0.02  # a fixed goal counts as reached when the object's centre is this close to it
+REFIT_RMS_M = 0.006  # a last-frame refit by colour counts when its points lie this close to the model
 VIDEO_EVERY_STEPS = 4  # the MP4's observed frames: one every this many simulator steps
 
 
@@ -99,14 +100,32 @@ def draw_target(rgb: np.ndarray, centre_world_m, K: np.ndarray, T_world_cam: np.
     return out
 
 
-def clip_object_layer(clip: FutureClip, normal_cam: np.ndarray, frame0, seg_id_to_name: dict, instruction: str):
+def clip_object_layer(clip: FutureClip, normal_cam: np.ndarray, frame0, seg_id_to_name: dict, instruction: str,
+                      perception: ObjectPerception | None = None):
     """The object layer of ``clip`` (frame 0 = the observation ``frame0``), its objects named by the
-    observation's segmentation; the instructed one found by its colour word."""
+    observation's segmentation; the instructed one found by its colour word. ``perception``: an
+    ObjectPerception of ``frame0`` that re-finds objects lost at the end."""
     from reconstruction.objects import first_frame_masks, instructed_object, track_objects
 
+    from reconstruction.objects import TRACKED
+
     masks, source = first_frame_masks(frame0.rgb, frame0.segmentation, seg_id_to_name)
-    layer = track_objects(clip.rgb, np.asarray(clip.depth_m, np.float32), normal_cam, clip.K, clip.T_world_cam, masks,
-                          source)
+    depth = np.asarray(clip.depth_m, np.float32)
+    layer = track_objects(clip.rgb, depth, normal_cam, clip.K, clip.T_world_cam, masks, source)
+    # Frames where the tracker lost an object, saw it covered or carried it — a 16-frame clip moves a pushed
+    # or carried cube several centimetres a frame, faster than the tracker follows — are fitted once more:
+    # the object found by its own colours in that frame (the perception's fit, the model of the same first
+    # frame).
+    if perception is not None:
+        for tr in layer.tracks:
+            redo = [t for t in range(1, len(depth)) if tr.state[t] != TRACKED]
+            if redo:
+                tr.T_world_object, tr.state = tr.T_world_object.copy(), tr.state.copy()
+            for t in redo:
+                fit = perception.fit_by_colour(tr.name, clip.rgb[t], depth[t], normal_cam[t], clip.K[t], clip.T_world_cam[t])
+                if fit is not None and fit[1] < REFIT_RMS_M:
+                    tr.T_world_object[t] = fit[0]
+                    tr.state[t] = TRACKED
     layer.instructed = instructed_object(layer.names(), [t.colour_name for t in layer.tracks], None, instruction)
     return layer
 
@@ -150,7 +169,7 @@ class WorldModelPlan:
         clip = self.future.clip(frame, self.env_id, self.seed, instruction, step)
         lap("predict")
         normals = clip.episode.cameras[self.camera].normal_cam
-        layer = clip_object_layer(clip, normals, frame, seg_id_to_name, instruction)
+        layer = clip_object_layer(clip, normals, frame, seg_id_to_name, instruction, ObjectPerception(frame, seg_id_to_name))
         lap("reconstruct")
         return _absolute(read_goal(layer), objects), clip
 
@@ -170,7 +189,8 @@ class OraclePlan:
 
     def plan(self, frame, objects, seg_id_to_name, instruction, step, lap) -> tuple[PlanStep, FutureClip | None]:
         if self.goal is None:
-            layer = clip_object_layer(self.clip, self.normals, frame, seg_id_to_name, instruction)
+            layer = clip_object_layer(self.clip, self.normals, frame, seg_id_to_name, instruction,
+                                      ObjectPerception(frame, seg_id_to_name))
             lap("reconstruct")
             self.goal = _absolute(read_goal(layer), objects)
             return self.goal, self.clip
