@@ -129,7 +129,7 @@ class ObjectPerception:
         # tells an object from them by which palette is nearer
         scenery = np.isin(f.segmentation, [i for i, n in seg_id_to_name.items() if str(n) in SCENERY_SEGMENTS])
         cols = np.asarray(f.rgb)[scenery].astype(np.float32)
-        self.scenery_palette = cols[np.random.default_rng(0).choice(len(cols), min(len(cols), 4 * PALETTE_SIZE), replace=False)]
+        self.scenery_palette = cols[np.random.default_rng(0).choice(len(cols), min(len(cols), 2 * PALETTE_SIZE), replace=False)]
         self.models: list[_Model] = []
         self.last: dict[str, PerceivedObject] = {}
         for tr in layer.tracks:
@@ -194,7 +194,9 @@ class ObjectPerception:
         match = np.zeros((H, W), bool)
         colours = frame.rgb[near].astype(np.float32)
         d_own = min_colour_distance(colours, m.palette)
-        match[near] = (d_own < OBJECT_COLOUR_TOL) & (d_own < min_colour_distance(colours, self.scenery_palette))
+        own = d_own < OBJECT_COLOUR_TOL
+        own[own] = d_own[own] < min_colour_distance(colours[own], self.scenery_palette)  # only where it may match
+        match[near] = own
         n, labels, stats, _ = cv2.connectedComponentsWithStats(match.astype(np.uint8), connectivity=8)
         if n < 2:
             return None
