@@ -31,6 +31,7 @@ import numpy as np
 
 from reconstruction.objects import first_frame_masks, plane_step, rotation_about, track_objects, yaw_about
 from tesseract4d.geometry import scene_up_axis, transform_points, unproject_depth
+from tesseract4d.object_colours import OBJECT_COLOUR_TOL, min_colour_distance
 from tesseract4d.segments import SCENERY_SEGMENTS
 
 TABLE_Z_M = 0.0  # ManiSkill's table top (world z)
@@ -182,8 +183,6 @@ class ObjectPerception:
         one): the largest connected patch of its own colours within ``COLOUR_SEARCH_M`` of where it started,
         fitted as in :meth:`perceive`; None when too few of its colours are seen."""
         import cv2  # OpenCV loads with this fit only
-
-        from tesseract4d.object_colours import OBJECT_COLOUR_TOL, min_colour_distance
 
         m = next(mm for mm in self.models if mm.name == name)
         frame = _FrameView(np.asarray(rgb), np.asarray(depth_m, np.float32), np.asarray(normal_cam, np.float32), K, T_world_cam)

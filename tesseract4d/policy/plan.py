@@ -29,9 +29,13 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from reconstruction.objects import TRACKED, first_frame_masks, instructed_object, track_objects
+from tesseract4d.geometry import invert_pose, project_points, transform_points
 from tesseract4d.policy.goal_reading import read_goal
 from tesseract4d.policy.loop import EpisodeResult, FutureClip, Trace, WorldModelFuture
 from tesseract4d.policy.perception import ObjectPerception, PerceivedObject
+from tesseract4d.policy.primitives import PrimitiveFailure, run_primitive
+from tesseract4d.policy.words import parse_instruction
 
 PLAN_ARMS = ("world_model_plan", "oracle_plan", "words_plan")
 PLAN_STAGES = ("observe", "predict", "reconstruct", "plan", "execute", "simulate")
@@ -83,7 +87,6 @@ def draw_target(rgb: np.ndarray, centre_world_m, K: np.ndarray, T_world_cam: np.
     and cross (nothing drawn when it is behind the camera)."""
     import cv2  # OpenCV loads with the drawing only
 
-    from tesseract4d.geometry import invert_pose, project_points, transform_points
 
     out = np.ascontiguousarray(rgb).copy()
     if centre_world_m is None:
@@ -105,9 +108,7 @@ def clip_object_layer(clip: FutureClip, normal_cam: np.ndarray, frame0, seg_id_t
     """The object layer of ``clip`` (frame 0 = the observation ``frame0``), its objects named by the
     observation's segmentation; the instructed one found by its colour word. ``perception``: an
     ObjectPerception of ``frame0`` that re-finds objects lost at the end."""
-    from reconstruction.objects import first_frame_masks, instructed_object, track_objects
 
-    from reconstruction.objects import TRACKED
 
     masks, source = first_frame_masks(frame0.rgb, frame0.segmentation, seg_id_to_name)
     depth = np.asarray(clip.depth_m, np.float32)
@@ -224,7 +225,6 @@ def _by_colour(colour: str | None, shape: str | None, objects: dict[str, Perceiv
 
 def words_goal(instruction: str, objects: dict[str, PerceivedObject]) -> PlanStep:
     """The primitive the words ask for, toward an absolute target from the perceived poses."""
-    from tesseract4d.policy.words import parse_instruction
 
     p = parse_instruction(instruction)
     reading = {"parsed_skill": p.skill, "object": p.object_colour, "other": p.other_colour,
@@ -263,7 +263,6 @@ class PlanRunner:
 
     def run(self, seed: int, source, instruction: str | None = None, success_check=None,
             trace: Trace | None = None) -> EpisodeResult:
-        from tesseract4d.policy.primitives import PrimitiveFailure, run_primitive
 
         c = self.config
         timings = dict.fromkeys(PLAN_STAGES, 0.0)

@@ -46,7 +46,8 @@ from tesseract4d.policy.plan import PLAN_ARMS, OraclePlan, PlanRunner, WordsPlan
 from tesseract4d.policy import tabletop_tasks
 from datagen.tabletop import ENV_ID as TABLETOP_ID
 from tesseract4d.previews import write_preview
-from datagen.simulate import EpisodeSimulator, SimConfig
+from datagen.counterfactual import run_skill
+from datagen.simulate import AttemptResult, EpisodeSimulator, SimConfig
 from datagen.tasks import get_task
 from tesseract4d.model.text_encoder import TextEncoder
 from tesseract4d.policy.idm import load_idm
@@ -372,8 +373,6 @@ def run_rollouts(cfg: RolloutConfig, progress: bool = True) -> dict:
 
 def _run_skill(sim, seed: int, skill):
     """The motion planner's run of a tabletop skill, as the ManiSkill tasks' ``sim.run`` reports it."""
-    from datagen.counterfactual import run_skill
-    from datagen.simulate import AttemptResult
 
     t0 = time.perf_counter()
     episode, tried = run_skill(sim, seed, skill.variant, skill.target, skill.other)

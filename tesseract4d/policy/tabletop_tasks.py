@@ -16,6 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from datagen import skills as sk
+from datagen.counterfactual import skill_instruction
 
 ROLLOUT_SKILLS = ("push", "pull", "pick_place", "lift", "stack")
 _STREAM = 16180
@@ -32,7 +33,6 @@ class SkillTask:
 
 def skill_task(sim, seed: int) -> SkillTask:
     """The commanded skill of ``seed`` in the tabletop simulator ``sim`` (its env reset to the seed)."""
-    from datagen.counterfactual import skill_instruction
 
     env_id, base = sim.env_id, sim.env.unwrapped
     sim.fresh_scene(seed)
