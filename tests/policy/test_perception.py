@@ -7,6 +7,7 @@ import pytest
 
 
 @pytest.mark.sim
+@pytest.mark.slow
 def test_perceived_pose_matches_the_simulator_after_the_cube_is_moved_and_turned():
     import sapien
 
