@@ -133,6 +133,14 @@ def _try(sim: EpisodeSimulator, seed: int, variant: sk.SkillVariant, target, oth
     return episode
 
 
+def run_skill(sim: EpisodeSimulator, seed: int, variant: sk.SkillVariant, target, other) -> tuple[Episode | None, dict]:
+    """Plan and, when it succeeds, render one skill in the scene of ``seed`` (as one future of a group):
+    the episode (None on failure) and what the try did (variant, target, other, success, error, steps)."""
+    result = GroupResult(sim.env_id, seed, False, 1)
+    episode = _try(sim, seed, variant, target, other, result, variant_index=0, k=1)
+    return episode, dict(result.tries[-1], num_steps=result.num_steps, plan_s=round(result.plan_s, 3))
+
+
 def skill_instruction(env_id: str, variant: sk.SkillVariant, intent: dict, colors: dict[str, str], seed: int,
                       split: str) -> tuple[str, dict]:
     """The instruction of one future of a group and the attributes it was written from.

@@ -42,7 +42,7 @@ GRIPPER_GOAL_M = 0.02  # hover/reach: the gripper ends this close to its goal
 HOVER_HEIGHT_M = 0.12  # hover_above: gripper this far above the object's centre
 KEEP_STILL_STEPS = 40  # 2 s at ManiSkill's 20 Hz control
 
-_LIFT_M = 0.08  # carrying height above the grasp
+LIFT_M = 0.08  # carrying height above the grasp
 _CLEARANCE_M = 0.065  # free space kept around a push path or a placement spot
 _TABLE_XY = ((-0.2, 0.25), (-0.3, 0.3))  # where targets may lie (reachable table area)
 
@@ -385,11 +385,11 @@ def execute(env, env_id: str, variant: SkillVariant, target: str | None, other: 
             planner.close_gripper()
             pre = p - d * 0.05
             pre[2] = half[target]
-            move(pre + [0, 0, _LIFT_M], what="above the contact point")
+            move(pre + [0, 0, LIFT_M], what="above the contact point")
             move(pre, what="the contact point")
             # the fingers touch the object after ~2 cm: travel that much further
             move(pre + d * (variant.distance_m + 0.02), what="the push end")
-            move(pre + d * (variant.distance_m + 0.02) + [0, 0, _LIFT_M], what="retreat")
+            move(pre + d * (variant.distance_m + 0.02) + [0, 0, LIFT_M], what="retreat")
             return
         grasp = _grasp_pose(base, actor[target])
         move(grasp.p + [0, 0, 0.05], grasp.q, what="above the grasp")
@@ -399,16 +399,16 @@ def execute(env, env_id: str, variant: SkillVariant, target: str | None, other: 
             move(grasp.p + [0, 0, variant.distance_m], grasp.q, what="the lift height")
             planner.close_gripper(t=6)
             return
-        move(grasp.p + [0, 0, _LIFT_M], grasp.q, what="the carry height")
+        move(grasp.p + [0, 0, LIFT_M], grasp.q, what="the carry height")
         if variant.skill == "pick_place":
             goal = grasp.p + np.asarray(DIRECTIONS[variant.direction]) * variant.distance_m
         else:  # stack: grasp offset kept, object bottom onto the other's top
             po = object_positions(env_id, base)[other]
             goal = grasp.p + (po + [0, 0, half[other] + half[target]] - p)
-        move(goal + [0, 0, _LIFT_M], grasp.q, what="above the place")
+        move(goal + [0, 0, LIFT_M], grasp.q, what="above the place")
         move(goal + [0, 0, 0.005], grasp.q, what="the place")
         planner.open_gripper()
-        move(goal + [0, 0, _LIFT_M], grasp.q, what="retreat")
+        move(goal + [0, 0, LIFT_M], grasp.q, what="retreat")
     finally:
         planner.close()
 

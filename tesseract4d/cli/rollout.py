@@ -10,6 +10,9 @@ trained on 64² renders.
 
 Loop per episode: observe (RGB-D-N) -> predict the clip from the current frame and the instruction
 -> back-project -> IDM -> execute the chunk -> observe; a new clip every `--set replan_every=K` frames.
+The plan arms (world_model_plan, oracle_plan, words_plan) instead read where the future's object layer
+puts the moved object and run a motion-planned primitive toward it from the perceived poses, up to
+`--set plan_replans=N` times.
 Writes OUT/report.json, OUT/report.md, OUT/rollout_config.json, OUT/videos/<arm>/<task>/seed_*.mp4
 and OUT/viewer/<arm>/<task>/seed_*/replan_XX/{observed,predicted,predicted_clip}; look at a replan with
   tesseract4d view OUT/viewer/world_model/PushCube-v1/seed_100000/replan_00/predicted \\
@@ -36,7 +39,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--episodes", type=whole(1), default=d.episodes, help="held-out seeds per task and arm (default %(default)s)")
     parser.add_argument("--arms", default=",".join(d.arms),
                         help=f"comma-separated arms from {', '.join(ARMS)} (default: %(default)s; static_world feeds "
-                             f"the IDM the current frame repeated, the control for what the predicted frames add)")
+                             f"the IDM the current frame repeated, the control for what the predicted frames add; the "
+                             f"*_plan arms need no IDM: they read the goal from a future's objects, or the words, and "
+                             f"run motion-planned primitives, also on the tabletop's skills, task Tesseract4dTabletop-v1)")
     parser.add_argument("--idm", help="inverse dynamics model folder (train-idm RUN/final)")
     parser.add_argument("--bc", help="behaviour-cloning model folder (RUN/final of `train-idm --recipe bc`)")
     parser.add_argument("--checkpoint", default=str(SHIPPED_CHECKPOINT),

@@ -58,6 +58,7 @@ class LoopConfig:
                                                  "model's with the world_model arm, else the IDM's")
     instruction_split: str = knob("heldout", "instruction paraphrases (train or heldout)", choices=("train", "heldout"))
     point_seed: int = knob(0, "seed of the IDM's point sampling")
+    plan_replans: int = knob(3, "plan arms: primitives (each after a new prediction) before the episode ends")
 
 
 @dataclass
@@ -85,6 +86,7 @@ class EpisodeResult:
     stage_seconds: dict = field(default_factory=dict)
     instruction: str = ""
     error: str = ""
+    plan: list = field(default_factory=list)  # plan arms: per replan the goal read and the primitive run
 
 
 @dataclass

@@ -8,6 +8,14 @@ Arms, run the same way on the same seeds:
   static_world      (on request) the IDM fed the current frame repeated: what the same IDM does when the
                     future holds no motion, the control for what the world model's frames add.
 
+Predict-then-plan arms (on request; ``tesseract4d.policy.plan``), which need no IDM:
+  world_model_plan  per replan: predict, reconstruct the clip's object layer, read where it puts the moved
+                    object, execute a motion-planned primitive toward it from the perceived poses;
+  oracle_plan       the true future through the same reading and primitives (the ceiling of that arm);
+  words_plan        no future: the instruction parsed by rules, then the same primitives.
+They also run the tabletop's skills (task Tesseract4dTabletop-v1: one commanded skill per seed,
+``tesseract4d.policy.tabletop_tasks``), which the IDM arms do not.
+
 OUT/report.json + OUT/report.md (per task and mean), OUT/rollout_config.json, OUT/videos/<arm>/<env>/seed_*.mp4
 (left: what the robot saw after each chunk; right: the frame it was steering toward), and for the
 first seeds of the future arms OUT/viewer/<arm>/<env>/seed_*/replan_XX/{observed,predicted,predicted_clip}:
@@ -34,8 +42,12 @@ from tesseract4d.precision import precision_field
 from tesseract4d.policy.loop import (
     EpisodeResult, LoopConfig, OracleFuture, PolicyRunner, StaticFuture, Trace, WorldModelFuture, observation_episode,
 )
+from tesseract4d.policy.plan import PLAN_ARMS, OraclePlan, PlanRunner, WordsPlan, WorldModelPlan
+from tesseract4d.policy import tabletop_tasks
+from datagen.tabletop import ENV_ID as TABLETOP_ID
 from tesseract4d.previews import write_preview
-from datagen.simulate import EpisodeSimulator, SimConfig
+from datagen.counterfactual import run_skill
+from datagen.simulate import AttemptResult, EpisodeSimulator, SimConfig
 from datagen.tasks import get_task
 from tesseract4d.model.text_encoder import TextEncoder
 from tesseract4d.policy.idm import load_idm
@@ -45,7 +57,9 @@ from tesseract4d.model.draw_choice import check_draws
 from datagen.capture import Frame
 
 DEFAULT_ARMS = ("motion_planner", "oracle_future", "world_model", "behavior_cloning")
-ARMS = DEFAULT_ARMS + ("static_world",)
+ARMS = DEFAULT_ARMS + ("static_world",) + PLAN_ARMS
+IDM_ARMS = ("oracle_future", "world_model", "static_world", "behavior_cloning")
+PLAN_RESOLUTION = (128, 128)  # the plan arms' renders when no model sets it
 VIDEO_SCALE = 4
 
 
@@ -108,6 +122,20 @@ def format_markdown(summary: dict, arms: list[str], tasks: list[str], timing: di
         means.append("–" if m["mean_rate"] is None else
                      f"{100 * m['mean_rate']:.0f} % (pooled {100 * m['pooled_wilson95'][0]:.0f}–{100 * m['pooled_wilson95'][1]:.0f})")
     lines.append("| **mean** | " + " | ".join(means) + " |")
+    idm_timing = {a: t for a, t in timing.items() if a not in PLAN_ARMS}
+    plan_timing = {a: t for a, t in timing.items() if a in PLAN_ARMS}
+    if plan_timing:
+        lines += ["", "## Plan arms: seconds per replan and per episode (means)", "",
+                  "predict + reconstruct (the clip's object layer) + plan (read the goal) = the replanning cycle; "
+                  "motion planning and the simulator's steps are apart.", "",
+                  "| arm | predict | reconstruct | plan | cycle | motion planning | simulate | primitives/episode | episode |",
+                  "|---|---|---|---|---|---|---|---|---|"]
+        for a, t in plan_timing.items():
+            lines.append(f"| {a} | {t['predict_s']:.3f} | {t['reconstruct_s']:.3f} | {t['plan_s']:.3f} | {t['cycle_s']:.3f} | "
+                         f"{t['motion_planning_s']:.2f} | {t['simulate_s']:.2f} | {t['primitives']:.2f} | {t['episode_s']:.1f} |")
+    if not idm_timing:
+        return "\n".join(lines) + "\n"
+    timing = idm_timing
     lines += ["", "## Seconds per replanning cycle and per episode (means)", "",
               "| arm | predict | reconstruct (back-projection) | IDM | cycle (predict+reconstruct+IDM) | episode |", "|---|---|---|---|---|---|"]
     for a, t in timing.items():
@@ -121,6 +149,23 @@ def cycle_timing(results: list[EpisodeResult]) -> dict:
     tot = {s: sum(r.stage_seconds.get(s, 0.0) for r in results) for s in ("predict", "reconstruct", "idm")}
     out = {f"{s}_s": v / cycles for s, v in tot.items()}
     out["cycle_s"] = sum(out.values())
+    out["episode_s"] = float(np.mean([r.seconds for r in results])) if results else 0.0
+    return out
+
+
+def plan_timing(results: list[EpisodeResult]) -> dict:
+    """Mean seconds of a plan arm per replan (predict, reconstruct, plan and their sum, the cycle) and per
+    primitive executed (motion planning, simulator steps)."""
+    replans = sum(max(r.replans, 1) for r in results) or 1
+    primitives = sum(r.chunks for r in results)
+    tot = {s: sum(r.stage_seconds.get(s, 0.0) for r in results)
+           for s in ("predict", "reconstruct", "plan", "execute", "simulate", "observe")}
+    out = {f"{s}_s": tot[s] / replans for s in ("predict", "reconstruct", "plan")}
+    out["cycle_s"] = sum(out.values())
+    out["motion_planning_s"] = tot["execute"] / max(primitives, 1)
+    out["simulate_s"] = tot["simulate"] / max(primitives, 1)
+    out["observe_s"] = tot["observe"] / replans
+    out["primitives"] = primitives / max(len(results), 1)
     out["episode_s"] = float(np.mean([r.seconds for r in results])) if results else 0.0
     return out
 
@@ -152,7 +197,9 @@ def write_viewer_folders(root: Path, trace: Trace, env_id: str, seed: int, instr
     bounds = [i for i, _ in trace.replans] + [len(trace.observed) - 1]
     for r, (start, clip) in enumerate(trace.replans):
         end = bounds[r + 1]
-        observed = observation_episode(trace.observed[start:end + 1], env_id, seed, instruction, camera)
+        # as many observed frames as the clip has, evenly spaced (a plan arm observes many per clip frame)
+        pick = np.unique(np.linspace(start, end, min(end - start + 1, len(clip.rgb))).round().astype(int))
+        observed = observation_episode([trace.observed[k] for k in pick], env_id, seed, instruction, camera)
         m = observed.num_frames
         predicted = observation_episode([trace.observed[start]] * m, env_id, seed, instruction, camera)
         pc = predicted.cameras[camera]
@@ -196,6 +243,9 @@ def run_rollouts(cfg: RolloutConfig, progress: bool = True) -> dict:
     lc = cfg.loop
     seeds = list(range(cfg.seed_start, cfg.seed_start + cfg.episodes))
     idm = bc = pipeline = None
+    if TABLETOP_ID in cfg.tasks and set(IDM_ARMS) & set(cfg.arms):
+        raise UserError(f"{TABLETOP_ID} runs with the motion_planner and plan arms ({', '.join(PLAN_ARMS)}) only; "
+                        f"drop {', '.join(a for a in cfg.arms if a in IDM_ARMS)} or run that task apart")
     if {"oracle_future", "world_model", "static_world"} & set(cfg.arms):
         if not cfg.idm:
             raise UserError("the oracle_future, world_model and static_world arms need --idm (a folder from "
@@ -218,9 +268,9 @@ def run_rollouts(cfg: RolloutConfig, progress: bool = True) -> dict:
             raise UserError(f"the {label} was trained on {', '.join(trained)} but the rollout asks for "
                             f"{', '.join(missing)}, whose objects it has never seen; train it on those tasks or drop them")
         check_heldout(model.config, cfg.tasks, seeds, label)
-    if "world_model" in cfg.arms:
+    if {"world_model", "world_model_plan"} & set(cfg.arms):
         if not cfg.checkpoint:
-            raise UserError("the world_model arm needs --checkpoint (a world-model inference folder)")
+            raise UserError("the world_model and world_model_plan arms need --checkpoint (a world-model inference folder)")
 
         pipeline = load_pipeline(cfg.checkpoint, precision=cfg.precision)
 
@@ -229,7 +279,7 @@ def run_rollouts(cfg: RolloutConfig, progress: bool = True) -> dict:
     if lc.resolution is None:  # render at the world model's resolution, else at the IDM's
         policy = idm or bc
         source = (pipeline.resolution if pipeline is not None else policy.config.resolution if policy is not None
-                  else LoopConfig.resolution)
+                  else PLAN_RESOLUTION if set(PLAN_ARMS) & set(cfg.arms) else LoopConfig.resolution)
         lc = dataclasses.replace(lc, resolution=tuple(int(x) for x in source))
         cfg = dataclasses.replace(cfg, loop=lc)
     if pipeline is not None:
@@ -246,15 +296,20 @@ def run_rollouts(cfg: RolloutConfig, progress: bool = True) -> dict:
     results: dict[str, list[EpisodeResult]] = {a: [] for a in cfg.arms}
     bar = tqdm(total=len(cfg.tasks) * len(seeds) * len(cfg.arms), desc="rollouts", unit="ep", disable=not progress)
     for task in cfg.tasks:
+        # every step rendered for the IDM's oracle future; the clip's frames otherwise
+        frames = 0 if "oracle_future" in cfg.arms else lc.num_frames
         sim = EpisodeSimulator(task, SimConfig(height=lc.resolution[0], width=lc.resolution[1], cameras=[lc.camera],
-                                               frames=0, instruction_split=lc.instruction_split))
+                                               frames=frames, instruction_split=lc.instruction_split))
         runners = {name: PolicyRunner(sim, m, text_encoder, lc) for name, m in (("idm", idm), ("bc", bc)) if m is not None}
+        plan_runner = PlanRunner(sim, lc)
         try:
             for i, seed in enumerate(seeds):
-                planner = None
-                if {"motion_planner", "oracle_future"} & set(cfg.arms):
+                planner = skill = None
+                if task == TABLETOP_ID:
+                    skill = tabletop_tasks.skill_task(sim, seed)
+                if {"motion_planner", "oracle_future", "oracle_plan"} & set(cfg.arms):
                     t0 = time.perf_counter()
-                    planner = sim.run(seed)
+                    planner = sim.run(seed) if skill is None else _run_skill(sim, seed, skill)
                     if "motion_planner" in cfg.arms:
                         # The same step budget as the other arms: a plan that succeeds only after it counts as failed
                         # (its success is known at the plan's end, so a longer plan is not credited).
@@ -263,7 +318,8 @@ def run_rollouts(cfg: RolloutConfig, progress: bool = True) -> dict:
                                                   f"the plan succeeded after {planner.num_steps} steps, beyond --max-steps "
                                                   f"{lc.max_steps}")
                         r = EpisodeResult(task, seed, "motion_planner", within, within, planner.num_steps,
-                                          0, 0, time.perf_counter() - t0, {}, planner.episode.instruction if planner.episode else "",
+                                          0, 0, time.perf_counter() - t0, {},
+                                          skill.instruction if skill else planner.episode.instruction if planner.episode else "",
                                           error)
                         results["motion_planner"].append(r)
                         rows.append({"task": task, **_row(r)})
@@ -273,13 +329,21 @@ def run_rollouts(cfg: RolloutConfig, progress: bool = True) -> dict:
                         bar.update(1)
                 for arm in [a for a in cfg.arms if a != "motion_planner"]:
                     trace = Trace() if i < max(cfg.videos, cfg.viewer_episodes) else None
-                    if arm == "oracle_future" and (planner is None or planner.episode is None):
+                    if arm in ("oracle_future", "oracle_plan") and (planner is None or planner.episode is None):
                         r = EpisodeResult(task, seed, arm, False, False, 0, 0, 0, 0.0, {}, "",
                                           f"no true future: the planner failed on this seed ({planner.error if planner else ''})")
                     elif arm == "oracle_future":
                         r = runners["idm"].run(seed, OracleFuture(planner.episode, lc), trace)
                     elif arm == "world_model":
                         r = runners["idm"].run(seed, WorldModelFuture(pipeline, lc), trace)
+                    elif arm in PLAN_ARMS:
+                        if arm == "world_model_plan":
+                            source = WorldModelPlan(pipeline, lc)
+                            source.env_id, source.seed = task, seed
+                        else:
+                            source = OraclePlan(planner.episode, lc) if arm == "oracle_plan" else WordsPlan()
+                        r = plan_runner.run(seed, source, skill.instruction if skill else None,
+                                            (lambda s=skill: tabletop_tasks.success_check(sim, s)) if skill else None, trace)
                     elif arm == "static_world":
                         r = runners["idm"].run(seed, StaticFuture(lc), trace)
                     else:
@@ -298,12 +362,24 @@ def run_rollouts(cfg: RolloutConfig, progress: bool = True) -> dict:
             sim.close()
     bar.close()
     summary = summarize(rows, cfg.arms, cfg.tasks)
-    timing = {a: cycle_timing(rs) for a, rs in results.items() if a != "motion_planner" and rs}
+    timing = {a: (plan_timing(rs) if a in PLAN_ARMS else cycle_timing(rs))
+              for a, rs in results.items() if a != "motion_planner" and rs}
     report = {"config": dataclasses.asdict(cfg), "summary": summary, "timing_s": timing, "episodes": rows,
               "idm": idm.config.training if idm is not None else None, "bc": bc.config.training if bc is not None else None}
     df.atomic_write_text(out / "report.json", json.dumps(report, indent=2, default=str))
     df.atomic_write_text(out / "report.md", format_markdown(summary, cfg.arms, cfg.tasks, timing, dataclasses.asdict(cfg)))
     return report
+
+
+def _run_skill(sim, seed: int, skill):
+    """The motion planner's run of a tabletop skill, as the ManiSkill tasks' ``sim.run`` reports it."""
+
+    t0 = time.perf_counter()
+    episode, tried = run_skill(sim, seed, skill.variant, skill.target, skill.other)
+    if episode is not None:
+        episode.instruction = skill.instruction
+    return AttemptResult(sim.env_id, seed, episode is not None, tried["num_steps"], 0 if episode is None else episode.num_frames,
+                         time.perf_counter() - t0, error=tried.get("error", ""), episode=episode)
 
 
 def _row(r: EpisodeResult) -> dict:
