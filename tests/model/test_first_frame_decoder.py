@@ -185,3 +185,48 @@ def test_training_refuses_an_out_holding_files_it_did_not_write(tmp_path):
     with pytest.raises(UserError, match="did not write"):
         train(cfg, log=lambda *_: None)
     assert (out / STATE_FILE).read_bytes() == b"a user's file" and sorted(p.name for p in out.iterdir()) == [STATE_FILE]
+
+
+def test_the_copy_term_changes_the_clip_and_at_gate_one_draws_the_given_frame():
+    from tesseract4d.model.model_space import renormalize_normals
+
+    torch.manual_seed(0)
+    base = RGBDNAutoencoder(get_autoencoder_preset("ae-test")).eval()
+    model = from_autoencoder(base, "attention+copy").eval()
+    copy = model.first_frame[-1].copy
+    x = _frames(32)
+    other = _frames(32, seed=4)[:1]
+    z = model.encode(x)[None]  # (1, T, C, h, w)
+    with torch.no_grad():
+        plain = base.decode_clips(z)
+        torch.nn.init.normal_(copy.weight, std=0.05)  # only the copy gate moves
+        gated = model.decode_clips(z, first_frame=other)
+        torch.nn.init.zeros_(copy.weight)
+        torch.nn.init.ones_(copy.bias)  # gate 1 everywhere: the output is the given frame's pixels
+        copied = model.decode_clips(z, first_frame=other)
+    assert (gated - plain).abs().mean() > 1e-3
+    expected = renormalize_normals(other.clamp(-1.0, 1.0))
+    assert torch.allclose(copied[0], expected.expand_as(copied[0]), atol=1e-5)
+
+
+def test_the_lost_object_loss_charges_each_lost_object_alike_and_spares_small_errors():
+    from tesseract4d.model.first_frame_decoder_training import lost_object_loss
+    from tesseract4d.object_colours import OBJECT_COLOUR_TOL
+
+    target = torch.zeros(1, 3, 16, 16)
+    objects = torch.zeros(1, 16, 16, dtype=torch.uint8)
+    objects[0, 1:3, 1:3] = 1  # a 4-pixel cube
+    objects[0, 6:14, 6:14] = 2  # a 64-pixel one
+    target[:, 0][objects > 0] = 1.0  # both red on a grey table
+    margin = OBJECT_COLOUR_TOL / 2
+    assert float(lost_object_loss(target, target, objects, margin)) == pytest.approx(0.0, abs=1e-3)
+    near = target + 10.0 / 127.5 / 3 ** 0.5  # every pixel 10 RGB units off: inside the margin
+    assert float(lost_object_loss(near, target, objects, margin)) == pytest.approx(0.0, abs=1e-3)
+    lose_small, lose_large = target.clone(), target.clone()
+    lose_small[:, 0][objects == 1] = 0.0
+    lose_large[:, 0][objects == 2] = 0.0
+    small = lost_object_loss(lose_small.requires_grad_(), target, objects, margin)
+    large = lost_object_loss(lose_large, target, objects, margin)
+    assert float(small.detach()) == pytest.approx(float(large)) and float(small.detach()) == pytest.approx((127.5 - margin) / OBJECT_COLOUR_TOL / 2)
+    small.backward()
+    assert lose_small.grad[:, 0][objects == 1].abs().min() > 0 and lose_small.grad[:, 0][objects == 0].abs().max() == 0
