@@ -30,7 +30,8 @@ Run folder::
     RUN/autoencoder/               the exported autoencoder (load_autoencoder builds a FirstFrameAutoencoder)
 
 Everything random in a step comes from a generator seeded by (seed, step), so a resumed run continues
-exactly. ``python -m tesseract4d.model.first_frame_decoder_training --help`` runs it.
+exactly. It trains on a CUDA GPU when one is visible (the clips stay in host memory; each step's batch
+moves), else on the CPU. ``python -m tesseract4d.model.first_frame_decoder_training --help`` runs it.
 """
 
 from __future__ import annotations
@@ -164,11 +165,11 @@ def load_clips(folders: list[Path], model, camera: str | None = None, cache: Pat
         raise UserError(f"episodes of different lengths {sorted(lengths)}; train on datasets of one --frames")
     x = torch.stack(frames)  # (E, T, 7, H, W)
     if cache is not None and cache.is_file():
-        saved = torch.load(cache)
+        saved = torch.load(cache, map_location="cpu")
         if saved["episode_ids"] == ids:
             return Clips(x, saved["latents"], torch.stack(regions), ids, torch.stack(objects))
     with torch.no_grad():
-        z = torch.stack([model.encode(f.float()) for f in x])  # (E, T, C, h, w), fp32 as the pipeline encodes
+        z = torch.stack([model.encode(f.float()).cpu() for f in x])  # (E, T, C, h, w), fp32 as the pipeline encodes
     if cache is not None:
         torch.save({"episode_ids": ids, "latents": z}, cache)
     return Clips(x, z, torch.stack(regions), ids, torch.stack(objects))
@@ -242,18 +243,20 @@ def train(cfg: FirstFrameTrainConfig, log=print) -> Path:
     claim_folder(out, "first-frame-decoder", inputs=[cfg.init, *folder_list(cfg.data)], legacy_marker=CONFIG_FILE)
     (out / CONFIG_FILE).write_text(json.dumps(cfg.to_dict(), indent=2))
     model = from_autoencoder(load_autoencoder(cfg.init), cfg.injection)
+    device = torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    model.to(device)
     model.requires_grad_(False)
     decoder_params, path_params = trained_parameters(model)
     params = decoder_params + path_params
     for p in params:
         p.requires_grad_(True)
     clips = load_clips(folder_list(cfg.data), model, cfg.camera, out / LATENTS_FILE)
-    bf16 = resolve_precision(cfg.precision).bf16
+    bf16 = resolve_precision(cfg.precision, device.type).bf16
     opt = torch.optim.AdamW([{"params": decoder_params, "peak_lr": cfg.decoder_lr},
                              {"params": path_params, "peak_lr": cfg.lr}], lr=cfg.lr, weight_decay=0.0)
     step, history = 0, []
     if (out / STATE_FILE).is_file():
-        state = torch.load(out / STATE_FILE, weights_only=False)  # written by this module (numpy scalars in its history)
+        state = torch.load(out / STATE_FILE, weights_only=False, map_location=device)  # written by this module (numpy scalars in its history)
         model.load_state_dict(state["model"])
         opt.load_state_dict(state["optimizer"])
         for group, peak in zip(opt.param_groups, (cfg.decoder_lr, cfg.lr)):
@@ -261,7 +264,7 @@ def train(cfg: FirstFrameTrainConfig, log=print) -> Path:
         step, history = state["step"], state["history"]
         log(f"resumed at step {step}")
     E, T = clips.frames.shape[:2]
-    log(f"{E} clips of {T} frames; injection {cfg.injection}; bf16 {bf16}; "
+    log(f"{E} clips of {T} frames; injection {cfg.injection}; {device.type}; bf16 {bf16}; "
         f"{sum(p.numel() for p in params) / 1e6:.2f} M trained parameters")
     model.train()
 
@@ -276,14 +279,14 @@ def train(cfg: FirstFrameTrainConfig, log=print) -> Path:
         eps = torch.randint(E, (cfg.clips_per_step,), generator=g)
         ts = torch.stack([torch.randperm(T - cfg.min_frame, generator=g)[:cfg.frames_per_clip] + cfg.min_frame
                           for _ in eps])  # (k, f)
-        z = torch.cat([clips.latents[e, t] for e, t in zip(eps, ts)])  # (k f, C, h, w)
-        target = torch.cat([clips.frames[e, t] for e, t in zip(eps, ts)]).float()  # (k f, 7, H, W)
-        regions = torch.cat([clips.regions[e, t] for e, t in zip(eps, ts)])
-        objects = torch.cat([clips.objects[e, t] for e, t in zip(eps, ts)])  # (k f, H, W)
-        first = clips.frames[eps, 0].float()  # (k, 7, H, W)
+        z = torch.cat([clips.latents[e, t] for e, t in zip(eps, ts)]).to(device)  # (k f, C, h, w)
+        target = torch.cat([clips.frames[e, t] for e, t in zip(eps, ts)]).to(device).float()  # (k f, 7, H, W)
+        regions = torch.cat([clips.regions[e, t] for e, t in zip(eps, ts)]).to(device)
+        objects = torch.cat([clips.objects[e, t] for e, t in zip(eps, ts)]).to(device)  # (k f, H, W)
+        first = clips.frames[eps, 0].to(device).float()  # (k, 7, H, W)
         for group in opt.param_groups:
             group["lr"] = lr_factor(step, cfg) * group["peak_lr"]
-        with torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
+        with torch.autocast(device.type, dtype=torch.bfloat16, enabled=bf16):
             reference = model.reference_features(first)
             reference = [r.repeat_interleave(cfg.frames_per_clip, dim=0) for r in reference]
             pred = model.decode_raw_with_reference(z * model.latent_std + model.latent_mean, reference)
@@ -299,7 +302,7 @@ def train(cfg: FirstFrameTrainConfig, log=print) -> Path:
             log(f"step {step} loss {history[-1]['loss']:.4f} {terms} ({(time.time() - t0) / max(1, len(history)):.1f} s/step)")
         if step % cfg.ckpt_every == 0 or step == cfg.max_steps:
             save()
-    model.eval()
+    model.eval().cpu()
     export = out / EXPORT_DIR
     save_autoencoder(model, export)
     return export
@@ -314,6 +317,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--max-steps", type=int, default=FirstFrameTrainConfig.max_steps)
     p.add_argument("--ckpt-every", type=int, default=FirstFrameTrainConfig.ckpt_every)
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--clips-per-step", type=int, default=FirstFrameTrainConfig.clips_per_step,
+                   help="episodes per step (a GPU takes 16 or more)")
+    p.add_argument("--frames-per-clip", type=int, default=FirstFrameTrainConfig.frames_per_clip,
+                   help="decoded frames of each episode per step")
     p.add_argument("--min-frame", type=int, default=FirstFrameTrainConfig.min_frame,
                    help="first frame index drawn for training (0 includes the given frame itself)")
     p.add_argument("--lr", type=float, default=FirstFrameTrainConfig.lr,
@@ -326,7 +333,8 @@ def main(argv: list[str] | None = None) -> int:
     cfg = FirstFrameTrainConfig(data=a.data, out=a.out, init=a.init, injection=a.injection,
                                 max_steps=a.max_steps, ckpt_every=a.ckpt_every, seed=a.seed, lr=a.lr,
                                 decoder_lr=a.decoder_lr, min_frame=a.min_frame,
-                                permanence_loss=a.permanence_loss)
+                                permanence_loss=a.permanence_loss, clips_per_step=a.clips_per_step,
+                                frames_per_clip=a.frames_per_clip)
     print(f"exported {train(cfg, log=lambda m: print(m, flush=True))}")
     return 0
 

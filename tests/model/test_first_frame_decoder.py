@@ -159,8 +159,9 @@ def test_training_steps_export_a_first_frame_autoencoder_and_resume(tmp_path):
     base = RGBDNAutoencoder(get_autoencoder_preset("ae-test")).eval()
     save_autoencoder(base, tmp_path / "base")
     data = write_segmented_dataset(tmp_path / "data", episodes=2, frames=6, size=32)
-    cfg = FirstFrameTrainConfig(data=[data], out=tmp_path / "run", init=tmp_path / "base", injection="concat",
-                                max_steps=2, warmup_steps=1, frames_per_clip=2, ckpt_every=1, precision="fp32")
+    cfg = FirstFrameTrainConfig(data=[data], out=tmp_path / "run", init=tmp_path / "base", injection="concat+copy",
+                                max_steps=2, warmup_steps=1, frames_per_clip=2, ckpt_every=1, precision="fp32",
+                                permanence_loss=1.0)
     export = train(cfg, log=lambda m: None)
     model = load_autoencoder(export)
     assert isinstance(model, FirstFrameAutoencoder)
@@ -172,7 +173,8 @@ def test_training_steps_export_a_first_frame_autoencoder_and_resume(tmp_path):
     cfg.max_steps = 3
     train(cfg, log=lambda m: None)
     assert torch.load(tmp_path / "run" / "state.pt")["step"] == 3
-    assert np.isfinite([h["loss"] for h in torch.load(tmp_path / "run" / "state.pt")["history"]]).all()
+    history = torch.load(tmp_path / "run" / "state.pt")["history"]
+    assert np.isfinite([h["loss"] for h in history]).all() and all(np.isfinite(h["lost"]) for h in history)
 
 
 def test_training_refuses_an_out_holding_files_it_did_not_write(tmp_path):
