@@ -101,6 +101,9 @@ class FirstFrameTrainConfig:
     permanence_margin: float = OBJECT_COLOUR_TOL / 2
     precision: str = "auto"
     ckpt_every: int = 20
+    # Stop with a checkpoint and the export after this many minutes of this invocation (the schedule still
+    # ends at max_steps, so resuming goes on from there); None: run to max_steps.
+    max_minutes: float | None = None
     seed: int = 0
 
     def to_dict(self) -> dict:
@@ -302,6 +305,10 @@ def train(cfg: FirstFrameTrainConfig, log=print) -> Path:
             log(f"step {step} loss {history[-1]['loss']:.4f} {terms} ({(time.time() - t0) / max(1, len(history)):.1f} s/step)")
         if step % cfg.ckpt_every == 0 or step == cfg.max_steps:
             save()
+        if cfg.max_minutes is not None and time.time() - t0 > 60 * cfg.max_minutes:
+            save()
+            log(f"stopped at step {step} after {cfg.max_minutes} minutes")
+            break
     model.eval().cpu()
     export = out / EXPORT_DIR
     save_autoencoder(model, export)
@@ -316,6 +323,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--injection", choices=INJECTIONS, default=FirstFrameTrainConfig.injection)
     p.add_argument("--max-steps", type=int, default=FirstFrameTrainConfig.max_steps)
     p.add_argument("--ckpt-every", type=int, default=FirstFrameTrainConfig.ckpt_every)
+    p.add_argument("--max-minutes", type=float, default=None,
+                   help="stop with a checkpoint and the export after this many minutes (resume goes on)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--clips-per-step", type=int, default=FirstFrameTrainConfig.clips_per_step,
                    help="episodes per step (a GPU takes 16 or more)")
@@ -334,7 +343,7 @@ def main(argv: list[str] | None = None) -> int:
                                 max_steps=a.max_steps, ckpt_every=a.ckpt_every, seed=a.seed, lr=a.lr,
                                 decoder_lr=a.decoder_lr, min_frame=a.min_frame,
                                 permanence_loss=a.permanence_loss, clips_per_step=a.clips_per_step,
-                                frames_per_clip=a.frames_per_clip)
+                                frames_per_clip=a.frames_per_clip, max_minutes=a.max_minutes)
     print(f"exported {train(cfg, log=lambda m: print(m, flush=True))}")
     return 0
 
