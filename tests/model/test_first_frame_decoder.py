@@ -232,3 +232,21 @@ def test_the_lost_object_loss_charges_each_lost_object_alike_and_spares_small_er
     assert float(small.detach()) == pytest.approx(float(large)) and float(small.detach()) == pytest.approx((127.5 - margin) / OBJECT_COLOUR_TOL / 2)
     small.backward()
     assert lose_small.grad[:, 0][objects == 1].abs().min() > 0 and lose_small.grad[:, 0][objects == 0].abs().max() == 0
+
+
+@pytest.mark.parametrize("injection", ["concat+copy", "attention+copy"])
+def test_the_4x_preset_takes_a_first_frame_decoder_that_starts_as_it(injection):
+    import dataclasses
+
+    config = get_autoencoder_preset("ae-f4c8")
+    assert config.spatial_compression == 4 and config.latent_shape == (8, 32, 32)
+    torch.manual_seed(0)
+    small = dataclasses.replace(config, block_out_channels=(8, 16), norm_num_groups=4, height=32, width=32)
+    base = RGBDNAutoencoder(small).eval()
+    model = from_autoencoder(base, injection).eval()
+    x = _frames(32)
+    z = base.encode(x)[None]
+    with torch.no_grad():
+        assert torch.equal(base.decode_clips(z), model.decode_clips(z, first_frame=x[:1]))
+        _perturb_path(model)
+        assert (model.decode_clips(z, first_frame=x[:1]) - base.decode_clips(z)).abs().mean() > 1e-3
