@@ -286,12 +286,14 @@ class FirstFrameAutoencoder(RGBDNAutoencoder):
 
 def from_autoencoder(base: RGBDNAutoencoder, injection: str) -> FirstFrameAutoencoder:
     """A first-frame autoencoder holding ``base``'s weights (encoder, decoder, latent statistics) with a
-    fresh, zero-output first-frame path: it decodes exactly as ``base`` until trained."""
+    fresh, zero-output first-frame path: it decodes exactly as ``base`` until trained. A ``base`` that is
+    itself a first-frame autoencoder of this ``injection`` keeps its trained path (training goes on from it)."""
     import dataclasses
 
-    config = dataclasses.replace(base.config, first_frame_injection=injection,
-                                 name=f"{base.config.name}-ff{injection[:3]}"
-                                      f"{'-px' if injection.endswith(PIXEL_SKIP) else '-cp' if injection.endswith(COPY_SKIP) else ''}")
+    name = base.config.name
+    if base.config.first_frame_injection is None:
+        name += f"-ff{injection[:3]}{'-px' if injection.endswith(PIXEL_SKIP) else '-cp' if injection.endswith(COPY_SKIP) else ''}"
+    config = dataclasses.replace(base.config, first_frame_injection=injection, name=name)
     model = FirstFrameAutoencoder(config)
     missing, unexpected = model.load_state_dict(base.state_dict(), strict=False)
     if unexpected or any(not k.startswith(FIRST_FRAME_PREFIX) for k in missing):

@@ -10,6 +10,7 @@ episodes from their latents, each clip's frame 0 given as the reference, and cha
   + moved_loss * the same error's plain mean over the moved object's pixels
   + permanence_loss * mean over (object, frame) of mean over the object's true pixels of
         max(0, |rgb_hat - rgb| - permanence_margin) / OBJECT_COLOUR_TOL      (RGB distance, 0-255)
+        (the pixels an object left since frame 0 count as one more object of each frame)
 
 with ``w = 1 + (object_weight - 1) * robot_or_object + contact_weight * contact + moved_weight * moved``
 from the dataset's segmentation: *contact* pixels lie within ``CONTACT_PX`` of both the robot and a
@@ -20,7 +21,10 @@ The last term is the permanence test made differentiable (``believability.object
 object present where its pixels lie within ``OBJECT_COLOUR_TOL`` of its true colours): a hinge on each
 true object pixel's colour distance, averaged per object and frame, so a lost 10-pixel cube costs as much
 as a lost large one, and a pixel already well inside the tolerance (``permanence_margin``) costs nothing,
-whereas the L1 terms spend most of their weight on the table's grain.
+whereas the L1 terms spend most of their weight on the table's grain. A decoder that copies the given
+frame can also fail the other way, drawing a moved object where it stood in frame 0 as well (a second copy,
+which fails "found whole"): the pixels that showed an object in frame 0 and show none now (*vacated*) are
+charged by the same hinge as one more object.
 
 Run folder::
 
@@ -179,16 +183,19 @@ def load_clips(folders: list[Path], model, camera: str | None = None, cache: Pat
 
 
 def lost_object_loss(pred_rgb: torch.Tensor, target_rgb: torch.Tensor, objects: torch.Tensor,
-                     margin: float) -> torch.Tensor:
+                     margin: float, vacated: torch.Tensor | None = None) -> torch.Tensor:
     """The permanence hinge (module docstring). pred_rgb, target_rgb (n, 3, H, W) model space ([-1, 1]);
-    objects (n, H, W) uint8 object index (0: none). Mean over the (object, frame) pairs that show at
-    least ``MIN_OBJECT_PIXELS`` of the object; 0 when there is none."""
+    objects (n, H, W) uint8 object index (0: none); vacated (n, H, W) bool, the pixels an object left
+    since frame 0 (one more object of each frame), or None. Mean over the (object, frame) pairs that show
+    at least ``MIN_OBJECT_PIXELS`` of the object; 0 when there is none."""
     dist = (pred_rgb.float() - target_rgb.float()).square().sum(1).add(1e-6).sqrt() * 127.5  # (n, H, W), 0-255
     hinge = F.relu(dist - margin) / OBJECT_COLOUR_TOL
     k = int(objects.max())
-    if k == 0:
+    if k == 0 and (vacated is None or not vacated.any()):
         return hinge.sum() * 0.0
     onehot = F.one_hot(objects.long(), k + 1)[..., 1:].permute(0, 3, 1, 2).float()  # (n, k, H, W)
+    if vacated is not None:
+        onehot = torch.cat([onehot, vacated[:, None].float()], dim=1)  # (n, k + 1, H, W)
     count = onehot.sum((2, 3))  # (n, k)
     per_object = (onehot * hinge[:, None]).sum((2, 3)) / count.clamp_min(1.0)
     judged = count >= MIN_OBJECT_PIXELS
@@ -196,10 +203,12 @@ def lost_object_loss(pred_rgb: torch.Tensor, target_rgb: torch.Tensor, objects: 
 
 
 def decoder_loss(pred: torch.Tensor, target: torch.Tensor, regions: torch.Tensor,
-                 cfg: FirstFrameTrainConfig, objects: torch.Tensor | None = None) -> tuple[torch.Tensor, dict[str, float]]:
+                 cfg: FirstFrameTrainConfig, objects: torch.Tensor | None = None,
+                 objects0: torch.Tensor | None = None) -> tuple[torch.Tensor, dict[str, float]]:
     """pred, target (n, 7, H, W) model space (pred before renormalisation); regions (n, 3, H, W) bool
-    (robot_or_object, contact, moved); objects (n, H, W) uint8 object index (needed when
-    ``cfg.permanence_loss`` > 0). Returns the total and its terms (module docstring)."""
+    (robot_or_object, contact, moved); objects, objects0 (n, H, W) uint8 object index of each frame and of
+    its clip's frame 0 (objects needed when ``cfg.permanence_loss`` > 0; objects0 adds the vacated pixels).
+    Returns the total and its terms (module docstring)."""
     s = channel_slices()
     pred, target = pred.float(), target.float()
     n_hat, n = pred[:, s["normal"]], target[:, s["normal"]]
@@ -217,7 +226,8 @@ def decoder_loss(pred: torch.Tensor, target: torch.Tensor, regions: torch.Tensor
     if cfg.permanence_loss > 0:
         if objects is None:
             raise ValueError("permanence_loss > 0 needs the clips' object masks")
-        lost = lost_object_loss(pred[:, s["rgb"]], target[:, s["rgb"]], objects, cfg.permanence_margin)
+        vacated = (objects0 > 0) & (objects == 0) if objects0 is not None else None
+        lost = lost_object_loss(pred[:, s["rgb"]], target[:, s["rgb"]], objects, cfg.permanence_margin, vacated)
         total = total + cfg.permanence_loss * lost
         parts["lost"] = float(lost.detach())
     return total, parts
@@ -286,6 +296,7 @@ def train(cfg: FirstFrameTrainConfig, log=print) -> Path:
         target = torch.cat([clips.frames[e, t] for e, t in zip(eps, ts)]).to(device).float()  # (k f, 7, H, W)
         regions = torch.cat([clips.regions[e, t] for e, t in zip(eps, ts)]).to(device)
         objects = torch.cat([clips.objects[e, t] for e, t in zip(eps, ts)]).to(device)  # (k f, H, W)
+        objects0 = clips.objects[eps, 0].repeat_interleave(cfg.frames_per_clip, dim=0).to(device)  # (k f, H, W)
         first = clips.frames[eps, 0].to(device).float()  # (k, 7, H, W)
         for group in opt.param_groups:
             group["lr"] = lr_factor(step, cfg) * group["peak_lr"]
@@ -293,7 +304,7 @@ def train(cfg: FirstFrameTrainConfig, log=print) -> Path:
             reference = model.reference_features(first)
             reference = [r.repeat_interleave(cfg.frames_per_clip, dim=0) for r in reference]
             pred = model.decode_raw_with_reference(z * model.latent_std + model.latent_mean, reference)
-        loss, parts = decoder_loss(pred, target, regions, cfg, objects)
+        loss, parts = decoder_loss(pred, target, regions, cfg, objects, objects0)
         opt.zero_grad(set_to_none=True)
         loss.backward()
         torch.nn.utils.clip_grad_norm_(params, cfg.grad_clip)

@@ -231,6 +231,13 @@ def test_the_lost_object_loss_charges_each_lost_object_alike_and_spares_small_er
     large = lost_object_loss(lose_large, target, objects, margin)
     assert float(small.detach()) == pytest.approx(float(large)) and float(small.detach()) == pytest.approx((127.5 - margin) / OBJECT_COLOUR_TOL / 2)
     small.backward()
+    # A second copy where an object stood in frame 0 (a ghost on the vacated pixels) is charged as well.
+    vacated = torch.zeros(1, 16, 16, dtype=torch.bool)
+    vacated[0, 1:3, 5:7] = True
+    ghost = target.clone()
+    ghost[:, 0][vacated] = 1.0
+    assert float(lost_object_loss(target, target, objects, margin, vacated)) == pytest.approx(0.0, abs=1e-3)
+    assert float(lost_object_loss(ghost, target, objects, margin, vacated)) == pytest.approx((127.5 - margin) / OBJECT_COLOUR_TOL / 3)
     assert lose_small.grad[:, 0][objects == 1].abs().min() > 0 and lose_small.grad[:, 0][objects == 0].abs().max() == 0
 
 
