@@ -257,3 +257,18 @@ def test_the_4x_preset_takes_a_first_frame_decoder_that_starts_as_it(injection):
         assert torch.equal(base.decode_clips(z), model.decode_clips(z, first_frame=x[:1]))
         _perturb_path(model)
         assert (model.decode_clips(z, first_frame=x[:1]) - base.decode_clips(z)).abs().mean() > 1e-3
+
+
+def test_a_trained_first_frame_decoder_goes_on_with_its_path_and_refuses_another_injection():
+    torch.manual_seed(0)
+    base = RGBDNAutoencoder(get_autoencoder_preset("ae-test")).eval()
+    trained = from_autoencoder(base, "attention+copy").eval()
+    _perturb_path(trained)
+    again = from_autoencoder(trained, "attention+copy").eval()
+    assert again.config.name == trained.config.name
+    x = _frames(32)
+    z = trained.encode(x)[None]
+    with torch.no_grad():
+        assert torch.equal(trained.decode_clips(z, first_frame=x[:1]), again.decode_clips(z, first_frame=x[:1]))
+    with pytest.raises(UserError, match="does not fit"):
+        from_autoencoder(trained, "concat")
