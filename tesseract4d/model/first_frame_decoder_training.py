@@ -78,7 +78,8 @@ class FirstFrameTrainConfig:
 
     data: list[Path] = field(default_factory=list)  # dataset folders (segmentation and object poses stored)
     out: Path = Path("runs/first_frame_decoder")
-    init: Path = Path("tesseract4d/checkpoints/v2/autoencoder")  # the shipped autoencoder whose latents are kept
+    # The shipped autoencoder whose latents are kept; a first-frame autoencoder of ``injection`` continues its path.
+    init: Path = Path("tesseract4d/checkpoints/v2/autoencoder")
     injection: str = "attention"  # one of first_frame_decoder.INJECTIONS
     camera: str | None = None
     max_steps: int = 300
@@ -330,7 +331,8 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description="Train the first-frame decoder from a shipped autoencoder (CPU).")
     p.add_argument("--data", type=Path, nargs="+", required=True, help="dataset folders with segmentation")
     p.add_argument("--out", type=Path, required=True, help="run folder (resumed if it holds a state)")
-    p.add_argument("--init", type=Path, default=FirstFrameTrainConfig.init, help="the autoencoder whose latents are kept")
+    p.add_argument("--init", type=Path, default=FirstFrameTrainConfig.init,
+                   help="the autoencoder whose latents are kept (a first-frame one of --injection: its path trains on)")
     p.add_argument("--injection", choices=INJECTIONS, default=FirstFrameTrainConfig.injection)
     p.add_argument("--max-steps", type=int, default=FirstFrameTrainConfig.max_steps)
     p.add_argument("--ckpt-every", type=int, default=FirstFrameTrainConfig.ckpt_every)
