@@ -287,7 +287,7 @@ def train(cfg: FirstFrameTrainConfig, log=print) -> Path:
         torch.save({"model": model.state_dict(), "optimizer": opt.state_dict(), "step": step, "history": history}, tmp)
         os.replace(tmp, out / STATE_FILE)
 
-    t0 = time.time()
+    t0, step0 = time.time(), step
     while step < cfg.max_steps:
         g = torch.Generator().manual_seed(cfg.seed * 1_000_003 + step)
         eps = torch.randint(E, (cfg.clips_per_step,), generator=g)
@@ -314,7 +314,7 @@ def train(cfg: FirstFrameTrainConfig, log=print) -> Path:
         history.append({"step": step, "loss": float(loss.detach()), **parts, "seconds": time.time() - t0})
         if step % 5 == 0:
             terms = " ".join(f"{k} {v:.4f}" for k, v in parts.items())
-            log(f"step {step} loss {history[-1]['loss']:.4f} {terms} ({(time.time() - t0) / max(1, len(history)):.1f} s/step)")
+            log(f"step {step} loss {history[-1]['loss']:.4f} {terms} ({(time.time() - t0) / max(1, step - step0):.1f} s/step)")
         if step % cfg.ckpt_every == 0 or step == cfg.max_steps:
             save()
         if cfg.max_minutes is not None and time.time() - t0 > 60 * cfg.max_minutes:
