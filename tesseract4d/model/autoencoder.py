@@ -101,6 +101,9 @@ AUTOENCODER_PRESETS: dict[str, AutoencoderConfig] = {
     "ae-f8c16": AutoencoderConfig(name="ae-f8c16"),
     # 8x compression, 32 channels: more room for depth/normal detail at the same spatial grid.
     "ae-f8c32": AutoencoderConfig(name="ae-f8c32", latent_channels=32),
+    # 4x compression, 8 channels (2.5 M parameters): 128² -> 32x32x8 per frame, as many numbers as ae-f8c32's 16x16x32, but a
+    # 4-pixel cube spans one latent cell instead of a quarter of one (a GPU lever, docs/research/first_frame_decoder.md).
+    "ae-f4c8": AutoencoderConfig(name="ae-f4c8", block_out_channels=(64, 128), latent_channels=8),
     # Twice as wide (10 M parameters, about 5x slower per step here): for machines with more cores.
     "ae-f8c16-wide": AutoencoderConfig(name="ae-f8c16-wide", block_out_channels=(64, 128, 256)),
     # Tests only: seconds to build and run.

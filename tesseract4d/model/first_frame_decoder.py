@@ -25,6 +25,12 @@ pixel-unshuffled output ``y`` (``7 s²`` channels at ``H/s``): ``y <- y + conv(s
 norm(h)])))``, the last convolution zero-initialised: copying a pixel of the given frame is then one linear map,
 where the other injections must pass it through the shipped decoder's frozen output head.
 
+With ``+copy`` (``attention+copy``...) that skip also holds a *copy term*: ``y <- y + g * (pixels - y) + ...``
+with the gate ``g = copy(hidden)`` a zero-initialised 1x1 convolution (one gate per output channel and
+position) of the skip's hidden layer. Where ``g`` reaches 1 the output is frame 0's pixel exactly, so copying
+the still scene (and an object that has not moved) needs one gate, not a learnt identity through two 3x3
+convolutions; where something changed the gate stays at 0 and the latent's decoding stands.
+
 Every injection's last layer starts at zero, so a fresh ``FirstFrameAutoencoder`` initialised from a
 shipped autoencoder decodes exactly as it does (``tests/test_first_frame_decoder.py`` checks this).
 The encoder, its config and the latent statistics are the shipped ones, untouched: the latents are the
@@ -50,8 +56,11 @@ from tesseract4d.errors import UserError
 from tesseract4d.model.autoencoder import AutoencoderConfig, RGBDNAutoencoder
 from tesseract4d.model.model_space import NUM_CHANNELS, renormalize_normals
 
-INJECTIONS = ("concat", "attention", "concat+pixels", "attention+pixels")
+INJECTIONS = ("concat", "attention", "concat+pixels", "attention+pixels", "concat+copy", "attention+copy")
 PIXEL_SKIP = "+pixels"
+# "+copy": the output-space skip of "+pixels" plus a gated copy of the given frame (``PixelSkip``'s ``copy``).
+COPY_SKIP = "+copy"
+OUTPUT_SPACE_SKIPS = (PIXEL_SKIP, COPY_SKIP)
 # Weight names of the first-frame path (everything a first-frame fine-tune adds to a shipped autoencoder).
 FIRST_FRAME_PREFIX = "first_frame."
 # Width of the cross-attention's queries and keys.
@@ -128,17 +137,23 @@ class AttentionInjection(torch.nn.Module):
 class PixelSkip(torch.nn.Module):
     """``y + conv(silu(conv([y, pixels, norm(h)])))`` in the output space (the last convolution zero-initialised):
     y, pixels (n, 7 s², H/s, W/s) the decoder's output and frame 0, both pixel-unshuffled; h the decoder's last
-    activations (n, c0, H/s, W/s)."""
+    activations (n, c0, H/s, W/s). With ``copy``, plus ``g * (pixels - y)``, the gate ``g`` (n, 7 s², H/s, W/s)
+    a zero-initialised 1x1 convolution of the same hidden layer (the module docstring's copy term)."""
 
-    def __init__(self, out_channels: int, channels: int, groups: int, hidden: int = 64):
+    def __init__(self, out_channels: int, channels: int, groups: int, hidden: int = 64, copy: bool = False):
         super().__init__()
         self.norm = torch.nn.GroupNorm(_groups(channels, groups), channels)
         self.conv_in = torch.nn.Conv2d(2 * out_channels + channels, hidden, 3, padding=1)
         self.conv_out = _zero(torch.nn.Conv2d(hidden, out_channels, 3, padding=1))
+        self.copy = _zero(torch.nn.Conv2d(hidden, out_channels, 1)) if copy else None
 
     def forward(self, y: torch.Tensor, pixels: torch.Tensor, h: torch.Tensor) -> torch.Tensor:
-        x = torch.cat([y, pixels.to(y.dtype), self.norm(h).to(y.dtype)], dim=1)
-        return y + self.conv_out(F.silu(self.conv_in(x)))
+        pixels = pixels.to(y.dtype)
+        hidden = F.silu(self.conv_in(torch.cat([y, pixels, self.norm(h).to(y.dtype)], dim=1)))
+        out = y + self.conv_out(hidden)
+        if self.copy is not None:
+            out = out + self.copy(hidden) * (pixels - y)
+        return out
 
 
 class FirstFrameAutoencoder(RGBDNAutoencoder):
@@ -162,16 +177,17 @@ class FirstFrameAutoencoder(RGBDNAutoencoder):
         # upsamples except the last, so its output sits one level finer than its input.
         levels = [n - 1] + [max(n - 2 - i, 0) for i in range(n)]
         modules = []
-        kind = config.first_frame_injection.removesuffix(PIXEL_SKIP)
+        kind = config.first_frame_injection.split("+")[0]
         for ch, level in zip(dec_channels, levels):
             ref_ch = self.reference_channels(level)
             if kind == "attention" and level > 0:
                 modules.append(AttentionInjection(ch, ref_ch, config.norm_num_groups))
             else:
                 modules.append(ConcatInjection(ch, ref_ch, config.norm_num_groups))
-        if config.first_frame_injection.endswith(PIXEL_SKIP):
+        if config.first_frame_injection.endswith(OUTPUT_SPACE_SKIPS):
             out_ch = NUM_CHANNELS * config.stem ** 2
-            modules.append(PixelSkip(out_ch, blocks[0], config.norm_num_groups))
+            modules.append(PixelSkip(out_ch, blocks[0], config.norm_num_groups,
+                                     copy=config.first_frame_injection.endswith(COPY_SKIP)))
         self.first_frame = torch.nn.ModuleList(modules)
         self._levels = levels
 
@@ -270,11 +286,14 @@ class FirstFrameAutoencoder(RGBDNAutoencoder):
 
 def from_autoencoder(base: RGBDNAutoencoder, injection: str) -> FirstFrameAutoencoder:
     """A first-frame autoencoder holding ``base``'s weights (encoder, decoder, latent statistics) with a
-    fresh, zero-output first-frame path: it decodes exactly as ``base`` until trained."""
+    fresh, zero-output first-frame path: it decodes exactly as ``base`` until trained. A ``base`` that is
+    itself a first-frame autoencoder of this ``injection`` keeps its trained path (training goes on from it)."""
     import dataclasses
 
-    config = dataclasses.replace(base.config, first_frame_injection=injection,
-                                 name=f"{base.config.name}-ff{injection[:3]}{'-px' if injection.endswith(PIXEL_SKIP) else ''}")
+    name = base.config.name
+    if base.config.first_frame_injection is None:
+        name += f"-ff{injection[:3]}{'-px' if injection.endswith(PIXEL_SKIP) else '-cp' if injection.endswith(COPY_SKIP) else ''}"
+    config = dataclasses.replace(base.config, first_frame_injection=injection, name=name)
     model = FirstFrameAutoencoder(config)
     missing, unexpected = model.load_state_dict(base.state_dict(), strict=False)
     if unexpected or any(not k.startswith(FIRST_FRAME_PREFIX) for k in missing):

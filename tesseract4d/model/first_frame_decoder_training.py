@@ -8,11 +8,23 @@ episodes from their latents, each clip's frame 0 given as the reference, and cha
     sum over pixels of w * (|rgb_hat - rgb| + depth_weight |d_hat - d| + normal_weight (|n_hat - n| + 1 - cos))
     / sum of w
   + moved_loss * the same error's plain mean over the moved object's pixels
+  + permanence_loss * mean over (object, frame) of mean over the object's true pixels of
+        max(0, |rgb_hat - rgb| - permanence_margin) / OBJECT_COLOUR_TOL      (RGB distance, 0-255)
+        (the pixels an object left since frame 0 count as one more object of each frame)
 
 with ``w = 1 + (object_weight - 1) * robot_or_object + contact_weight * contact + moved_weight * moved``
 from the dataset's segmentation: *contact* pixels lie within ``CONTACT_PX`` of both the robot and a
 scene object (the gripper at a cube), *moved* pixels are those of scene objects that move more than
 ``MOVED_M`` during the episode (the object the instruction moves, from the stored object poses).
+
+The last term is the permanence test made differentiable (``believability.objects_present`` counts an
+object present where its pixels lie within ``OBJECT_COLOUR_TOL`` of its true colours): a hinge on each
+true object pixel's colour distance, averaged per object and frame, so a lost 10-pixel cube costs as much
+as a lost large one, and a pixel already well inside the tolerance (``permanence_margin``) costs nothing,
+whereas the L1 terms spend most of their weight on the table's grain. A decoder that copies the given
+frame can also fail the other way, drawing a moved object where it stood in frame 0 as well (a second copy,
+which fails "found whole"): the pixels that showed an object in frame 0 and show none now (*vacated*) are
+charged by the same hinge as one more object.
 
 Run folder::
 
@@ -22,7 +34,8 @@ Run folder::
     RUN/autoencoder/               the exported autoencoder (load_autoencoder builds a FirstFrameAutoencoder)
 
 Everything random in a step comes from a generator seeded by (seed, step), so a resumed run continues
-exactly. ``python -m tesseract4d.model.first_frame_decoder_training --help`` runs it.
+exactly. It trains on a CUDA GPU when one is visible (the clips stay in host memory; each step's batch
+moves), else on the CPU. ``python -m tesseract4d.model.first_frame_decoder_training --help`` runs it.
 """
 
 from __future__ import annotations
@@ -42,12 +55,12 @@ import torch.nn.functional as F
 from tesseract4d import dataset_format as df
 from tesseract4d.configs import config_dict, folder_list
 from tesseract4d.errors import UserError
-from tesseract4d.object_colours import dilate
+from tesseract4d.object_colours import MIN_OBJECT_PIXELS, OBJECT_COLOUR_TOL, dilate
 from tesseract4d.segments import robot_object_mask, scene_object_ids
 from tesseract4d.model.model_space import channel_slices
 from tesseract4d.model.autoencoder import save_autoencoder
 from tesseract4d.model.autoencoder_loading import load_autoencoder
-from tesseract4d.model.first_frame_decoder import from_autoencoder
+from tesseract4d.model.first_frame_decoder import INJECTIONS, from_autoencoder
 from tesseract4d.outputs import claim_folder
 from tesseract4d.precision import resolve_precision
 
@@ -65,8 +78,9 @@ class FirstFrameTrainConfig:
 
     data: list[Path] = field(default_factory=list)  # dataset folders (segmentation and object poses stored)
     out: Path = Path("runs/first_frame_decoder")
-    init: Path = Path("tesseract4d/checkpoints/v2/autoencoder")  # the shipped autoencoder whose latents are kept
-    injection: str = "attention"  # concat | attention (first_frame_decoder.py)
+    # The shipped autoencoder whose latents are kept; a first-frame autoencoder of ``injection`` continues its path.
+    init: Path = Path("tesseract4d/checkpoints/v2/autoencoder")
+    injection: str = "attention"  # one of first_frame_decoder.INJECTIONS
     camera: str | None = None
     max_steps: int = 300
     clips_per_step: int = 2
@@ -87,8 +101,14 @@ class FirstFrameTrainConfig:
     contact_weight: float = 5.0
     moved_weight: float = 10.0
     moved_loss: float = 1.0
+    # Weight of the lost-object hinge (module docstring; 0: off) and its margin (RGB distance, 0-255).
+    permanence_loss: float = 0.0
+    permanence_margin: float = OBJECT_COLOUR_TOL / 2
     precision: str = "auto"
     ckpt_every: int = 20
+    # Stop with a checkpoint and the export after this many minutes of this invocation (the schedule still
+    # ends at max_steps, so resuming goes on from there); None: run to max_steps.
+    max_minutes: float | None = None
     seed: int = 0
 
     def to_dict(self) -> dict:
@@ -103,6 +123,7 @@ class Clips:
     latents: torch.Tensor  # (E, T, C, h, w) float32 normalised latents of the frozen encoder
     regions: torch.Tensor  # (E, T, 3, H, W) bool: robot_or_object, contact, moved
     episode_ids: list[str]
+    objects: torch.Tensor  # (E, T, H, W) uint8: k > 0 on the k-th scene object's true pixels, 0 elsewhere
 
 
 def episode_regions(cam: df.CameraFrames, object_poses: dict[str, np.ndarray]) -> np.ndarray:
@@ -123,12 +144,21 @@ def episode_regions(cam: df.CameraFrames, object_poses: dict[str, np.ndarray]) -
     return np.stack([robot_or_object, contact, moved], axis=1)
 
 
+def episode_objects(cam: df.CameraFrames) -> np.ndarray:
+    """(T, H, W) uint8: k on the pixels of the episode's k-th scene object (k = 1, 2, ...), 0 elsewhere."""
+    seg = np.asarray(cam.segmentation)
+    out = np.zeros(seg.shape, np.uint8)
+    for k, oid in enumerate(scene_object_ids(cam.seg_id_to_name)[:255], start=1):
+        out[seg == oid] = k
+    return out
+
+
 def load_clips(folders: list[Path], model, camera: str | None = None, cache: Path | None = None) -> Clips:
     """Every episode of ``folders`` with its latents (from ``cache`` when it holds these episodes)."""
     files = [f for folder in folders for f in df.list_episode_files(folder)]
     if not files:
         raise UserError(f"{', '.join(map(str, folders))} hold no episodes; write some with `tesseract4d datagen`")
-    frames, regions, ids = [], [], []
+    frames, regions, objects, ids = [], [], [], []
     for path in files:
         ep = df.read_episode(path)
         cam = ep.cameras[camera or next(iter(ep.cameras))]
@@ -136,26 +166,50 @@ def load_clips(folders: list[Path], model, camera: str | None = None, cache: Pat
             raise UserError(f"{path} has no segmentation; regenerate it with `tesseract4d datagen`")
         frames.append(model.model_space.encode(cam.rgb, cam.depth_m, cam.normal_cam).half())
         regions.append(torch.from_numpy(episode_regions(cam, ep.object_poses)))
+        objects.append(torch.from_numpy(episode_objects(cam)))
         ids.append(ep.episode_id)
     lengths = {len(f) for f in frames}
     if len(lengths) != 1:
         raise UserError(f"episodes of different lengths {sorted(lengths)}; train on datasets of one --frames")
     x = torch.stack(frames)  # (E, T, 7, H, W)
     if cache is not None and cache.is_file():
-        saved = torch.load(cache)
+        saved = torch.load(cache, map_location="cpu")
         if saved["episode_ids"] == ids:
-            return Clips(x, saved["latents"], torch.stack(regions), ids)
+            return Clips(x, saved["latents"], torch.stack(regions), ids, torch.stack(objects))
     with torch.no_grad():
-        z = torch.stack([model.encode(f.float()) for f in x])  # (E, T, C, h, w), fp32 as the pipeline encodes
+        z = torch.stack([model.encode(f.float()).cpu() for f in x])  # (E, T, C, h, w), fp32 as the pipeline encodes
     if cache is not None:
         torch.save({"episode_ids": ids, "latents": z}, cache)
-    return Clips(x, z, torch.stack(regions), ids)
+    return Clips(x, z, torch.stack(regions), ids, torch.stack(objects))
+
+
+def lost_object_loss(pred_rgb: torch.Tensor, target_rgb: torch.Tensor, objects: torch.Tensor,
+                     margin: float, vacated: torch.Tensor | None = None) -> torch.Tensor:
+    """The permanence hinge (module docstring). pred_rgb, target_rgb (n, 3, H, W) model space ([-1, 1]);
+    objects (n, H, W) uint8 object index (0: none); vacated (n, H, W) bool, the pixels an object left
+    since frame 0 (one more object of each frame), or None. Mean over the (object, frame) pairs that show
+    at least ``MIN_OBJECT_PIXELS`` of the object; 0 when there is none."""
+    dist = (pred_rgb.float() - target_rgb.float()).square().sum(1).add(1e-6).sqrt() * 127.5  # (n, H, W), 0-255
+    hinge = F.relu(dist - margin) / OBJECT_COLOUR_TOL
+    k = int(objects.max())
+    if k == 0 and (vacated is None or not vacated.any()):
+        return hinge.sum() * 0.0
+    onehot = F.one_hot(objects.long(), k + 1)[..., 1:].permute(0, 3, 1, 2).float()  # (n, k, H, W)
+    if vacated is not None:
+        onehot = torch.cat([onehot, vacated[:, None].float()], dim=1)  # (n, k + 1, H, W)
+    count = onehot.sum((2, 3))  # (n, k)
+    per_object = (onehot * hinge[:, None]).sum((2, 3)) / count.clamp_min(1.0)
+    judged = count >= MIN_OBJECT_PIXELS
+    return per_object[judged].sum() / judged.sum().clamp_min(1)
 
 
 def decoder_loss(pred: torch.Tensor, target: torch.Tensor, regions: torch.Tensor,
-                 cfg: FirstFrameTrainConfig) -> tuple[torch.Tensor, dict[str, float]]:
+                 cfg: FirstFrameTrainConfig, objects: torch.Tensor | None = None,
+                 objects0: torch.Tensor | None = None) -> tuple[torch.Tensor, dict[str, float]]:
     """pred, target (n, 7, H, W) model space (pred before renormalisation); regions (n, 3, H, W) bool
-    (robot_or_object, contact, moved). Returns the total and its terms (module docstring)."""
+    (robot_or_object, contact, moved); objects, objects0 (n, H, W) uint8 object index of each frame and of
+    its clip's frame 0 (objects needed when ``cfg.permanence_loss`` > 0; objects0 adds the vacated pixels).
+    Returns the total and its terms (module docstring)."""
     s = channel_slices()
     pred, target = pred.float(), target.float()
     n_hat, n = pred[:, s["normal"]], target[:, s["normal"]]
@@ -169,7 +223,15 @@ def decoder_loss(pred: torch.Tensor, target: torch.Tensor, regions: torch.Tensor
     moved = r[:, 2:3]
     moved_term = (err * moved).sum() / moved.sum().clamp_min(1.0)
     total = weighted + cfg.moved_loss * moved_term
-    return total, {"weighted": float(weighted.detach()), "moved": float(moved_term.detach())}
+    parts = {"weighted": float(weighted.detach()), "moved": float(moved_term.detach())}
+    if cfg.permanence_loss > 0:
+        if objects is None:
+            raise ValueError("permanence_loss > 0 needs the clips' object masks")
+        vacated = (objects0 > 0) & (objects == 0) if objects0 is not None else None
+        lost = lost_object_loss(pred[:, s["rgb"]], target[:, s["rgb"]], objects, cfg.permanence_margin, vacated)
+        total = total + cfg.permanence_loss * lost
+        parts["lost"] = float(lost.detach())
+    return total, parts
 
 
 def lr_factor(step: int, cfg: FirstFrameTrainConfig) -> float:
@@ -195,18 +257,20 @@ def train(cfg: FirstFrameTrainConfig, log=print) -> Path:
     claim_folder(out, "first-frame-decoder", inputs=[cfg.init, *folder_list(cfg.data)], legacy_marker=CONFIG_FILE)
     (out / CONFIG_FILE).write_text(json.dumps(cfg.to_dict(), indent=2))
     model = from_autoencoder(load_autoencoder(cfg.init), cfg.injection)
+    device = torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    model.to(device)
     model.requires_grad_(False)
     decoder_params, path_params = trained_parameters(model)
     params = decoder_params + path_params
     for p in params:
         p.requires_grad_(True)
     clips = load_clips(folder_list(cfg.data), model, cfg.camera, out / LATENTS_FILE)
-    bf16 = resolve_precision(cfg.precision).bf16
+    bf16 = resolve_precision(cfg.precision, device.type).bf16
     opt = torch.optim.AdamW([{"params": decoder_params, "peak_lr": cfg.decoder_lr},
                              {"params": path_params, "peak_lr": cfg.lr}], lr=cfg.lr, weight_decay=0.0)
     step, history = 0, []
     if (out / STATE_FILE).is_file():
-        state = torch.load(out / STATE_FILE, weights_only=False)  # written by this module (numpy scalars in its history)
+        state = torch.load(out / STATE_FILE, weights_only=False, map_location=device)  # written by this module (numpy scalars in its history)
         model.load_state_dict(state["model"])
         opt.load_state_dict(state["optimizer"])
         for group, peak in zip(opt.param_groups, (cfg.decoder_lr, cfg.lr)):
@@ -214,7 +278,7 @@ def train(cfg: FirstFrameTrainConfig, log=print) -> Path:
         step, history = state["step"], state["history"]
         log(f"resumed at step {step}")
     E, T = clips.frames.shape[:2]
-    log(f"{E} clips of {T} frames; injection {cfg.injection}; bf16 {bf16}; "
+    log(f"{E} clips of {T} frames; injection {cfg.injection}; {device.type}; bf16 {bf16}; "
         f"{sum(p.numel() for p in params) / 1e6:.2f} M trained parameters")
     model.train()
 
@@ -223,23 +287,25 @@ def train(cfg: FirstFrameTrainConfig, log=print) -> Path:
         torch.save({"model": model.state_dict(), "optimizer": opt.state_dict(), "step": step, "history": history}, tmp)
         os.replace(tmp, out / STATE_FILE)
 
-    t0 = time.time()
+    t0, step0 = time.time(), step
     while step < cfg.max_steps:
         g = torch.Generator().manual_seed(cfg.seed * 1_000_003 + step)
         eps = torch.randint(E, (cfg.clips_per_step,), generator=g)
         ts = torch.stack([torch.randperm(T - cfg.min_frame, generator=g)[:cfg.frames_per_clip] + cfg.min_frame
                           for _ in eps])  # (k, f)
-        z = torch.cat([clips.latents[e, t] for e, t in zip(eps, ts)])  # (k f, C, h, w)
-        target = torch.cat([clips.frames[e, t] for e, t in zip(eps, ts)]).float()  # (k f, 7, H, W)
-        regions = torch.cat([clips.regions[e, t] for e, t in zip(eps, ts)])
-        first = clips.frames[eps, 0].float()  # (k, 7, H, W)
+        z = torch.cat([clips.latents[e, t] for e, t in zip(eps, ts)]).to(device)  # (k f, C, h, w)
+        target = torch.cat([clips.frames[e, t] for e, t in zip(eps, ts)]).to(device).float()  # (k f, 7, H, W)
+        regions = torch.cat([clips.regions[e, t] for e, t in zip(eps, ts)]).to(device)
+        objects = torch.cat([clips.objects[e, t] for e, t in zip(eps, ts)]).to(device)  # (k f, H, W)
+        objects0 = clips.objects[eps, 0].repeat_interleave(cfg.frames_per_clip, dim=0).to(device)  # (k f, H, W)
+        first = clips.frames[eps, 0].to(device).float()  # (k, 7, H, W)
         for group in opt.param_groups:
             group["lr"] = lr_factor(step, cfg) * group["peak_lr"]
-        with torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
+        with torch.autocast(device.type, dtype=torch.bfloat16, enabled=bf16):
             reference = model.reference_features(first)
             reference = [r.repeat_interleave(cfg.frames_per_clip, dim=0) for r in reference]
             pred = model.decode_raw_with_reference(z * model.latent_std + model.latent_mean, reference)
-        loss, parts = decoder_loss(pred, target, regions, cfg)
+        loss, parts = decoder_loss(pred, target, regions, cfg, objects, objects0)
         opt.zero_grad(set_to_none=True)
         loss.backward()
         torch.nn.utils.clip_grad_norm_(params, cfg.grad_clip)
@@ -247,11 +313,15 @@ def train(cfg: FirstFrameTrainConfig, log=print) -> Path:
         step += 1
         history.append({"step": step, "loss": float(loss.detach()), **parts, "seconds": time.time() - t0})
         if step % 5 == 0:
-            log(f"step {step} loss {history[-1]['loss']:.4f} weighted {parts['weighted']:.4f} moved {parts['moved']:.4f} "
-                f"({(time.time() - t0) / max(1, len(history)):.1f} s/step)")
+            terms = " ".join(f"{k} {v:.4f}" for k, v in parts.items())
+            log(f"step {step} loss {history[-1]['loss']:.4f} {terms} ({(time.time() - t0) / max(1, step - step0):.1f} s/step)")
         if step % cfg.ckpt_every == 0 or step == cfg.max_steps:
             save()
-    model.eval()
+        if cfg.max_minutes is not None and time.time() - t0 > 60 * cfg.max_minutes:
+            save()
+            log(f"stopped at step {step} after {cfg.max_minutes} minutes")
+            break
+    model.eval().cpu()
     export = out / EXPORT_DIR
     save_autoencoder(model, export)
     return export
@@ -261,22 +331,32 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description="Train the first-frame decoder from a shipped autoencoder (CPU).")
     p.add_argument("--data", type=Path, nargs="+", required=True, help="dataset folders with segmentation")
     p.add_argument("--out", type=Path, required=True, help="run folder (resumed if it holds a state)")
-    p.add_argument("--init", type=Path, default=FirstFrameTrainConfig.init, help="the autoencoder whose latents are kept")
-    p.add_argument("--injection", choices=("concat", "attention", "concat+pixels", "attention+pixels"),
-                   default=FirstFrameTrainConfig.injection)
+    p.add_argument("--init", type=Path, default=FirstFrameTrainConfig.init,
+                   help="the autoencoder whose latents are kept (a first-frame one of --injection: its path trains on)")
+    p.add_argument("--injection", choices=INJECTIONS, default=FirstFrameTrainConfig.injection)
     p.add_argument("--max-steps", type=int, default=FirstFrameTrainConfig.max_steps)
     p.add_argument("--ckpt-every", type=int, default=FirstFrameTrainConfig.ckpt_every)
+    p.add_argument("--max-minutes", type=float, default=None,
+                   help="stop with a checkpoint and the export after this many minutes (resume goes on)")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--clips-per-step", type=int, default=FirstFrameTrainConfig.clips_per_step,
+                   help="episodes per step (a GPU takes 16 or more)")
+    p.add_argument("--frames-per-clip", type=int, default=FirstFrameTrainConfig.frames_per_clip,
+                   help="decoded frames of each episode per step")
     p.add_argument("--min-frame", type=int, default=FirstFrameTrainConfig.min_frame,
                    help="first frame index drawn for training (0 includes the given frame itself)")
     p.add_argument("--lr", type=float, default=FirstFrameTrainConfig.lr,
                    help="the first-frame path's learning rate (0: the path stays zero, a decoder-only fine-tune)")
     p.add_argument("--decoder-lr", type=float, default=FirstFrameTrainConfig.decoder_lr,
                    help="the shipped decoder's learning rate (0: frozen)")
+    p.add_argument("--permanence-loss", type=float, default=FirstFrameTrainConfig.permanence_loss,
+                   help="weight of the lost-object colour hinge (0: off)")
     a = p.parse_args(argv)
     cfg = FirstFrameTrainConfig(data=a.data, out=a.out, init=a.init, injection=a.injection,
                                 max_steps=a.max_steps, ckpt_every=a.ckpt_every, seed=a.seed, lr=a.lr,
-                                decoder_lr=a.decoder_lr, min_frame=a.min_frame)
+                                decoder_lr=a.decoder_lr, min_frame=a.min_frame,
+                                permanence_loss=a.permanence_loss, clips_per_step=a.clips_per_step,
+                                frames_per_clip=a.frames_per_clip, max_minutes=a.max_minutes)
     print(f"exported {train(cfg, log=lambda m: print(m, flush=True))}")
     return 0
 

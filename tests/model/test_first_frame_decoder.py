@@ -159,8 +159,9 @@ def test_training_steps_export_a_first_frame_autoencoder_and_resume(tmp_path):
     base = RGBDNAutoencoder(get_autoencoder_preset("ae-test")).eval()
     save_autoencoder(base, tmp_path / "base")
     data = write_segmented_dataset(tmp_path / "data", episodes=2, frames=6, size=32)
-    cfg = FirstFrameTrainConfig(data=[data], out=tmp_path / "run", init=tmp_path / "base", injection="concat",
-                                max_steps=2, warmup_steps=1, frames_per_clip=2, ckpt_every=1, precision="fp32")
+    cfg = FirstFrameTrainConfig(data=[data], out=tmp_path / "run", init=tmp_path / "base", injection="concat+copy",
+                                max_steps=2, warmup_steps=1, frames_per_clip=2, ckpt_every=1, precision="fp32",
+                                permanence_loss=1.0)
     export = train(cfg, log=lambda m: None)
     model = load_autoencoder(export)
     assert isinstance(model, FirstFrameAutoencoder)
@@ -172,7 +173,8 @@ def test_training_steps_export_a_first_frame_autoencoder_and_resume(tmp_path):
     cfg.max_steps = 3
     train(cfg, log=lambda m: None)
     assert torch.load(tmp_path / "run" / "state.pt")["step"] == 3
-    assert np.isfinite([h["loss"] for h in torch.load(tmp_path / "run" / "state.pt")["history"]]).all()
+    history = torch.load(tmp_path / "run" / "state.pt")["history"]
+    assert np.isfinite([h["loss"] for h in history]).all() and all(np.isfinite(h["lost"]) for h in history)
 
 
 def test_training_refuses_an_out_holding_files_it_did_not_write(tmp_path):
@@ -185,3 +187,88 @@ def test_training_refuses_an_out_holding_files_it_did_not_write(tmp_path):
     with pytest.raises(UserError, match="did not write"):
         train(cfg, log=lambda *_: None)
     assert (out / STATE_FILE).read_bytes() == b"a user's file" and sorted(p.name for p in out.iterdir()) == [STATE_FILE]
+
+
+def test_the_copy_term_changes_the_clip_and_at_gate_one_draws_the_given_frame():
+    from tesseract4d.model.model_space import renormalize_normals
+
+    torch.manual_seed(0)
+    base = RGBDNAutoencoder(get_autoencoder_preset("ae-test")).eval()
+    model = from_autoencoder(base, "attention+copy").eval()
+    copy = model.first_frame[-1].copy
+    x = _frames(32)
+    other = _frames(32, seed=4)[:1]
+    z = model.encode(x)[None]  # (1, T, C, h, w)
+    with torch.no_grad():
+        plain = base.decode_clips(z)
+        torch.nn.init.normal_(copy.weight, std=0.05)  # only the copy gate moves
+        gated = model.decode_clips(z, first_frame=other)
+        torch.nn.init.zeros_(copy.weight)
+        torch.nn.init.ones_(copy.bias)  # gate 1 everywhere: the output is the given frame's pixels
+        copied = model.decode_clips(z, first_frame=other)
+    assert (gated - plain).abs().mean() > 1e-3
+    expected = renormalize_normals(other.clamp(-1.0, 1.0))
+    assert torch.allclose(copied[0], expected.expand_as(copied[0]), atol=1e-5)
+
+
+def test_the_lost_object_loss_charges_each_lost_object_alike_and_spares_small_errors():
+    from tesseract4d.model.first_frame_decoder_training import lost_object_loss
+    from tesseract4d.object_colours import OBJECT_COLOUR_TOL
+
+    target = torch.zeros(1, 3, 16, 16)
+    objects = torch.zeros(1, 16, 16, dtype=torch.uint8)
+    objects[0, 1:3, 1:3] = 1  # a 4-pixel cube
+    objects[0, 6:14, 6:14] = 2  # a 64-pixel one
+    target[:, 0][objects > 0] = 1.0  # both red on a grey table
+    margin = OBJECT_COLOUR_TOL / 2
+    assert float(lost_object_loss(target, target, objects, margin)) == pytest.approx(0.0, abs=1e-3)
+    near = target + 10.0 / 127.5 / 3 ** 0.5  # every pixel 10 RGB units off: inside the margin
+    assert float(lost_object_loss(near, target, objects, margin)) == pytest.approx(0.0, abs=1e-3)
+    lose_small, lose_large = target.clone(), target.clone()
+    lose_small[:, 0][objects == 1] = 0.0
+    lose_large[:, 0][objects == 2] = 0.0
+    small = lost_object_loss(lose_small.requires_grad_(), target, objects, margin)
+    large = lost_object_loss(lose_large, target, objects, margin)
+    assert float(small.detach()) == pytest.approx(float(large)) and float(small.detach()) == pytest.approx((127.5 - margin) / OBJECT_COLOUR_TOL / 2)
+    small.backward()
+    # A second copy where an object stood in frame 0 (a ghost on the vacated pixels) is charged as well.
+    vacated = torch.zeros(1, 16, 16, dtype=torch.bool)
+    vacated[0, 1:3, 5:7] = True
+    ghost = target.clone()
+    ghost[:, 0][vacated] = 1.0
+    assert float(lost_object_loss(target, target, objects, margin, vacated)) == pytest.approx(0.0, abs=1e-3)
+    assert float(lost_object_loss(ghost, target, objects, margin, vacated)) == pytest.approx((127.5 - margin) / OBJECT_COLOUR_TOL / 3)
+    assert lose_small.grad[:, 0][objects == 1].abs().min() > 0 and lose_small.grad[:, 0][objects == 0].abs().max() == 0
+
+
+@pytest.mark.parametrize("injection", ["concat+copy", "attention+copy"])
+def test_the_4x_preset_takes_a_first_frame_decoder_that_starts_as_it(injection):
+    import dataclasses
+
+    config = get_autoencoder_preset("ae-f4c8")
+    assert config.spatial_compression == 4 and config.latent_shape == (8, 32, 32)
+    torch.manual_seed(0)
+    small = dataclasses.replace(config, block_out_channels=(8, 16), norm_num_groups=4, height=32, width=32)
+    base = RGBDNAutoencoder(small).eval()
+    model = from_autoencoder(base, injection).eval()
+    x = _frames(32)
+    z = base.encode(x)[None]
+    with torch.no_grad():
+        assert torch.equal(base.decode_clips(z), model.decode_clips(z, first_frame=x[:1]))
+        _perturb_path(model)
+        assert (model.decode_clips(z, first_frame=x[:1]) - base.decode_clips(z)).abs().mean() > 1e-3
+
+
+def test_a_trained_first_frame_decoder_goes_on_with_its_path_and_refuses_another_injection():
+    torch.manual_seed(0)
+    base = RGBDNAutoencoder(get_autoencoder_preset("ae-test")).eval()
+    trained = from_autoencoder(base, "attention+copy").eval()
+    _perturb_path(trained)
+    again = from_autoencoder(trained, "attention+copy").eval()
+    assert again.config.name == trained.config.name
+    x = _frames(32)
+    z = trained.encode(x)[None]
+    with torch.no_grad():
+        assert torch.equal(trained.decode_clips(z, first_frame=x[:1]), again.decode_clips(z, first_frame=x[:1]))
+    with pytest.raises(UserError, match="does not fit"):
+        from_autoencoder(trained, "concat")
