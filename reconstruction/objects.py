@@ -21,8 +21,12 @@ How it is made (:func:`track_objects`):
    (``rotation="yaw"``) or a full rotation (``rotation="full"``), from up to three starts (the guess,
    the last pose, the guess moved onto the observed centroid); the fit that explains the frame best
    both ways wins, a turn of more than ``MAX_TURN_DEG`` per frame is refitted without rotation, and the
-   last pose is kept when it explains the frame nearly as well (still objects do not creep); a fit
-   that leaves its points farther than ``MAX_FIT_RMS_M`` apart counts as not found;
+   last pose of a still object is kept unless the fit explains the frame at least ``STAY_FACTOR`` times
+   better (a blurred still object does not creep; a moving one needs only ``STAY_FACTOR_MOVING``); a fit that leaves its points farther than ``MAX_FIT_RMS_M`` apart counts
+   as not found; an object seen again after frames unseen is placed farther than ``REFIND_M`` from where
+   it was only when something was at it meanwhile (the arm's unsaturated points or a moving object within
+   ``CAUSE_REACH_M`` of it, or what covered it that close in front of it): a prediction that drops an
+   object and redraws a look-alike elsewhere does not move it;
 3. an object not found (too little of its expected visible surface seen) keeps its pose when
    something stands in front of where it was (``occluded``); it moves with the arm when the evidence
    says it is held (it was moving or lifted when last seen, or already held, and the arm's points touch
@@ -34,8 +38,9 @@ on the recorded frames of 32 held-out episodes at 128² (PickCube, PushCube, Pul
 tabletop; 64 objects) every object ends within 5 mm of the truth, with "yaw" as with "full" (mean
 largest error along the track 7.4 vs 7.6 mm). A first version (point-to-point pairs one way, one search
 sphere) ended 7 of the first 24 objects 7-12 cm off (objects moving faster than the sphere, fits sliding
-along a face). Objects are tracked in the input depth (see ``reconstruct.py``). Not done: completing an
-object's hidden faces from its normals; flow + RANSAC fits (AVDC) were not tried.
+along a face). Objects are tracked in the input depth (see ``reconstruct.py``). The rules that keep still objects
+still were chosen on the default model's predictions of the held-out sets (docs/research/object_layer.md).
+Not done: completing an object's hidden faces from its normals; flow + RANSAC fits (AVDC) were not tried.
 """
 
 from __future__ import annotations
@@ -75,6 +80,10 @@ GOOD_SCORE_M = 0.0015
 # The last pose is kept when its two-way score (mean square) is at most this factor of the best fit's plus this floor squared.
 STAY_FACTOR = 2.0
 STAY_FLOOR_M = 0.001
+# ... and for an object already moving (it moved in its last fitted frame), the last pose is kept only when
+# it explains the frame nearly as well (this factor; floor STAY_FLOOR_MOVING_M): a moving object keeps moving.
+STAY_FACTOR_MOVING = 1.25
+STAY_FLOOR_MOVING_M = 0.0005
 TRIM_SHARE = 0.8
 MAX_PAIR_M = 0.02
 # A fit whose kept pairs are farther apart than this (root mean square) did not find the object.
@@ -494,7 +503,8 @@ def _fit_score(model: "_Model", observed: np.ndarray, T: np.ndarray, model_tree,
 
 
 def _best_fit(model_tree, model: "_Model", observed: np.ndarray, guess: np.ndarray, expected: np.ndarray,
-              T_prev: np.ndarray, up: np.ndarray | None, depth_m: np.ndarray, K: np.ndarray, T_world_cam: np.ndarray):
+              T_prev: np.ndarray, up: np.ndarray | None, depth_m: np.ndarray, K: np.ndarray, T_world_cam: np.ndarray,
+              moving: bool = False):
     """The best of :func:`_icp` from up to three starts: the guess, the last pose (when the guess moved
     on at the last velocity), and the guess moved so that the model's expected visible points' centroid
     meets the observed points' (a fast motion leaves the guess far behind); a fit that turns more than ``MAX_TURN_DEG`` from the last pose (a flip onto a look-alike
@@ -522,7 +532,8 @@ def _best_fit(model_tree, model: "_Model", observed: np.ndarray, guess: np.ndarr
     # nearly as well as the best fit (a blurred or partly covered still object otherwise creeps).
     if best[0] is not T_prev and np.isfinite(best_score):
         stay = _fit_score(model, observed, T_prev, model_tree, depth_m, K, T_world_cam)
-        if stay <= STAY_FACTOR * best_score + STAY_FLOOR_M ** 2:
+        factor, floor = (STAY_FACTOR_MOVING, STAY_FLOOR_MOVING_M) if moving else (STAY_FACTOR, STAY_FLOOR_M)
+        if stay <= factor * best_score + floor ** 2:
             return (T_prev.copy(), *_residual(model_tree, observed, T_prev))
     return best
 
@@ -639,7 +650,7 @@ def track_objects(rgb: np.ndarray, depth_m: np.ndarray, normal_cam: np.ndarray, 
                 if len(observed) < MIN_OBJECT_PIXELS or len(observed) / n_expected < config.min_visible_share:
                     continue
                 T_fit, rms, kept = _best_fit(trees[k], model, observed, guess, expected, T_prev, up,
-                                             depth[t], K[t], T_world_cam[t])
+                                             depth[t], K[t], T_world_cam[t], moving=was_moving[k] or state[k, t - 1] == HELD)
                 if rms > MAX_FIT_RMS_M:
                     continue
                 # Seen again after frames unseen: somewhere else only if something was at it meanwhile;
