@@ -117,7 +117,7 @@ MIN_ARM_POINTS = 8
 # when at least MIN_CAUSE_POINTS points of the arm (moving, unsaturated points of none of the objects'
 # colours) or of another moving object lie within CAUSE_REACH_M of its surface in this frame or the last,
 # or as many of the points covering it lie within CAUSE_REACH_M in front of it.
-CAUSE_REACH_M = 0.03
+CAUSE_REACH_M = 0.05
 # An object seen again after frames unseen is found farther than this from where it was only when
 # something was at it meanwhile.
 REFIND_M = 0.02
