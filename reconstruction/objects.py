@@ -21,8 +21,12 @@ How it is made (:func:`track_objects`):
    (``rotation="yaw"``) or a full rotation (``rotation="full"``), from up to three starts (the guess,
    the last pose, the guess moved onto the observed centroid); the fit that explains the frame best
    both ways wins, a turn of more than ``MAX_TURN_DEG`` per frame is refitted without rotation, and the
-   last pose is kept when it explains the frame nearly as well (still objects do not creep); a fit
-   that leaves its points farther than ``MAX_FIT_RMS_M`` apart counts as not found;
+   last pose of a still object is kept unless the fit explains the frame at least ``STAY_FACTOR`` times
+   better (a blurred still object does not creep; a moving one needs only ``STAY_FACTOR_MOVING``); a fit that leaves its points farther than ``MAX_FIT_RMS_M`` apart counts
+   as not found; an object seen again after frames unseen is placed farther than ``REFIND_M`` from where
+   it was only when something was at it meanwhile (the arm's unsaturated points or a moving object within
+   ``CAUSE_REACH_M`` of it, or what covered it that close in front of it): a prediction that drops an
+   object and redraws a look-alike elsewhere does not move it;
 3. an object not found (too little of its expected visible surface seen) keeps its pose when
    something stands in front of where it was (``occluded``); it moves with the arm when the evidence
    says it is held (it was moving or lifted when last seen, or already held, and the arm's points touch
@@ -34,8 +38,9 @@ on the recorded frames of 32 held-out episodes at 128² (PickCube, PushCube, Pul
 tabletop; 64 objects) every object ends within 5 mm of the truth, with "yaw" as with "full" (mean
 largest error along the track 7.4 vs 7.6 mm). A first version (point-to-point pairs one way, one search
 sphere) ended 7 of the first 24 objects 7-12 cm off (objects moving faster than the sphere, fits sliding
-along a face). Objects are tracked in the input depth (see ``reconstruct.py``). Not done: completing an
-object's hidden faces from its normals; flow + RANSAC fits (AVDC) were not tried.
+along a face). Objects are tracked in the input depth (see ``reconstruct.py``). The rules that keep still objects
+still were chosen on the default model's predictions of the held-out sets (docs/research/object_layer.md).
+Not done: completing an object's hidden faces from its normals; flow + RANSAC fits (AVDC) were not tried.
 """
 
 from __future__ import annotations
@@ -73,8 +78,12 @@ CONVERGED_RAD = 1e-4
 # A fit whose two-way score (root mean square, metres) is this good ends the search among starts.
 GOOD_SCORE_M = 0.0015
 # The last pose is kept when its two-way score (mean square) is at most this factor of the best fit's plus this floor squared.
-STAY_FACTOR = 1.25
-STAY_FLOOR_M = 0.0005
+STAY_FACTOR = 2.0
+STAY_FLOOR_M = 0.001
+# ... and for an object already moving (it moved in its last fitted frame), the last pose is kept only when
+# it explains the frame nearly as well (this factor; floor STAY_FLOOR_MOVING_M): a moving object keeps moving.
+STAY_FACTOR_MOVING = 1.25
+STAY_FLOOR_MOVING_M = 0.0005
 TRIM_SHARE = 0.8
 MAX_PAIR_M = 0.02
 # A fit whose kept pairs are farther apart than this (root mean square) did not find the object.
@@ -104,6 +113,17 @@ ARM_FIT_M = 0.003
 ARM_GROWTH = 1.5
 MIN_CONTACT_POINTS = 3
 MIN_ARM_POINTS = 8
+# Rigid objects move only when something touches them. While an object is not seen, something is at it
+# when at least MIN_CAUSE_POINTS points of the arm (moving, unsaturated points of none of the objects'
+# colours) or of another moving object lie within CAUSE_REACH_M of its surface in this frame or the last,
+# or as many of the points covering it lie within CAUSE_REACH_M in front of it.
+CAUSE_REACH_M = 0.05
+# An object seen again after frames unseen is found farther than this from where it was only when
+# something was at it meanwhile.
+REFIND_M = 0.02
+# The arm's pixels are unsaturated (grey, white, black): HSV saturation at most this.
+ARM_MAX_SATURATION = 0.3
+MIN_CAUSE_POINTS = 5
 # Confidence of a fit: visibility times exp(-rms / CONFIDENCE_RMS_M); an occluded/held object's decays by this per frame.
 CONFIDENCE_RMS_M = 0.004
 UNSEEN_DECAY = 0.8
@@ -483,7 +503,8 @@ def _fit_score(model: "_Model", observed: np.ndarray, T: np.ndarray, model_tree,
 
 
 def _best_fit(model_tree, model: "_Model", observed: np.ndarray, guess: np.ndarray, expected: np.ndarray,
-              T_prev: np.ndarray, up: np.ndarray | None, depth_m: np.ndarray, K: np.ndarray, T_world_cam: np.ndarray):
+              T_prev: np.ndarray, up: np.ndarray | None, depth_m: np.ndarray, K: np.ndarray, T_world_cam: np.ndarray,
+              moving: bool = False):
     """The best of :func:`_icp` from up to three starts: the guess, the last pose (when the guess moved
     on at the last velocity), and the guess moved so that the model's expected visible points' centroid
     meets the observed points' (a fast motion leaves the guess far behind); a fit that turns more than ``MAX_TURN_DEG`` from the last pose (a flip onto a look-alike
@@ -511,7 +532,8 @@ def _best_fit(model_tree, model: "_Model", observed: np.ndarray, guess: np.ndarr
     # nearly as well as the best fit (a blurred or partly covered still object otherwise creeps).
     if best[0] is not T_prev and np.isfinite(best_score):
         stay = _fit_score(model, observed, T_prev, model_tree, depth_m, K, T_world_cam)
-        if stay <= STAY_FACTOR * best_score + STAY_FLOOR_M ** 2:
+        factor, floor = (STAY_FACTOR_MOVING, STAY_FLOOR_MOVING_M) if moving else (STAY_FACTOR, STAY_FLOOR_M)
+        if stay <= factor * best_score + floor ** 2:
             return (T_prev.copy(), *_residual(model_tree, observed, T_prev))
     return best
 
@@ -590,10 +612,13 @@ def track_objects(rgb: np.ndarray, depth_m: np.ndarray, normal_cam: np.ndarray, 
     confidence[:, 0] = 1.0
     start_height = [float(T[0, :3, 3] @ up_axis) for T in T_all]
     was_moving = [False] * n_obj  # moving when last seen
+    touched_unseen = [False] * n_obj  # the arm or a moving object touched it while it was not seen
     pts_prev = pts0
+    palettes = np.concatenate([m.palette for m in models]) if models else np.zeros((0, 3), np.float32)
     for t in range(1, T_frames):
         pts_t = world_points(t)
         taken = np.zeros((H, W), bool)
+        causes = None  # made when an object is not seen (what may be at it)
         for k, model in enumerate(models):
             T_prev = T_all[k][t - 1]
             guess = T_prev.copy()
@@ -625,15 +650,24 @@ def track_objects(rgb: np.ndarray, depth_m: np.ndarray, normal_cam: np.ndarray, 
                 if len(observed) < MIN_OBJECT_PIXELS or len(observed) / n_expected < config.min_visible_share:
                     continue
                 T_fit, rms, kept = _best_fit(trees[k], model, observed, guess, expected, T_prev, up,
-                                             depth[t], K[t], T_world_cam[t])
+                                             depth[t], K[t], T_world_cam[t], moving=was_moving[k] or state[k, t - 1] == HELD)
                 if rms > MAX_FIT_RMS_M:
                     continue
+                # Seen again after frames unseen: somewhere else only if something was at it meanwhile;
+                # else it stays, if its last pose still explains what is seen.
+                if (state[k, t - 1] in (OCCLUDED, LOST) and not touched_unseen[k]
+                        and np.linalg.norm(T_fit[:3, 3] - T_prev[:3, 3]) > REFIND_M):
+                    if _fit_score(model, observed, T_prev, trees[k], depth[t], K[t], T_world_cam[t]) > MAX_FIT_RMS_M ** 2:
+                        break
+                    rms, kept = _residual(trees[k], observed, T_prev)
+                    T_fit = T_prev.copy()
                 found = True
                 T_all[k][t] = T_fit
                 visibility[k, t] = min(1.0, seen_share)
                 confidence[k, t] = min(1.0, seen_share) * float(np.exp(-rms / CONFIDENCE_RMS_M))
                 state[k, t] = TRACKED
                 was_moving[k] = np.linalg.norm(T_fit[:3, 3] - T_prev[:3, 3]) >= HELD_SPEED_M
+                touched_unseen[k] = False
                 lab = labels[t][rs, cs]  # a view: rows and columns are slices
                 win_lab = lab.reshape(-1).copy()
                 win_lab[np.flatnonzero(cand)[kept]] = k
@@ -643,14 +677,27 @@ def track_objects(rgb: np.ndarray, depth_m: np.ndarray, normal_cam: np.ndarray, 
             if found:
                 continue
             visibility[k, t] = min(1.0, seen_share)
+            if causes is None and static is not None:
+                causes = _Causes([_arm_points(p, rgb[f], depth[f], valid[f], static, palettes, config.colour_tol)
+                                  for p, f in ((pts_prev, t - 1), (pts_t, t))], models, trees, T_all, t)
+            touched = causes is not None and causes.touches(k, T_prev)
             # Not found: is something in front of where it was, and is it being carried?
             prev_rows, prev_cols, prev_z, prev_in = _project(transform_points(T_prev, model.points), K[t], T_world_cam[t], H, W)
             look = prev_in & facing
             if look.any():
                 d = depth[t][prev_rows[look], prev_cols[look]]
-                covered = float(np.mean((d > 0) & (d < prev_z[look] - DEPTH_TOL_M)))
+                in_front = (d > 0) & (d < prev_z[look] - DEPTH_TOL_M)
+                covered = float(np.mean(in_front))
+                # What covers it is at it (the hand over it), not passing far in front of it.
+                at_it = in_front & (d >= prev_z[look] - CAUSE_REACH_M)
+                if at_it.any():  # of other colours than its own (not the object itself, drawn elsewhere)
+                    at_it[at_it] = min_colour_distance(rgb[t][prev_rows[look][at_it], prev_cols[look][at_it]],
+                                                       model.palette) >= config.colour_tol
+                touched = touched or int(at_it.sum()) >= MIN_CAUSE_POINTS
             else:
                 covered = 1.0  # out of view: nothing says it is gone
+            # Unseen while something is at it: it may be somewhere else when it is seen again.
+            touched_unseen[k] = touched_unseen[k] or touched
             T_all[k][t] = T_prev
             # Held: the arm touches it and it was moving or lifted when last seen (or is already held); the
             # arm's motion around it then carries it. A still object the arm passes over stays put.
@@ -688,6 +735,52 @@ def track_objects(rgb: np.ndarray, depth_m: np.ndarray, normal_cam: np.ndarray, 
         ))
     return ObjectLayer(tracks=tracks, source=source, instructed=instructed,
                        point_object=[labels[t][valid[t]] for t in range(T_frames)])
+
+
+def _arm_points(pts: np.ndarray, rgb: np.ndarray, depth: np.ndarray, valid: np.ndarray, static: np.ndarray,
+                palettes: np.ndarray, colour_tol: float) -> np.ndarray:
+    """(N, 3) world points of the arm in one frame: nearer than the clip's farthest depth there (moving
+    things) and of none of the objects' colours."""
+    c = np.asarray(rgb, np.float32)
+    hi, lo = c.max(-1), c.min(-1)
+    # The arm is grey, white or black; the blurred outline of a coloured object or the table is not.
+    grey = (hi - lo) <= ARM_MAX_SATURATION * np.maximum(hi, 1.0)
+    moving = valid & (depth < static - DEPTH_TOL_M) & grey
+    p = pts[moving]
+    if len(p) and len(palettes):
+        p = p[min_colour_distance(rgb[moving], palettes) >= colour_tol]
+    return p
+
+
+class _Causes:
+    """What may move an object at frame t: the arm's points at t-1 and t, and the other objects that are
+    moving (their last step, this frame's where already fitted)."""
+
+    def __init__(self, arm_points: list[np.ndarray], models: list, trees: list, T_all: list, t: int):
+        self.arm = np.concatenate(arm_points)
+        self.models, self.trees, self.T_all, self.t = models, trees, T_all, t
+
+    def touches(self, k: int, T_world_object: np.ndarray) -> bool:
+        """Whether the arm or a moving object comes within ``CAUSE_REACH_M`` of object k at the given pose."""
+        inv = invert_pose(T_world_object)
+        if len(self.arm):
+            near = np.isfinite(self.trees[k].query(transform_points(inv, self.arm), distance_upper_bound=CAUSE_REACH_M)[0])
+            if near.sum() >= MIN_CAUSE_POINTS:
+                return True
+        for j, model in enumerate(self.models):
+            if j == k:
+                continue
+            # Objects before k are fitted in this frame already; the others are where they were.
+            now = self.t if j < k else self.t - 1
+            if now < 1:
+                continue
+            T_j = self.T_all[j]
+            if np.linalg.norm(T_j[now][:3, 3] - T_j[now - 1][:3, 3]) < HELD_SPEED_M:
+                continue
+            pts = transform_points(inv @ T_j[now], model.points)
+            if np.isfinite(self.trees[k].query(pts, distance_upper_bound=CAUSE_REACH_M)[0]).sum() >= MIN_CAUSE_POINTS:
+                return True
+        return False
 
 
 def _arm_shift(pts_prev: np.ndarray, pts_t: np.ndarray, normals_t: np.ndarray, depth: np.ndarray, static: np.ndarray,

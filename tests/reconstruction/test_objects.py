@@ -88,6 +88,29 @@ def test_an_object_the_video_loses_is_flagged_never_dropped():
     assert np.allclose(track.T_world_object, track.T_world_object[0])
 
 
+def _reappearing_cube(arm_centre) -> tuple:
+    """The red cube drawn in frames 0-2, hidden in frames 3-5 while a grey arm box stands at ``arm_centre``,
+    then drawn again 5 cm away (frames 6-9): the prediction dropped it and redrew it elsewhere."""
+    pos = still((0.0, 0.0, HALF), T)
+    pos[6:] += [0.05, 0.0, 0.0]
+    red = Box("cube_red", pos, np.zeros(T), (HALF, HALF, HALF), (220, 30, 30), ~np.isin(np.arange(T), [3, 4, 5]))
+    arm = Box("panda_hand", still(arm_centre, T), np.zeros(T), (0.03, 0.03, 0.03), (200, 200, 205), np.isin(np.arange(T), [3, 4, 5]))
+    ep = box_episode([red, green_still(), arm], T)
+    return episode_objects(ep, "close").track("cube_red"), ep.object_poses["cube_red"]
+
+
+def test_an_object_seen_again_elsewhere_moves_only_if_something_was_at_it():
+    # The arm passes 14 cm in front of the cube (between it and the camera): nothing touched it, so the cube
+    # redrawn 5 cm away is not the cube moving; it keeps its pose and is reported lost.
+    track, _ = _reappearing_cube((0.10, -0.10, 0.12))
+    assert track.states()[3:6] == ["occluded"] * 3 and track.states()[6:] == ["lost"] * 4
+    assert np.allclose(track.T_world_object, track.T_world_object[0], atol=1e-6)
+    # The arm on the cube while it was hidden: it may have moved it, and it is found where it is seen again.
+    track, pose = _reappearing_cube((0.0, 0.0, 2 * HALF + 0.031))
+    assert track.states()[6:] == ["tracked"] * 4
+    assert np.linalg.norm(truth_point_track(track, pose)[-1] - pose[-1, :3]) < 0.003
+
+
 def test_colour_finder_names_objects_without_a_segmentation():
     red = Box("cube_red", moving((0.0, 0.0, HALF), (0.06, 0.0, HALF), T), np.zeros(T), (HALF, HALF, HALF), (220, 30, 30))
     ep = box_episode([red, green_still()], T, instruction="push the red cube forward")
