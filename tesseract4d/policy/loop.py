@@ -72,6 +72,19 @@ class FutureClip:
     episode: df.Episode | None = None  # the prediction as a dataset episode (viewer)
 
 
+class StageClock:
+    """Seconds per stage of an episode: ``lap(stage)`` charges the time since the last lap to ``stage``."""
+
+    def __init__(self, stages) -> None:
+        self.seconds = dict.fromkeys(stages, 0.0)
+        self.start = self._tick = time.perf_counter()
+
+    def lap(self, stage: str) -> None:
+        now = time.perf_counter()
+        self.seconds[stage] += now - self._tick
+        self._tick = now
+
+
 @dataclass
 class EpisodeResult:
     env_id: str
@@ -225,15 +238,8 @@ class PolicyRunner:
             raise UserError(f"arm {arm} needs an IDM with use_future={future is not None}; this one has "
                             f"use_future={model.config.use_future}")
         self.check_env()
-        timings = dict.fromkeys(STAGES, 0.0)
-        t_start = time.perf_counter()
-        tick = time.perf_counter()
-
-        def lap(stage: str) -> None:
-            nonlocal tick
-            now = time.perf_counter()
-            timings[stage] += now - tick
-            tick = now
+        clock = StageClock(STAGES)
+        timings, t_start, lap = clock.seconds, clock.start, clock.lap
 
         first = self.sim.first_frame(seed)
         instruction = first.instruction

@@ -32,7 +32,7 @@ import numpy as np
 from reconstruction.objects import TRACKED, first_frame_masks, instructed_object, track_objects
 from tesseract4d.geometry import invert_pose, project_points, transform_points
 from tesseract4d.policy.goal_reading import read_goal
-from tesseract4d.policy.loop import EpisodeResult, FutureClip, Trace, WorldModelFuture
+from tesseract4d.policy.loop import EpisodeResult, FutureClip, StageClock, Trace, WorldModelFuture
 from tesseract4d.policy.perception import ObjectPerception, PerceivedObject
 from tesseract4d.policy.primitives import PrimitiveFailure, run_primitive
 from tesseract4d.policy.words import parse_instruction
@@ -265,14 +265,8 @@ class PlanRunner:
             trace: Trace | None = None) -> EpisodeResult:
 
         c = self.config
-        timings = dict.fromkeys(PLAN_STAGES, 0.0)
-        t_start = tick = time.perf_counter()
-
-        def lap(stage: str) -> None:
-            nonlocal tick
-            now = time.perf_counter()
-            timings[stage] += now - tick
-            tick = now
+        clock = StageClock(PLAN_STAGES)
+        timings, t_start, lap = clock.seconds, clock.start, clock.lap
 
         first = self.sim.first_frame(seed)
         instruction = first.instruction if instruction is None else instruction
