@@ -42,7 +42,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import os
 import time
 from dataclasses import dataclass, field
@@ -63,6 +62,7 @@ from tesseract4d.model.autoencoder_loading import load_autoencoder
 from tesseract4d.model.first_frame_decoder import INJECTIONS, from_autoencoder
 from tesseract4d.outputs import claim_folder
 from tesseract4d.precision import resolve_precision
+from tesseract4d.training.schedule import lr_factor
 
 CONFIG_FILE = "ff_train_config.json"
 STATE_FILE = "state.pt"
@@ -232,14 +232,6 @@ def decoder_loss(pred: torch.Tensor, target: torch.Tensor, regions: torch.Tensor
         total = total + cfg.permanence_loss * lost
         parts["lost"] = float(lost.detach())
     return total, parts
-
-
-def lr_factor(step: int, cfg: FirstFrameTrainConfig) -> float:
-    """Linear warm-up over ``warmup_steps``, then cosine decay to ``min_lr_ratio`` at ``max_steps``."""
-    if step < cfg.warmup_steps:
-        return (step + 1) / cfg.warmup_steps
-    progress = min(1.0, (step - cfg.warmup_steps) / max(1, cfg.max_steps - cfg.warmup_steps))
-    return cfg.min_lr_ratio + (1 - cfg.min_lr_ratio) * 0.5 * (1 + math.cos(math.pi * progress))
 
 
 def trained_parameters(model) -> tuple[list[torch.nn.Parameter], list[torch.nn.Parameter]]:

@@ -29,14 +29,19 @@ BUDGET_MARGIN = 0.93
 UNFITTED_MAX_STEPS = 10**9
 
 
-def lr_at(step: int, cfg) -> float:
-    """Linear warm-up to ``cfg.lr`` over ``cfg.warmup_steps``, then cosine decay to
-    ``cfg.min_lr_ratio * cfg.lr`` at ``cfg.max_steps`` (``auto`` before it is fitted: no decay yet)."""
+def lr_factor(step: int, cfg) -> float:
+    """The schedule's share of the peak rate at ``step``: linear warm-up over ``cfg.warmup_steps``, then
+    cosine decay to ``cfg.min_lr_ratio`` at ``cfg.max_steps`` (``auto`` before it is fitted: no decay yet)."""
     if step < cfg.warmup_steps:
-        return cfg.lr * (step + 1) / cfg.warmup_steps
+        return (step + 1) / cfg.warmup_steps
     max_steps = UNFITTED_MAX_STEPS if cfg.max_steps == AUTO else cfg.max_steps  # not fitted yet: no decay
     progress = min(1.0, (step - cfg.warmup_steps) / max(1, max_steps - cfg.warmup_steps))
-    return cfg.lr * (cfg.min_lr_ratio + (1 - cfg.min_lr_ratio) * 0.5 * (1 + math.cos(math.pi * progress)))
+    return cfg.min_lr_ratio + (1 - cfg.min_lr_ratio) * 0.5 * (1 + math.cos(math.pi * progress))
+
+
+def lr_at(step: int, cfg) -> float:
+    """The learning rate at ``step``: ``cfg.lr`` times the schedule's ``lr_factor``."""
+    return cfg.lr * lr_factor(step, cfg)
 
 
 def max_steps_argument(text: str) -> int | str:
@@ -128,4 +133,4 @@ class StepBudget:
                 "margin": self.margin, "max_steps": self.fitted}
 
 
-__all__ = ["AUTO", "StepBudget", "check_max_steps", "lr_at", "max_steps_argument", "resumed_max_steps"]
+__all__ = ["AUTO", "StepBudget", "check_max_steps", "lr_at", "lr_factor", "max_steps_argument", "resumed_max_steps"]
