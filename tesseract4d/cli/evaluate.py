@@ -201,12 +201,19 @@ def run_horizon(args: argparse.Namespace) -> int:
                         num_steps=args.steps, batch_size=options.batch_size, max_episodes=args.max_per_task,
                         precision=options.precision, max_depth_m=options.max_depth, text_guidance=options.text_guidance)
     report = evaluate_horizon(cfg)
+    return _publish(output, write_horizon_report, report, format_markdown(report),
+                    ("horizon.json", "horizon.md", "horizon.png"))
+
+
+def _publish(output, write, report: dict, text: str, names: tuple[str, ...]) -> int:
+    """Write ``report`` through ``output``'s stage (when there is an --out), print ``text`` and the files."""
     if output is not None:
         with output as stage:
-            write_horizon_report(report, stage)
-    print(format_markdown(report))
-    if args.out:
-        print(f"wrote {args.out / 'horizon.json'}, {args.out / 'horizon.md'} and {args.out / 'horizon.png'}")
+            write(report, stage)
+    print(text)
+    if output is not None:
+        files = [str(output.path / n) for n in names]
+        print(f"wrote {', '.join(files[:-1])} and {files[-1]}")
     return 0
 
 
@@ -227,13 +234,7 @@ def run_heldout(args: argparse.Namespace) -> int:
     report = evaluate_heldout(cfg)
     if args.out is not None:
         report["config"]["out"] = str(args.out)  # written through a stage of its own, not by evaluate_heldout
-    if output is not None:
-        with output as stage:
-            write_heldout_report(report, stage)
-    print(format_markdown(report))
-    if args.out:
-        print(f"wrote {args.out / 'report.json'} and {args.out / 'report.md'}")
-    return 0
+    return _publish(output, write_heldout_report, report, format_markdown(report), ("report.json", "report.md"))
 
 
 def run(args: argparse.Namespace) -> int:
