@@ -30,7 +30,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from reconstruction.objects import first_frame_masks, plane_step, rotation_about, track_objects, yaw_about
-from tesseract4d.geometry import scene_up_axis, transform_points, unproject_depth
+from tesseract4d.geometry import rotate_vectors, scene_up_axis, transform_points, unproject_depth
 from tesseract4d.object_colours import OBJECT_COLOUR_TOL, min_colour_distance
 from tesseract4d.segments import SCENERY_SEGMENTS
 
@@ -87,7 +87,7 @@ def _world_points(frame, mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     sel = mask & (frame.depth_m > 0) & np.isfinite(frame.depth_m)
     pts_cam = unproject_depth(frame.depth_m, frame.K)[sel]
     pts = transform_points(frame.T_world_cam, pts_cam).astype(np.float64)
-    normals = np.asarray(frame.normal_cam, np.float64)[sel] @ np.asarray(frame.T_world_cam)[:3, :3].T
+    normals = rotate_vectors(frame.T_world_cam, np.asarray(frame.normal_cam, np.float64)[sel])
     return pts, normals
 
 
