@@ -23,13 +23,12 @@ ONNX Runtime and OpenVINO are not dependencies of tesseract4d; install them to r
 from __future__ import annotations
 
 import argparse
-import os
 import sys
 import tempfile
 import time
 from pathlib import Path
 
-from measure import add_isa_cap_argument, apply_isa_cap, median_seconds
+from measure import add_isa_cap_argument, apply_isa_cap, machine_line, median_seconds
 
 from tesseract4d.model.checkpoint import SHIPPED_CHECKPOINT  # no torch: the ISA cap is applied later
 
@@ -153,7 +152,7 @@ def main(argv: list[str] | None = None) -> int:
 
     from tesseract4d.model.pipeline import guidance_passes
     from tesseract4d.model.predict import load_pipeline
-    from tesseract4d.precision import describe_cpu, resolve_precision
+    from tesseract4d.precision import resolve_precision
 
     torch.set_num_threads(args.threads)
     pipe = load_pipeline(args.checkpoint, precision="fp32")
@@ -168,7 +167,7 @@ def main(argv: list[str] | None = None) -> int:
         rows += bench_part("decoder", module, inputs, names, 1, args, bf16, capped)
 
     print()
-    print(f"CPU: {describe_cpu()}; {args.threads} threads; checkpoint {args.checkpoint}")  # names an ISA cap
+    print(machine_line(f"checkpoint {args.checkpoint}"))  # names an ISA cap
     print(f"transformer: one sampler pass = batch {batch}; a clip = {p.num_steps} passes. "
           f"decoder: {pipe.codec.num_latent_frames(p.num_frames)} latent frames, once per clip")
     header = f"{'part':<12} {'backend':<26} {'ms/call':>8} {'s per clip':>11} {'mean |diff|':>12} {'max |diff|':>11}  note"
@@ -176,7 +175,6 @@ def main(argv: list[str] | None = None) -> int:
     print("-" * len(header))
     for part, backend, ms, s, mean, big, note in rows:
         print(f"{part:<12} {backend:<26} {ms:>8.1f} {s:>11.3f} {mean:>12.1e} {big:>11.1e}  {note}")
-    print(f"(OMP_WAIT_POLICY={os.environ.get('OMP_WAIT_POLICY')}, load average {os.getloadavg()[0]:.1f})")
     return 0
 
 

@@ -15,6 +15,8 @@ import argparse
 import os
 import time
 
+from measure import machine_line
+
 
 class BenchWorker:
     """Plans one episode, then renders its recorded states over and over."""
@@ -116,9 +118,7 @@ def main() -> None:
           f"{args.resolution}x{args.resolution}, {cpus} CPU cores (load when measured: {os.getloadavg()[0]:.2f})")
     print(f"planning without rendering: {plan['steps']} steps in {plan['plan_s']:.2f} s "
           f"({plan['steps'] / plan['plan_s']:.0f} steps/s)")
-    from tesseract4d.precision import describe_cpu
-
-    print(f"CPU: {describe_cpu()}")
+    print(machine_line())
     print(f"{'mode':<12} {'workers':>7} {'frames':>7} {'wall s':>8} {'frames/s':>9} {'per worker':>11} {'scaling':>8}")
     base = rows[1][4] if len(rows) > 1 else rows[0][4]
     for mode, k, n, wall, fps in rows:

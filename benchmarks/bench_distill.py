@@ -20,7 +20,7 @@ import argparse
 import sys
 import time
 from pathlib import Path
-from measure import add_isa_cap_argument, apply_isa_cap, print_table
+from measure import add_isa_cap_argument, apply_isa_cap, machine_line, print_table
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -44,7 +44,6 @@ def main(argv: list[str] | None = None) -> int:
     from tesseract4d import dataset_format as df
     from tesseract4d.evaluation.metrics import moving_region_mask, rgb_psnr
     from tesseract4d.model.predict import load_pipeline, predict_scenes
-    from tesseract4d.precision import describe_cpu
 
     teacher, student = load_pipeline(args.teacher), load_pipeline(args.student)
     camera = teacher.camera_name
@@ -91,7 +90,8 @@ def main(argv: list[str] | None = None) -> int:
             strip_rows.append(pred[0].rgb)
             print(*rows[-1], sep=" | ", flush=True)
     header = ("sampler", "PSNR vs teacher", "moving", "PSNR vs GT", "moving", "s/clip")
-    print(f"\nCPU: {describe_cpu()}; {len(firsts)} held-out scenes from {args.data}; student {args.student}")
+    print()
+    print(machine_line(f"{len(firsts)} held-out scenes from {args.data}", f"student {args.student}"))
     print_table(header, rows)
     if args.strip is not None:
         import imageio.v3 as iio

@@ -14,12 +14,11 @@ of 2, so `predict` pays twice the sampling). The first line names the CPU, its I
 from __future__ import annotations
 
 import argparse
-import os
 import statistics
 import sys
 import time
 from pathlib import Path
-from measure import add_isa_cap_argument, apply_isa_cap, print_table
+from measure import add_isa_cap_argument, apply_isa_cap, machine_line, print_table
 
 from tesseract4d.model.checkpoint import SHIPPED_CHECKPOINT  # no torch: the ISA cap is applied later
 
@@ -39,19 +38,16 @@ def main(argv: list[str] | None = None) -> int:
     from tesseract4d import runtime
 
     runtime.configure()
-    import torch
-
     from tesseract4d import dataset_format as df
     from tesseract4d.instruction_schedule import clip_new_frames, schedule_of
     from tesseract4d.model.predict import load_pipeline, predict_scenes
-    from tesseract4d.precision import describe_cpu, resolve_precision
+    from tesseract4d.precision import resolve_precision
     from tesseract4d.testing.synthetic_scene import _segment, synthetic_episode
 
     pipe = load_pipeline(args.checkpoint, precision=args.precision)
     p = pipe.preset
     chosen = resolve_precision(args.precision, "cpu", warn=False)
-    print(f"CPU: {describe_cpu()}; precision {chosen.name}; torch {torch.__version__}, {torch.get_num_threads()} threads, "
-          f"OMP_WAIT_POLICY={os.environ.get('OMP_WAIT_POLICY')}, load average {os.getloadavg()[0]:.1f}")
+    print(machine_line(f"precision {chosen.name}"))
     clips = len(clip_new_frames(args.frames, p.num_frames))
     steps = args.steps or p.num_steps
     print(f"checkpoint {args.checkpoint}: {p.name} {p.height}x{p.width}, clips of {p.num_frames} frames, {steps} "
@@ -94,7 +90,7 @@ def main(argv: list[str] | None = None) -> int:
                      f"{args.frames / total:.1f}"))
         print(*rows[-1], sep=" | ", flush=True)
     print()
-    print(f"CPU: {describe_cpu()}")
+    print(machine_line(f"precision {chosen.name}"))
     print_table(("draws", "s to first clip", "s per later clip", f"s for {args.frames} frames", "frames/s"), rows)
     return 0
 

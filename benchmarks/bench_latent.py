@@ -21,14 +21,13 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import os
 import statistics
 import sys
 import tempfile
 from pathlib import Path
 
 from bench_model import _peak_rss_mb, _reset_peak_rss, bench_training, sampling_pipeline, time_clip
-from measure import add_isa_cap_argument, apply_isa_cap, median_seconds, print_table
+from measure import add_isa_cap_argument, apply_isa_cap, machine_line, median_seconds, print_table
 
 
 def bench_autoencoder_codec(ae_dir: Path, bf16: bool, repeats: int) -> dict:
@@ -113,10 +112,7 @@ def main(argv: list[str] | None = None) -> int:
     from tesseract4d.model.autoencoder import RGBDNAutoencoder, get_autoencoder_preset, save_autoencoder
     from tesseract4d.precision import cpu_flags, has_fast_bf16
 
-    from tesseract4d.precision import describe_cpu
-
-    print(f"CPU: {describe_cpu()}; {os.cpu_count()} logical CPUs")
-    print(f"torch {torch.__version__}, {torch.get_num_threads()} threads, OMP_WAIT_POLICY={os.environ.get('OMP_WAIT_POLICY')}")
+    print(machine_line())
     precisions = [False, True] if has_fast_bf16(cpu_flags()) else [False]
     rows = []
 

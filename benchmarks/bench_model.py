@@ -16,13 +16,12 @@ not depend on them.
 from __future__ import annotations
 
 import argparse
-import os
 import statistics
 import sys
 import tempfile
 import time
 from pathlib import Path
-from measure import add_isa_cap_argument, apply_isa_cap, print_table
+from measure import add_isa_cap_argument, apply_isa_cap, machine_line, print_table
 
 
 def _reset_peak_rss() -> None:
@@ -105,17 +104,14 @@ def main(argv: list[str] | None = None) -> int:
     from tesseract4d import runtime
 
     runtime.configure()
-    import torch
-
     from tesseract4d.testing.synthetic_scene import write_synthetic_dataset
 
     from tesseract4d.model.presets import get_preset
 
-    from tesseract4d.precision import describe_cpu, resolve_precision
+    from tesseract4d.precision import resolve_precision
 
     auto = resolve_precision("auto", "cpu", warn=False)
-    print(f"CPU: {describe_cpu()}; --precision auto -> {auto.name}")
-    print(f"torch {torch.__version__}, {torch.get_num_threads()} threads, OMP_WAIT_POLICY={os.environ.get('OMP_WAIT_POLICY')}")
+    print(machine_line(f"--precision auto -> {auto.name}"))
     rows = []
     for name in args.presets.split(","):
         preset = get_preset(name)
@@ -136,7 +132,7 @@ def main(argv: list[str] | None = None) -> int:
                     print(*rows[-1], sep=" | ", flush=True)
     header = ("preset", "precision", "what", "speed", "peak RSS MB")
     print()
-    print(f"CPU: {describe_cpu()}")
+    print(machine_line())
     print_table(header, rows)
     return 0
 

@@ -18,6 +18,8 @@ import json
 import statistics
 import time
 
+from measure import machine_line
+
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -65,9 +67,7 @@ def main() -> None:
 
     print(f"first call (imports + {args.sizes.split(',')[0]}^2 clip): {results['first_call_s_incl_imports']:.2f} s")
     header = f"{'size':>6}" + "".join(f"{s:>15}" for s in (*STAGES, "total")) + f"{'CG iters':>10}{'Chamfer mm raw->refined':>26}"
-    from tesseract4d.precision import describe_cpu
-
-    print(f"CPU: {describe_cpu()}")
+    print(machine_line())
     print(f"median seconds per {args.frames}-frame clip over {args.repeats} runs")
     print(header)
     for size, r in results["sizes"].items():

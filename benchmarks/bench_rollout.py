@@ -17,7 +17,7 @@ from __future__ import annotations
 import argparse
 import statistics
 import time
-from measure import add_isa_cap_argument, apply_isa_cap
+from measure import add_isa_cap_argument, apply_isa_cap, machine_line
 
 from tesseract4d.model.checkpoint import SHIPPED_CHECKPOINT  # no torch: the ISA cap is applied later
 
@@ -94,9 +94,7 @@ def main() -> None:
     sim.close()
     import torch
 
-    from tesseract4d.precision import describe_cpu
-
-    print(f"CPU: {describe_cpu()}; torch capability {torch.backends.cpu.get_cpu_capability()}; {torch.get_num_threads()} threads")
+    print(machine_line(f"torch capability {torch.backends.cpu.get_cpu_capability()}"))
     draws = (clip.episode.metadata["prediction"].get("draws") or {}).get("count", 1)
     print(f"task {args.task}, k = {cfg.replan_every} clip frames per cycle, {args.sample_steps or pipe.preset.num_steps} diffusion steps, "
           f"{'the best of ' + str(draws) + ' noise draws' if draws > 1 else 'one noise draw'} per prediction, "

@@ -18,6 +18,8 @@ import argparse
 import os
 import time
 
+from measure import machine_line
+
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -96,11 +98,9 @@ def main() -> None:
         print(f"  {name}: {ok}/{args.seeds}", flush=True)
     sim.close()
 
-    from tesseract4d.precision import describe_cpu
-
     print(f"\nSkills in {ENV_ID}, {args.seeds} seeds each; frames/s = RGB-D-N + segmentation, camera "
           f"'{args.camera}', {args.resolution}x{args.resolution}, 1 rasteriser thread")
-    print(f"CPU: {describe_cpu()}, {os.cpu_count()} cores, load when measured: {os.getloadavg()[0]:.2f}")
+    print(machine_line())
     print(f"| {'skill':<14} | {'planner success':>15} | {'no target':>9} | {'plan s/seed':>11} | {'sim steps':>9} | {'frames/s':>8} |")
     print(f"|{'-' * 16}|{'-' * 17}|{'-' * 11}|{'-' * 13}|{'-' * 11}|{'-' * 10}|")
     for name, ok, n, nt, ps, st, fps in rows:

@@ -19,12 +19,11 @@ checkpoint whose preset has N draws.
 from __future__ import annotations
 
 import argparse
-import os
 import statistics
 import sys
 import time
 from pathlib import Path
-from measure import add_isa_cap_argument, apply_isa_cap, print_table
+from measure import add_isa_cap_argument, apply_isa_cap, machine_line, print_table
 
 from tesseract4d.model.checkpoint import SHIPPED_CHECKPOINT  # no torch: the ISA cap is applied later
 
@@ -46,21 +45,18 @@ def main(argv: list[str] | None = None) -> int:
     from tesseract4d import runtime
 
     runtime.configure()
-    import torch
-
     from tesseract4d.testing.synthetic_scene import _segment, synthetic_episode
 
     from tesseract4d.model.pipeline import guidance_passes
     from tesseract4d.model.predict import load_pipeline, predict_scenes
-    from tesseract4d.precision import describe_cpu, resolve_precision
+    from tesseract4d.precision import resolve_precision
 
     pipe = load_pipeline(args.checkpoint, precision=args.precision)
     p = pipe.preset
     steps = args.steps or p.num_steps
     passes = len(guidance_passes(p.text_guidance, p.image_guidance))
     chosen = resolve_precision(args.precision, "cpu", warn=False)
-    print(f"CPU: {describe_cpu()}; precision {chosen.name}; torch {torch.__version__}, {torch.get_num_threads()} threads, "
-          f"OMP_WAIT_POLICY={os.environ.get('OMP_WAIT_POLICY')}, load average {os.getloadavg()[0]:.1f}")
+    print(machine_line(f"precision {chosen.name}"))
     print(f"checkpoint {args.checkpoint}: {p.name} {p.height}x{p.width}, {p.num_frames} frames, {steps} steps x "
           f"{passes} network pass(es), {args.draws} noise draw(s) per future")
     batches = [int(b) for b in args.batches.split(",")]
@@ -81,7 +77,7 @@ def main(argv: list[str] | None = None) -> int:
         print(*rows[-1], sep=" | ", flush=True)
     header = ("scenes per call", "s per call", "s per clip", "clips/s")  # a clip: one predicted future
     print()
-    print(f"CPU: {describe_cpu()}")
+    print(machine_line(f"precision {chosen.name}"))
     print_table(header, rows)
     return 0
 

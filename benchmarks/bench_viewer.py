@@ -26,6 +26,8 @@ from __future__ import annotations
 import argparse
 import time
 
+from measure import machine_line
+
 TARGET_FPS = 15
 
 # Counts animation frames and the time steps visible at each (the page renders at most once per
@@ -121,9 +123,7 @@ def main() -> None:
 
     print(f"\n{args.frames} frames, played at the FPS slider's maximum ({MAX_FPS}); target >= {TARGET_FPS} time steps shown per second")
     header = f"{'configuration':<26} {'window':>9} {'canvas':>9} {'points':>7} {'first frame s':>13} {'static fps':>10} {'drawn fps':>9} {'steps/s':>7} {'target':>6}"
-    from tesseract4d.precision import describe_cpu
-
-    print(f"CPU: {describe_cpu()}")
+    print(machine_line())
     print(header)
     print("-" * len(header))
     for r in rows:

@@ -1,4 +1,4 @@
-"""What every benchmark script shares: timing a call and printing the result table.
+"""What every benchmark script shares: timing a call, the machine line and printing the result table.
 
 Benchmarks run as scripts (`.venv/bin/python benchmarks/NAME.py`), so they import this module by
 its bare name.
@@ -23,6 +23,20 @@ def median_seconds(fn: Callable[[], object], repeats: int, warmup: bool = False)
         fn()
         times.append(time.perf_counter() - t0)
     return statistics.median(times)
+
+
+def machine_line(*details: object) -> str:
+    """The line that heads every benchmark's table: the CPU and its ISA, the threads torch uses (once
+    torch is loaded), OMP_WAIT_POLICY and the load average at the time, then the benchmark's own details.
+    A timing without the load beside it cannot be compared with another."""
+    from tesseract4d.precision import describe_cpu  # no torch: safe before an ISA cap
+
+    parts = [f"CPU: {describe_cpu()}", f"{os.cpu_count()} logical CPUs"]
+    torch = sys.modules.get("torch")
+    if torch is not None:
+        parts.append(f"torch {torch.__version__}, {torch.get_num_threads()} threads")
+    parts += [f"OMP_WAIT_POLICY={os.environ.get('OMP_WAIT_POLICY')}", f"load average {os.getloadavg()[0]:.1f}"]
+    return "; ".join(parts + [str(d) for d in details])
 
 
 def print_table(header: Sequence[str], rows: Sequence[Sequence[object]]) -> None:
