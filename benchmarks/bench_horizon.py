@@ -17,37 +17,23 @@ import argparse
 import statistics
 import sys
 import time
-from pathlib import Path
-from measure import add_isa_cap_argument, apply_isa_cap, machine_line, print_table
-
-from tesseract4d.model.checkpoint import SHIPPED_CHECKPOINT  # no torch: the ISA cap is applied later
+from measure import add_pipeline_arguments, load_benchmark_pipeline, machine_line, print_table
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--checkpoint", type=Path, default=SHIPPED_CHECKPOINT)
+    add_pipeline_arguments(parser)
     parser.add_argument("--frames", type=int, default=64, help="frames per rollout (default %(default)s)")
     parser.add_argument("--repeats", type=int, default=2, help="timed rollouts per row (median)")
-    parser.add_argument("--steps", type=int, help="sampler steps (default: the checkpoint preset's)")
     parser.add_argument("--episode", help="first frame (and schedule) from this dataset episode instead of a synthetic one")
-    parser.add_argument("--precision", default="auto", choices=("auto", "fp32", "bf16"))
-    add_isa_cap_argument(parser)
     args = parser.parse_args(argv)
-    apply_isa_cap(args.cap_isa)
-
-    from tesseract4d import runtime
-
-    runtime.configure()
+    pipe = load_benchmark_pipeline(args)
     from tesseract4d import dataset_format as df
     from tesseract4d.instruction_schedule import clip_new_frames, schedule_of
-    from tesseract4d.model.predict import load_pipeline, predict_scenes
-    from tesseract4d.precision import resolve_precision
+    from tesseract4d.model.predict import predict_scenes
     from tesseract4d.testing.synthetic_scene import _segment, synthetic_episode
 
-    pipe = load_pipeline(args.checkpoint, precision=args.precision)
     p = pipe.preset
-    chosen = resolve_precision(args.precision, "cpu", warn=False)
-    print(machine_line(f"precision {chosen.name}"))
     clips = len(clip_new_frames(args.frames, p.num_frames))
     steps = args.steps or p.num_steps
     print(f"checkpoint {args.checkpoint}: {p.name} {p.height}x{p.width}, clips of {p.num_frames} frames, {steps} "
@@ -90,7 +76,7 @@ def main(argv: list[str] | None = None) -> int:
                      f"{args.frames / total:.1f}"))
         print(*rows[-1], sep=" | ", flush=True)
     print()
-    print(machine_line(f"precision {chosen.name}"))
+    print(machine_line())
     print_table(("draws", "s to first clip", "s per later clip", f"s for {args.frames} frames", "frames/s"), rows)
     return 0
 

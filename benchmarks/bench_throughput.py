@@ -23,40 +23,27 @@ import statistics
 import sys
 import time
 from pathlib import Path
-from measure import add_isa_cap_argument, apply_isa_cap, machine_line, print_table
-
-from tesseract4d.model.checkpoint import SHIPPED_CHECKPOINT  # no torch: the ISA cap is applied later
+from measure import add_pipeline_arguments, load_benchmark_pipeline, machine_line, print_table
 
 ROOT = Path(__file__).resolve().parent.parent
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--checkpoint", type=Path, default=SHIPPED_CHECKPOINT)
+    add_pipeline_arguments(parser)
     parser.add_argument("--batches", default="1,2,4,8", help="scenes per pipeline call (default %(default)s)")
     parser.add_argument("--repeats", type=int, default=2, help="timed calls per batch size (median)")
-    parser.add_argument("--steps", type=int, help="sampler steps (default: the checkpoint preset's)")
     parser.add_argument("--draws", type=int, default=1, help="noise draws per future, the best kept (default %(default)s)")
-    parser.add_argument("--precision", default="auto", choices=("auto", "fp32", "bf16"))
-    add_isa_cap_argument(parser)
     args = parser.parse_args(argv)
-    apply_isa_cap(args.cap_isa)
-
-    from tesseract4d import runtime
-
-    runtime.configure()
+    pipe = load_benchmark_pipeline(args)
     from tesseract4d.testing.synthetic_scene import _segment, synthetic_episode
 
     from tesseract4d.model.pipeline import guidance_passes
-    from tesseract4d.model.predict import load_pipeline, predict_scenes
-    from tesseract4d.precision import resolve_precision
+    from tesseract4d.model.predict import predict_scenes
 
-    pipe = load_pipeline(args.checkpoint, precision=args.precision)
     p = pipe.preset
     steps = args.steps or p.num_steps
     passes = len(guidance_passes(p.text_guidance, p.image_guidance))
-    chosen = resolve_precision(args.precision, "cpu", warn=False)
-    print(machine_line(f"precision {chosen.name}"))
     print(f"checkpoint {args.checkpoint}: {p.name} {p.height}x{p.width}, {p.num_frames} frames, {steps} steps x "
           f"{passes} network pass(es), {args.draws} noise draw(s) per future")
     batches = [int(b) for b in args.batches.split(",")]
@@ -77,7 +64,7 @@ def main(argv: list[str] | None = None) -> int:
         print(*rows[-1], sep=" | ", flush=True)
     header = ("scenes per call", "s per call", "s per clip", "clips/s")  # a clip: one predicted future
     print()
-    print(machine_line(f"precision {chosen.name}"))
+    print(machine_line())
     print_table(header, rows)
     return 0
 

@@ -10,6 +10,7 @@ import os
 import statistics
 import sys
 import time
+from pathlib import Path
 from typing import Callable, Sequence
 
 
@@ -68,3 +69,28 @@ def apply_isa_cap(cap: str | None) -> None:
     if "torch" in sys.modules:
         raise RuntimeError("apply_isa_cap must run before torch is imported")
     os.execve(sys.executable, [sys.executable, *sys.argv], {**os.environ, **env})
+
+
+def add_pipeline_arguments(parser) -> None:
+    """The options of a benchmark that samples a checkpoint: which one, its steps, precision and ISA cap."""
+    from tesseract4d.model.checkpoint import SHIPPED_CHECKPOINT  # no torch: the ISA cap is applied later
+
+    parser.add_argument("--checkpoint", type=Path, default=SHIPPED_CHECKPOINT,
+                        help="checkpoint folder (default: the shipped default)")
+    parser.add_argument("--steps", type=int, help="sampler steps (default: the checkpoint preset's)")
+    parser.add_argument("--precision", default="auto", choices=("auto", "fp32", "bf16"))
+    add_isa_cap_argument(parser)
+
+
+def load_benchmark_pipeline(args):
+    """Apply the ISA cap, configure the runtime, load ``args.checkpoint`` and print the machine line."""
+    apply_isa_cap(args.cap_isa)
+    from tesseract4d import runtime
+
+    runtime.configure()
+    from tesseract4d.model.predict import load_pipeline
+    from tesseract4d.precision import resolve_precision
+
+    pipe = load_pipeline(args.checkpoint, precision=args.precision)
+    print(machine_line(f"precision {resolve_precision(args.precision, 'cpu', warn=False).name}"))
+    return pipe
