@@ -9,7 +9,9 @@ where a lost object went (:mod:`tesseract4d.policy.goal_reading`).
 The arm in a frame is what the object layer leaves over (:class:`reconstruction.objects.ObjectLayer`'s
 ``point_object``, -1 = no object) that moves (nearer than the clip's farthest depth at that pixel by
 ``DEPTH_TOL_M``: the camera must stay still) and is grey, white or black (a blurred object's colours are
-not). Isolated points (fewer than ``MIN_NEIGHBOURS`` within ``NEIGHBOUR_M``) are noise. The gripper's
+not), and lies more than ``ABOVE_TABLE_M`` above the table top (a predicted clip redraws a white target
+disc on the table a little nearer now and then). Isolated points (fewer than ``MIN_NEIGHBOURS`` within
+``NEIGHBOUR_M``) are noise. The gripper's
 point is the hand: the arm's points within ``HAND_BAND_M`` above its lowest (``LOW_QUANTILE``) height along
 the scene's up axis; in the table plane their median, along up their ``HEIGHT_QUANTILE``. Its offset from
 the TCP differs with the view (the fingers hide behind the hand or the object they push), so the goal
@@ -30,7 +32,9 @@ import numpy as np
 
 from reconstruction.objects import ARM_MAX_SATURATION, DEPTH_TOL_M
 from tesseract4d.geometry import scene_up_axis, transform_points, unproject_depth
+from tesseract4d.policy.perception import TABLE_Z_M
 
+ABOVE_TABLE_M = 0.015  # arm points lie at least this high above the table top (lower: the table's own markings)
 MIN_ARM_POINTS = 12  # fewer arm points in a frame: the arm is not seen there (NaN)
 NEIGHBOUR_M = 0.015  # an arm point needs MIN_NEIGHBOURS others this close ...
 MIN_NEIGHBOURS = 4  # ... or it is depth noise
@@ -68,6 +72,7 @@ def gripper_point(points_world: np.ndarray, up: np.ndarray) -> np.ndarray | None
     from scipy.spatial import cKDTree  # scipy loads with the tracker only
 
     p = np.asarray(points_world, np.float64)
+    p = p[p @ up >= TABLE_Z_M + ABOVE_TABLE_M]
     if len(p) < MIN_ARM_POINTS:
         return None
     counts = cKDTree(p).query_ball_point(p, NEIGHBOUR_M, return_length=True)
