@@ -27,7 +27,8 @@ about 4 cm beside and 6 cm above the TCP). From the end of its descent there the
 the table (it travels ``MOVED_M`` in the plane rising less than ``SLIDE_SLOPE`` of that: a push or pull,
 let go where it rises ``LIFT_M`` or at the end) or first rises ``LIFT_M`` (a grasp: carried until the arm
 comes down ``LIFT_M`` below its highest point so far, at the end of that descent, or held at the end), and the object follows the arm's
-displacement over that stretch. Where it ends then says stack (above another object, within ``ARM_ON_XY_M``), lift (held up) or
+displacement over that stretch (the descent ends where the arm stops coming down by ``DESCENT_M`` a
+frame). Where it ends then says stack (above another object, within ``ARM_ON_XY_M``), lift (held up) or
 pick-and-place. That reading replaces the layer's only when the layer does not show the object where the
 arm left it: not tracked in the last frame, or moved the arm's way but less than ``LAG_SHARE`` of the arm's
 displacement. An object the layer still sees where it was, the arm gone, stays put: the arm left it alone.
@@ -48,6 +49,7 @@ ON_XY_M = 0.03  # stacked: centres this close in the table plane at the end ...
 ON_DZ_M = (0.015, 0.08)  # ... and its origin this much higher than the other's
 REACH_XY_M = 0.10  # the arm reaches an object: the gripper's point this close in the table plane ...
 REACH_DZ_M = 0.10  # ... and at most this high above the object's origin
+DESCENT_M = 0.005  # the arm still comes down when it is this much lower (less: the clip's depth noise)
 SLIDE_SLOPE = 0.5  # a slide: when the arm has travelled MOVED_M in the plane it has risen less than this share of it
 LAG_SHARE = 0.8  # the layer's object follows the arm's reading when it moved less than this share of it
 ARM_ON_XY_M = 0.05  # the arm's reading: set on the object whose centre is this close in the table plane
@@ -158,7 +160,7 @@ def _motion(g: np.ndarray, c: int, up: np.ndarray) -> tuple[str, int, int] | Non
         step = g[t] - g[k]
         rise = float(step @ up)
         travel = float(np.linalg.norm(step - rise * up))
-        if rise < 0 and (travel < MOVED_M or -rise >= SLIDE_SLOPE * travel):
+        if rise <= -DESCENT_M and (travel < MOVED_M or -rise >= SLIDE_SLOPE * travel):
             k = t  # still coming down (in place or steeply)
             continue
         if rise >= LIFT_M and rise >= SLIDE_SLOPE * travel:
