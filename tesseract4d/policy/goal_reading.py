@@ -25,7 +25,8 @@ down to) is the moved object, from the first frame the arm is within ``REACH_XY_
 in the table plane and at most ``REACH_DZ_M`` above it (both wide, for the gripper's point is the hand's,
 about 4 cm beside and 6 cm above the TCP). From the end of its descent there the arm either slides along
 the table (it travels ``MOVED_M`` in the plane rising less than ``SLIDE_SLOPE`` of that: a push or pull,
-let go where it rises ``LIFT_M`` or at the end) or first rises ``LIFT_M`` (a grasp: carried until the arm
+let go where it rises ``LIFT_M`` or at the end) or first rises ``LIFT_M`` (in ``LIFT_FRAMES`` frames in a row;
+a grasp: carried until the arm
 comes down ``LIFT_M`` below its highest point so far, at the end of that descent, or held at the end), and the object follows the arm's
 displacement over that stretch (the descent ends where the arm stops coming down by ``DESCENT_M`` a
 frame). Where it ends then says stack (above another object, within ``ARM_ON_XY_M``), lift (held up) or
@@ -163,7 +164,7 @@ def _motion(g: np.ndarray, c: int, up: np.ndarray) -> tuple[str, int, int] | Non
         if rise <= -DESCENT_M and (travel < MOVED_M or -rise >= SLIDE_SLOPE * travel):
             k = t  # still coming down (in place or steeply)
             continue
-        if rise >= LIFT_M and rise >= SLIDE_SLOPE * travel:
+        if rise >= LIFT_M and rise >= SLIDE_SLOPE * travel and _stays_up(h, t, h[k]):
             # let go: the arm comes down LIFT_M below its highest point so far, at the end of that descent
             down = np.flatnonzero(h[t:] <= np.maximum.accumulate(h[t:]) - LIFT_M)
             if not len(down):
@@ -173,9 +174,15 @@ def _motion(g: np.ndarray, c: int, up: np.ndarray) -> tuple[str, int, int] | Non
                 r += 1
             return "grasp", k, r
         if travel >= MOVED_M and abs(rise) < SLIDE_SLOPE * travel:
-            up_at = np.flatnonzero(h[t:] - h[k] >= LIFT_M)
-            return "slide", k, (t + int(up_at[0]) - 1) if len(up_at) else len(g) - 1
+            up_at = [u for u in range(t, len(g)) if _stays_up(h, u, h[k])]
+            return "slide", k, (up_at[0] - 1) if up_at else len(g) - 1
     return None
+
+
+def _stays_up(h: np.ndarray, t: int, base: float) -> bool:
+    """Whether the arm's heights ``h`` (T,) are ``LIFT_M`` above ``base`` in ``LIFT_FRAMES`` frames in a row from
+    t (fewer at the clip's end): one frame's rise is the clip's depth noise."""
+    return bool(np.all(h[t:t + LIFT_FRAMES] - base >= LIFT_M))
 
 
 def arm_goal(layer, gripper) -> Goal | None:
