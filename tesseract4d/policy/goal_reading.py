@@ -88,7 +88,7 @@ def read_goal(layer, up=(0.0, 0.0, 1.0), gripper=None) -> Goal:
     if gripper is None:
         return goal
     arm = arm_goal(layer, gripper)
-    if arm is None or not _arm_wins(layer, arm, goal):
+    if arm is None or not _arm_wins(layer, arm):
         return goal
     return arm
 
@@ -245,7 +245,7 @@ def arm_goal(layer, gripper) -> Goal | None:
                 moved_m=float(np.linalg.norm(displacement)), source="arm", contact_frame=k, release_frame=r)
 
 
-def _arm_wins(layer, arm: Goal, goal: Goal) -> bool:
+def _arm_wins(layer, arm: Goal) -> bool:
     """Whether the arm's reading replaces the layer's: the layer does not show the arm's object where the arm
     left it (not tracked at the end, or moved the arm's way by less than ``LAG_SHARE`` of the arm's reading)."""
     tr = layer.track(arm.target)
