@@ -9,9 +9,10 @@ One episode in ManiSkill, per replan:
    or the true future of the motion planner's episode of the seed (``oracle_plan``); the
    ``words_plan`` arm parses the instruction instead (:mod:`tesseract4d.policy.words`);
 3. reconstruct: the clip's object layer (:func:`reconstruction.objects.track_objects`, the objects named
-   by the observation's segmentation);
+   by the observation's segmentation) and the gripper's track (:mod:`tesseract4d.policy.gripper_track`);
 4. plan: read the goal (:func:`tesseract4d.policy.goal_reading.read_goal`): which object moves, where
-   to, lifted or set on another; its target = the perceived centre + the predicted displacement;
+   to, lifted or set on another (from the arm's motion where the clip lost the object it moves); its
+   target = the perceived centre + the predicted displacement;
 5. execute: the primitive toward it (:mod:`tesseract4d.policy.primitives`), then go to 1.
 
 The loop stops when the future says the goal is reached (no object moves in the prediction; for the
@@ -32,6 +33,7 @@ import numpy as np
 from reconstruction.objects import TRACKED, first_frame_masks, instructed_object, track_objects
 from tesseract4d.geometry import invert_pose, project_points, transform_points
 from tesseract4d.policy.goal_reading import read_goal
+from tesseract4d.policy.gripper_track import track_gripper
 from tesseract4d.policy.loop import EpisodeResult, FutureClip, StageClock, Trace, WorldModelFuture
 from tesseract4d.policy.perception import ObjectPerception, PerceivedObject
 from tesseract4d.policy.primitives import PrimitiveFailure, run_primitive
@@ -106,7 +108,8 @@ def draw_target(rgb: np.ndarray, centre_world_m, K: np.ndarray, T_world_cam: np.
 def clip_object_layer(clip: FutureClip, normal_cam: np.ndarray, frame0, seg_id_to_name: dict, instruction: str,
                       perception: ObjectPerception | None = None):
     """The object layer of ``clip`` (frame 0 = the observation ``frame0``), its objects named by the
-    observation's segmentation; the instructed one found by its colour word. ``perception``: an
+    observation's segmentation; the instructed one found by its colour word (the first one named when the
+    words name several). ``perception``: an
     ObjectPerception of ``frame0`` that re-finds objects lost at the end."""
 
 
@@ -128,6 +131,10 @@ def clip_object_layer(clip: FutureClip, normal_cam: np.ndarray, frame0, seg_id_t
                     tr.T_world_object[t] = fit[0]
                     tr.state[t] = TRACKED
     layer.instructed = instructed_object(layer.names(), [t.colour_name for t in layer.tracks], None, instruction)
+    if layer.instructed is None:  # several colours named ("the red box onto the green box"): the first one's
+        colour = parse_instruction(instruction).object_colour
+        hits = [t.name for t in layer.tracks if colour and t.colour_name == colour]
+        layer.instructed = hits[0] if len(hits) == 1 else None
     return layer
 
 
@@ -171,8 +178,9 @@ class WorldModelPlan:
         lap("predict")
         normals = clip.episode.cameras[self.camera].normal_cam
         layer = clip_object_layer(clip, normals, frame, seg_id_to_name, instruction, ObjectPerception(frame, seg_id_to_name))
+        gripper = track_gripper(clip.rgb, clip.depth_m, clip.K, clip.T_world_cam, layer)
         lap("reconstruct")
-        return _absolute(read_goal(layer), objects), clip
+        return _absolute(read_goal(layer, gripper=gripper), objects), clip
 
 
 class OraclePlan:
@@ -192,8 +200,9 @@ class OraclePlan:
         if self.goal is None:
             layer = clip_object_layer(self.clip, self.normals, frame, seg_id_to_name, instruction,
                                       ObjectPerception(frame, seg_id_to_name))
+            gripper = track_gripper(self.clip.rgb, self.clip.depth_m, self.clip.K, self.clip.T_world_cam, layer)
             lap("reconstruct")
-            self.goal = _absolute(read_goal(layer), objects)
+            self.goal = _absolute(read_goal(layer, gripper=gripper), objects)
             return self.goal, self.clip
         return (PlanStep("none", self.goal.target, reading={"reached": True}) if reached(self.goal, objects)
                 else self.goal), None

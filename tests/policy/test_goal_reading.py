@@ -1,12 +1,13 @@
 """Goal reading from an object layer, on synthetic tracks: a pushed, a pulled, a lifted, a placed and a
-stacked object."""
+stacked object; and from the arm where the clip loses the object it moves (synthetic gripper tracks)."""
 
 from __future__ import annotations
 
 import numpy as np
 
-from reconstruction.objects import ObjectLayer, ObjectTrack
-from tesseract4d.policy.goal_reading import read_goal
+from reconstruction.objects import STATES, ObjectLayer, ObjectTrack
+from tesseract4d.policy.goal_reading import arm_goal, read_goal
+from tesseract4d.policy.gripper_track import GripperTrack
 
 T = 16
 
@@ -87,3 +88,80 @@ def test_a_rise_in_one_frame_only_is_noise_not_a_lift():
     p[8, 2] += 0.04
     goal = read_goal(ObjectLayer([track("cube", p)], source="test"))
     assert goal.skill == "push" and not goal.lifted
+
+
+# ----------------------------------------------------------------- the arm, where the object is lost
+
+LOST = STATES.index("lost")
+
+
+def gripper(*waypoints) -> GripperTrack:
+    """A gripper track through the waypoints (the hand's point, 6 cm above the TCP as the camera sees it)."""
+    return GripperTrack(path(*waypoints), np.full(T, 500), np.array([0.0, 0.0, 1.0]))
+
+
+def lost_after(tr: ObjectTrack, t: int) -> ObjectTrack:
+    tr.state[t:] = LOST
+    return tr
+
+
+def test_a_pushed_object_lost_under_an_arm_that_carries_on_ends_where_the_arm_takes_it():
+    # the arm comes down behind the cube, slides 12 cm to +y, and rises; the clip loses the cube on contact
+    layer = ObjectLayer([lost_after(track("cube", still([0.0, 0.0, 0.02])), 6),
+                         track("other", still([0.15, -0.1, 0.02]))], source="test", instructed="cube")
+    arm = gripper([0.0, -0.05, 0.25], [0.0, -0.05, 0.07], [0.0, -0.05, 0.07], [0.0, 0.07, 0.07], [0.0, 0.07, 0.15])
+    assert read_goal(layer).skill == "none"  # the layer alone: nothing moves
+    goal = read_goal(layer, gripper=arm)
+    assert goal.source == "arm" and goal.skill == "push" and goal.target == "cube" and not goal.lifted
+    np.testing.assert_allclose(goal.displacement_m, [0.0, 0.12, 0.0], atol=0.01)
+
+
+def test_an_arm_that_leaves_an_object_alone_does_not_move_it():
+    # the arm comes down at the cube and slides away; the clip still sees the cube where it was
+    layer = ObjectLayer([track("cube", still([0.0, 0.0, 0.02]))], source="test", instructed="cube")
+    arm = gripper([0.0, -0.05, 0.25], [0.0, -0.05, 0.07], [0.0, 0.1, 0.07], [0.0, 0.1, 0.2])
+    goal = read_goal(layer, gripper=arm)
+    assert goal.skill == "none" and goal.source == "objects"
+
+
+def test_an_arm_that_passes_far_from_the_object_reads_nothing():
+    layer = ObjectLayer([lost_after(track("cube", still([0.0, 0.0, 0.02])), 4)], source="test", instructed="cube")
+    arm = gripper([0.3, -0.2, 0.25], [0.3, -0.2, 0.07], [0.3, 0.0, 0.07])
+    assert arm_goal(layer, arm) is None
+    assert read_goal(layer, gripper=arm).skill == "none"
+
+
+def test_an_object_that_lags_the_arm_follows_the_arm():
+    # the clip sees the pushed cube move 3 cm while the arm slides 12: the smear, not the push
+    layer = ObjectLayer([track("cube", path([0.0, 0.0, 0.02], [0.0, 0.0, 0.02], [0.03, 0.0, 0.02]))], source="test")
+    arm = gripper([-0.05, 0.0, 0.25], [-0.05, 0.0, 0.07], [-0.05, 0.0, 0.07], [0.07, 0.0, 0.07])
+    goal = read_goal(layer, gripper=arm)
+    assert goal.source == "arm" and goal.skill == "push"
+    np.testing.assert_allclose(goal.displacement_m, [0.12, 0.0, 0.0], atol=0.01)
+
+
+def test_a_grasped_object_lost_in_the_hand_is_lifted_where_the_arm_holds_it():
+    layer = ObjectLayer([lost_after(track("cube", still([0.0, 0.0, 0.02])), 5)], source="test", instructed="cube")
+    arm = gripper([0.0, 0.0, 0.25], [0.0, 0.0, 0.08], [0.0, 0.0, 0.08], [0.05, 0.0, 0.23])
+    goal = read_goal(layer, gripper=arm)
+    assert goal.source == "arm" and goal.skill == "lift" and goal.held_at_end
+    np.testing.assert_allclose(goal.displacement_m, [0.05, 0.0, 0.15], atol=0.01)
+
+
+def test_a_carried_object_lost_in_the_hand_and_set_down_on_another_is_stacked_on_it():
+    layer = ObjectLayer([lost_after(track("red", still([0.0, 0.0, 0.02])), 5), track("green", still([0.0, 0.15, 0.02]))],
+                        source="test", instructed="red")
+    arm = gripper([0.0, 0.0, 0.25], [0.0, 0.0, 0.08], [0.0, 0.0, 0.18], [0.0, 0.15, 0.18], [0.0, 0.15, 0.12],
+                  [0.0, 0.15, 0.2])
+    goal = read_goal(layer, gripper=arm)
+    assert goal.source == "arm" and goal.skill == "stack" and goal.target == "red" and goal.on == "green"
+
+
+def test_a_carried_object_set_down_on_the_table_is_a_pick_and_place():
+    layer = ObjectLayer([lost_after(track("red", still([0.0, 0.0, 0.02])), 5), track("green", still([0.2, 0.2, 0.02]))],
+                        source="test", instructed="red")
+    arm = gripper([0.0, 0.0, 0.25], [0.0, 0.0, 0.08], [0.0, 0.0, 0.18], [0.0, -0.1, 0.18], [0.0, -0.1, 0.08],
+                  [0.0, -0.1, 0.18])
+    goal = read_goal(layer, gripper=arm)
+    assert goal.source == "arm" and goal.skill == "pick_place" and goal.on is None
+    np.testing.assert_allclose(goal.displacement_m, [0.0, -0.1, 0.0], atol=0.01)
