@@ -52,7 +52,7 @@ def main(argv: list[str] | None = None) -> int:
     chosen = resolve_precision(args.precision, "cpu", warn=False)
     print(f"CPU: {describe_cpu()}; precision {chosen.name}; torch {torch.__version__}, {torch.get_num_threads()} threads, "
           f"OMP_WAIT_POLICY={os.environ.get('OMP_WAIT_POLICY')}, load average {os.getloadavg()[0]:.1f}")
-    clips = len(clip_new_frames(args.frames, p.num_frames))
+    clips = len(clip_new_frames(args.frames, p.num_frames, p.history_frames))
     steps = args.steps or p.num_steps
     print(f"checkpoint {args.checkpoint}: {p.name} {p.height}x{p.width}, clips of {p.num_frames} frames, {steps} "
           f"steps; a {args.frames}-frame rollout is {clips} clips")
