@@ -156,7 +156,7 @@ class TrainConfig(TrainingLoopConfig):
         return {k: getattr(self, k) for k in ("condition_noise", "moving_weight", "object_weight",
                                               "scene_object_weight", "text_dropout", "time_logit_normal",
                                               "group_batches", "counterfactual_swap", "rephrase", "text_noise",
-                                              "history_share", "history_noise")}
+                                              "history_frames", "history_share", "history_noise")}
 
 
 class EMA:

@@ -172,6 +172,7 @@ def test_a_history_run_trains_and_its_checkpoint_samples_with_its_k(micro_preset
     pipe = load_pipeline(final, precision="fp32")
     assert pipe.preset.history_frames == K
     assert pipe.config["recipe"]["history_share"] == 1.0 and pipe.config["recipe"]["history_noise"] == 0.5
+    assert pipe.config["recipe"]["history_frames"] == K  # `train --recipe-from` the checkpoint trains it again
     with pytest.raises(UserError, match="history_frames=K"):
         Trainer(dataclasses.replace(cfg, out=tmp_path / "run2", history_frames=None))
     with pytest.raises(UserError, match="continues from 1 .. 7"):
