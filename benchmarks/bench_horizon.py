@@ -34,7 +34,7 @@ def main(argv: list[str] | None = None) -> int:
     from tesseract4d.testing.synthetic_scene import _segment, synthetic_episode
 
     p = pipe.preset
-    clips = len(clip_new_frames(args.frames, p.num_frames))
+    clips = len(clip_new_frames(args.frames, p.num_frames, p.history_frames))
     steps = args.steps or p.num_steps
     print(f"checkpoint {args.checkpoint}: {p.name} {p.height}x{p.width}, clips of {p.num_frames} frames, {steps} "
           f"steps; a {args.frames}-frame rollout is {clips} clips")

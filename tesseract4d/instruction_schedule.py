@@ -100,17 +100,20 @@ def parse_schedule(text: str) -> list[Segment]:
     return [Segment(s.instruction, s.frame_start, end) for s, end in zip(segments, ends)]
 
 
-def clip_new_frames(num_frames: int, clip_len: int) -> list[range]:
+def clip_new_frames(num_frames: int, clip_len: int, history: int = 1) -> list[range]:
     """The frames each clip of a ``num_frames`` rollout adds: clip 0 frames 1 .. clip_len - 1 (frame
-    0 is given), clip k > 0 the ``clip_len - 1`` frames after its first, which is the last frame of
-    clip k - 1. The last clip is cut at ``num_frames``."""
+    0 is given), clip k > 0 the ``clip_len - history`` frames after its first ``history`` frames, which
+    are the last ``history`` frames of the rollout so far (1: the last frame of clip k - 1). The last
+    clip is cut at ``num_frames``."""
     if clip_len < 2:
         return [range(1, num_frames)] if num_frames > 1 else [range(1, 1)]
+    if not 1 <= history < clip_len:
+        raise ValueError(f"history must be 1 .. {clip_len - 1} frames for clips of {clip_len}, got {history}")
     out = [range(1, min(clip_len, num_frames))]
     start = clip_len - 1
     while start < num_frames - 1:
-        out.append(range(start + 1, min(start + clip_len, num_frames)))
-        start += clip_len - 1
+        out.append(range(start + 1, min(start + 1 + clip_len - history, num_frames)))
+        start += clip_len - history
     return out
 
 
@@ -124,12 +127,13 @@ def segment_at(segments: list[Segment], frame: int) -> int:
     return index
 
 
-def clip_instructions(segments: list[Segment], num_frames: int, clip_len: int) -> list[str]:
-    """The instruction given to each clip of a ``num_frames`` rollout: the segment holding most of
-    the clip's new frames (a tie goes to the later segment, whose words the clip starts to act on)."""
+def clip_instructions(segments: list[Segment], num_frames: int, clip_len: int, history: int = 1) -> list[str]:
+    """The instruction given to each clip of a ``num_frames`` rollout (clips continuing from ``history``
+    frames, :func:`clip_new_frames`): the segment holding most of the clip's new frames (a tie goes to
+    the later segment, whose words the clip starts to act on)."""
     check_schedule(segments)
     out = []
-    for frames in clip_new_frames(num_frames, clip_len):
+    for frames in clip_new_frames(num_frames, clip_len, history):
         counts: dict[int, int] = {}
         for f in frames:
             i = segment_at(segments, f)

@@ -44,7 +44,7 @@ from tesseract4d.evaluation.episode import json_safe
 from tesseract4d.evaluation.heldout import scene_noise_seed, select_episodes, static_world
 from tesseract4d.evaluation.metrics import depth_metrics, moving_region_mask, rgb_psnr
 from tesseract4d.evaluation.object_tracks import NO_OBJECT_SKILLS, layer_of, match_tracks, recorded_objects
-from tesseract4d.instruction_schedule import schedule_of
+from tesseract4d.instruction_schedule import clip_new_frames, schedule_of
 from tesseract4d.segments import scene_object_ids
 
 # key -> (label, unit, higher is better)
@@ -282,11 +282,12 @@ def evaluate_horizon(cfg: HorizonConfig, progress: bool = True) -> dict:
     bar.close()
     if not episodes:
         raise UserError(f"{cfg.data} holds no episodes to evaluate")
-    return build_report(cfg, per_method, schedules, episodes, clip_len, max_depth_m)
+    return build_report(cfg, per_method, schedules, episodes, clip_len, max_depth_m,
+                        history_frames=pipe.preset.history_frames)
 
 
 def build_report(cfg: HorizonConfig | None, per_method: dict[str, list], schedules: list, episodes: list[dict],
-                 clip_len: int, max_depth_m: float | None) -> dict:
+                 clip_len: int, max_depth_m: float | None, history_frames: int = 1) -> dict:
     """The report of per-episode curves of each method (see the module docstring)."""
     num_frames = max(e["frames"] for e in episodes)
     methods = {}
@@ -295,7 +296,8 @@ def build_report(cfg: HorizonConfig | None, per_method: dict[str, list], schedul
         methods[method] = {"curves": mean, "summary": summarize(mean, num_frames, clip_len),
                            "segments": segment_means(curves, schedules)}
     config = {} if cfg is None else {k: (str(v) if isinstance(v, Path) else v) for k, v in dataclasses.asdict(cfg).items()}
-    return {"config": config, "clip_frames": clip_len, "num_frames": num_frames, "max_depth_m": max_depth_m,
+    return {"config": config, "clip_frames": clip_len, "history_frames": history_frames, "num_frames": num_frames,
+            "max_depth_m": max_depth_m,
             "episodes": episodes, "methods": methods, "definitions": {k: v[0] for k, v in CURVES.items()}}
 
 
@@ -370,7 +372,10 @@ def plot_curves(report: dict, path: str | os.PathLike, panel_px: tuple[int, int]
             cv2.rectangle(img, (margin, 30), (w - 10, h - margin), (200, 200, 200), 1)
             for v, txt in ((lo, f"{lo:.3g}"), (hi, f"{hi:.3g}")):
                 cv2.putText(img, txt, (2, y_of(v) + 4), cv2.FONT_HERSHEY_SIMPLEX, 0.35, (0, 0, 0), 1, cv2.LINE_AA)
-            for t in range(0, n, report["clip_frames"] - 1):  # where each clip starts
+            # Where each clip starts: the last given frame before its new frames.
+            starts = [0] + [r.start - 1 for r in clip_new_frames(n, report["clip_frames"],
+                                                                 report.get("history_frames", 1))[1:]]
+            for t in starts:
                 cv2.line(img, (x_of(t), 30), (x_of(t), h - margin), (225, 225, 225), 1)
                 cv2.putText(img, str(t), (x_of(t) - 6, h - margin + 14), cv2.FONT_HERSHEY_SIMPLEX, 0.35, (0, 0, 0), 1)
             for m, s in series.items():

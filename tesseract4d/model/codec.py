@@ -5,7 +5,7 @@ directly (``PixelCodec``); ``cogvideox-5b`` works on the latents of ``Autoencode
 (``VaeCodec``): rgb, depth (repeated to 3 channels) and normal are encoded separately, each to
 ``latent_channels`` channels, and stacked on channels: ``(b, t', 3 * latent_channels, h, w)``.
 
-Also here: how the first frame becomes the transformer's ``condition`` input.
+Also here: how the first frame (or a clip's history frames) becomes the transformer's ``condition`` input.
 """
 
 from __future__ import annotations
@@ -82,11 +82,18 @@ class VaeCodec:
 
 
 def make_condition(first: torch.Tensor, num_latent_frames: int, mode: str) -> torch.Tensor:
-    """First-frame condition (b, t', c, h, w) from the encoded first frame ``first`` (b, 1, c, h, w):
-    repeated over time (``repeat``) or at frame 0 followed by zeros (``first``, CogVideoX-I2V)."""
+    """The condition (b, t', c, h, w) from the encoded given frames ``first`` (b, k, c, h, w): one first
+    frame (k = 1), or the k history frames a clip continues from (``ModelPreset.history_frames``), which
+    fill the condition's first k latent frames. After them: the last given frame repeated (``repeat``),
+    or zeros (``first``, CogVideoX-I2V)."""
+    k = first.shape[1]
+    if not 1 <= k <= num_latent_frames:
+        raise ValueError(f"{k} given frames do not fit a condition of {num_latent_frames} latent frames")
     if mode == CONDITION_REPEAT:
-        return first.expand(-1, num_latent_frames, -1, -1, -1).contiguous()
-    pad = first.new_zeros(first.shape[0], num_latent_frames - 1, *first.shape[2:])
+        if k == 1:
+            return first.expand(-1, num_latent_frames, -1, -1, -1).contiguous()
+        return torch.cat([first, first[:, -1:].expand(-1, num_latent_frames - k, -1, -1, -1)], dim=1)
+    pad = first.new_zeros(first.shape[0], num_latent_frames - k, *first.shape[2:])
     return torch.cat([first, pad], dim=1)
 
 

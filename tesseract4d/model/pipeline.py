@@ -13,7 +13,8 @@ change from its frame 0, the given first frame's own pixels are put back, so the
 scene is shown as given instead of as the decoder redraws it.
 
 Clips longer than the preset's clip continue autoregressively: each next clip is conditioned on the
-last frame predicted so far. An instruction schedule gives each clip its own words (``clip_instructions``,
+last frame predicted so far, or on the last k frames (``history_frames`` k > 1, a model trained for it:
+the clip's first k frames are that history and its other ``num_frames - k`` are new). An instruction schedule gives each clip its own words (``clip_instructions``,
 see tesseract4d/instruction_schedule.py), and ``on_clip`` receives each clip's new frames as soon as
 it is decoded (streaming).
 """
@@ -83,20 +84,22 @@ class RGBDNPipeline:
         self.codec.to(self.device)
         return self
 
-    def _forward(self, x_t, conditions, texts, sigma):
+    def _forward(self, x_t, conditions, texts, sigma, history_frames: int = 1):
         """One batched forward of the transformer over the conditionings stacked along the batch:
         one x0_hat per conditioning."""
         n = len(conditions)
+        extra = {} if history_frames == 1 else {"history_frames": history_frames}
         with torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=self.bf16):
             out = self.transformer(x_t.repeat(n, 1, 1, 1, 1), torch.cat(conditions), torch.cat(texts),
-                                   torch.full((n * x_t.shape[0],), float(sigma), device=self.device)).float()
+                                   torch.full((n * x_t.shape[0],), float(sigma), device=self.device), **extra).float()
         return out.split(x_t.shape[0])
 
-    def _predict_x0(self, x_t, sigma, cond, null_cond, text, null_text, text_guidance, image_guidance):
+    def _predict_x0(self, x_t, sigma, cond, null_cond, text, null_text, text_guidance, image_guidance,
+                    history_frames: int = 1):
         """Guided x0_hat (b, t', c, h, w) for the current noisy sample."""
         inputs = {"full": (cond, text), "image": (cond, null_text), "none": (null_cond, null_text)}
         passes = [inputs[name] for name in guidance_passes(text_guidance, image_guidance)]
-        preds = self._forward(x_t, [p[0] for p in passes], [p[1] for p in passes], sigma)
+        preds = self._forward(x_t, [p[0] for p in passes], [p[1] for p in passes], sigma, history_frames)
         if len(preds) == 1:
             guided = preds[0]
         elif len(preds) == 2:
@@ -114,15 +117,19 @@ class RGBDNPipeline:
 
     def _denoise_clip(self, first_frame, text, null_text, num_steps, text_guidance, image_guidance,
                       generator, progress, step_offset, total_steps, latents=None, guidance_min_sigma=0.0,
-                      start=None):
+                      start=None, history=None):
         """One clip of the preset's length from a (b, 7, H, W) first frame, in the network's space:
-        (b, t', c, h, w). ``latents``: the initial noise (default: drawn from ``generator``).
+        (b, t', c, h, w). ``history``: (b, k, 7, H, W) model-space frames the clip continues from (its
+        first k frames; ``first_frame`` is then history[:, 0]); default: the first frame alone.
+        ``latents``: the initial noise (default: drawn from ``generator``).
         ``guidance_min_sigma``: steps at a lower noise level run unguided (one pass).
         ``start``: (clean clips (b, t', c, h, w), sigma): begin at the first noise level ``s`` ≤ sigma
         from ``(1 - s) clean + s noise`` and run only the steps from there."""
         b = first_frame.shape[0]
         nt = self.codec.num_latent_frames(self.preset.num_frames)
-        first = self.codec.encode(first_frame[:, None].to(self.device), generator=generator)  # (b, 1, c, h, w)
+        given = first_frame[:, None] if history is None else history  # (b, k, 7, H, W)
+        first = self.codec.encode(given.to(self.device), generator=generator)  # (b, k, c, h, w)
+        history_frames = first.shape[1]
         cond = make_condition(first, nt, self.preset.condition)
         null_cond = torch.zeros_like(cond)
         if latents is None:
@@ -147,7 +154,8 @@ class RGBDNPipeline:
                 sigma = float(self.scheduler.sigmas[i])
                 guided = sigma >= guidance_min_sigma
                 pred = self._predict_x0(x, sigma, cond, null_cond, text, null_text,
-                                        text_guidance if guided else 1.0, image_guidance if guided else 1.0)
+                                        text_guidance if guided else 1.0, image_guidance if guided else 1.0,
+                                        history_frames)
                 velocity = (x - pred) / sigma
                 x = self.scheduler.step(velocity, timestep, x, return_dict=False)[0]
             if progress is not None:
@@ -193,6 +201,7 @@ class RGBDNPipeline:
         start: tuple[torch.Tensor, float] | None = None,
         clip_instructions: list[list[str]] | None = None,
         on_clip: Callable[[int, torch.Tensor], None] | None = None,
+        history_frames: int | None = None,
     ) -> torch.Tensor:
         """Sample a batch of clips.
 
@@ -219,6 +228,8 @@ class RGBDNPipeline:
         on_clip: called as ``on_clip(k, frames)`` once clip k is decoded, with the frames it adds to
         the rollout, (b, n, 7, H, W) on the CPU (frame 0 included for clip 0): frames can be shown or
         written while the next clip is sampled.
+        history_frames: k, how many of the last frames so far each clip after the first continues from
+        (default: the preset's, which the model was trained for; 1: the last frame alone).
         Returns (b, num_frames, 7, H, W) model-space clips; frame 0 is the model's reconstruction
         of the first frame (the first frame itself with static compositing on).
         """
@@ -230,6 +241,7 @@ class RGBDNPipeline:
         image_guidance = p.image_guidance if image_guidance is None else float(image_guidance)
         guidance_min_sigma = p.guidance_min_sigma if guidance_min_sigma is None else float(guidance_min_sigma)
         static_tolerance = p.static_tolerance if static_tolerance is None else float(static_tolerance)
+        history_frames = p.history_frames if history_frames is None else int(history_frames)
         b = first_frame.shape[0]
         if first_frame.ndim != 4 or tuple(first_frame.shape[2:]) != self.resolution:
             raise ValueError(f"first_frame must be (b, 7, {p.height}, {p.width}), got {tuple(first_frame.shape)}")
@@ -245,7 +257,11 @@ class RGBDNPipeline:
             raise ValueError("output_type='latent' returns exactly one clip; leave num_frames at the preset's")
         if start is not None and (num_frames != p.num_frames or not 0.0 < float(start[1]) <= 1.0):
             raise ValueError("start needs exactly one clip (num_frames at the preset's) and a noise level in (0, 1]")
-        new_frames = clip_new_frames(num_frames, p.num_frames)
+        if not 1 <= history_frames < p.num_frames:
+            raise ValueError(f"history_frames must be 1 .. {p.num_frames - 1}, got {history_frames}")
+        if history_frames > 1 and self.codec.temporal_compression != 1:
+            raise ValueError("history_frames > 1 needs a codec with one latent frame per frame (not a video VAE)")
+        new_frames = clip_new_frames(num_frames, p.num_frames, history_frames)
         if clip_instructions is not None:
             if len(clip_instructions) != len(new_frames) or any(len(c) != b for c in clip_instructions):
                 raise ValueError(f"clip_instructions must hold {len(new_frames)} clips of {b} instructions each")
@@ -266,20 +282,24 @@ class RGBDNPipeline:
                                       generator, progress, 0, num_steps, latents=latents,
                                       guidance_min_sigma=guidance_min_sigma, start=start).cpu()
 
-        # 3. Sample clip after clip, each conditioned on the last frame so far, with its words.
+        # 3. Sample clip after clip, each conditioned on the last history_frames frames so far (the first
+        # clip on the first frame alone), with its words.
         num_clips = len(new_frames)
         total = num_clips * num_steps
         frames = []
-        current = first_frame.float()
+        history = first_frame.float()[:, None]  # (b, k, 7, H, W)
         for k in range(num_clips):
-            clip = self._sample_clip(current, texts[k], null_text, num_steps, text_guidance, image_guidance,
+            clip = self._sample_clip(history[:, 0], texts[k], null_text, num_steps, text_guidance, image_guidance,
                                      generator, progress, k * num_steps, total,
                                      latents=latents if k == 0 else None,
                                      guidance_min_sigma=guidance_min_sigma, start=start,
-                                     static_tolerance=static_tolerance).cpu()
-            frames.append(clip[:, :len(new_frames[k]) + 1] if k == 0 else clip[:, 1:len(new_frames[k]) + 1])
+                                     static_tolerance=static_tolerance,
+                                     history=history if history.shape[1] > 1 else None).cpu()
+            given = history.shape[1] if k > 0 else 0
+            frames.append(clip[:, given:given + len(new_frames[k]) + (1 if k == 0 else 0)])
             if on_clip is not None:
                 on_clip(k, frames[-1])
-            current = clip[:, -1]
+            if k + 1 < num_clips:
+                history = torch.cat(frames, dim=1)[:, -history_frames:]
         # 4. Stitch the clips.
         return torch.cat(frames, dim=1)[:, :num_frames]

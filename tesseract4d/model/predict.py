@@ -365,8 +365,10 @@ def _clip_words(pipeline: RGBDNPipeline, scenes: list, num_frames: int) -> list[
     no scene has a schedule."""
     if all(s[5] is None for s in scenes):
         return None
-    num_clips = len(clip_new_frames(num_frames, pipeline.num_frames))
-    per_scene = [[s[1]] * num_clips if s[5] is None else clip_instructions(s[5], num_frames, pipeline.num_frames)
+    history = pipeline.preset.history_frames
+    num_clips = len(clip_new_frames(num_frames, pipeline.num_frames, history))
+    per_scene = [[s[1]] * num_clips if s[5] is None else clip_instructions(s[5], num_frames, pipeline.num_frames,
+                                                                            history)
                  for s in scenes]
     return [list(words) for words in zip(*per_scene)]
 

@@ -71,6 +71,11 @@ class ModelPreset:
     # Noise draws per future (draw_choice.py): the kept one is the draw whose objects keep their
     # colours best. 1 = a single draw.
     draws: int = 1
+    # History conditioning (long rollouts): a clip after the first continues from the last k frames of
+    # the rollout so far, which fill the first k latent frames of its condition; it adds num_frames - k
+    # new frames. 1 = today's rollout: each clip from the last frame of the one before. A model is
+    # trained for its k (TrainConfig.history_frames, history_share, history_noise).
+    history_frames: int = 1
 
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)

@@ -39,6 +39,14 @@
   a held-out wording whose embedding sits between two training meanings was lost (docs/research/training.md,
   "Words"); noise fills the space around each training sentence so
   that nearby wordings read the same.
+- ``history_share`` / ``history_noise`` (with ``history_frames`` k > 1): with probability ``history_share``
+  a clip's first k true frames become its history (the first k latent frames of its condition, as
+  the sampler gives a clip after the first the last k frames of the rollout so far), noised as
+  diffusion forcing does, ``x_h = (1 - s) x + s noise`` with ``s ~ U(0, history_noise)`` per clip, and
+  its loss counts frames k.. only. The level s is not given to the network: at sampling time the
+  history is the model's own earlier frames, whose error is of no known level, so the network learns
+  to read history of any quality up to ``history_noise`` rather than to trust a stated one (and the
+  network keeps its inputs, so a k = 1 checkpoint such as v2 fine-tunes into it unchanged).
 - ``text_dropout`` (TrainConfig) and the guidance scales (``tesseract4d predict``) already exist.
 
 The network always predicts the clean clip (``x0``, as "first frame + correction"). Levers that
@@ -56,7 +64,7 @@ import math
 import torch
 
 from tesseract4d.errors import UserError
-from tesseract4d.model.presets import AUTOENCODER, ModelPreset
+from tesseract4d.model.presets import AUTOENCODER, PIXEL, ModelPreset
 from tesseract4d.model.clips import ClipDataset, merge_clip_datasets
 from tesseract4d import dataset_format as df
 from tesseract4d.model.latent_cache import LatentClipDataset, ensure_latent_cache
@@ -108,6 +116,18 @@ def check_recipe(cfg, preset: ModelPreset) -> None:
         raise UserError(f"--text-noise must be a finite number >= 0 (0 = off), got {cfg.text_noise}")
     if not 0.0 <= cfg.rephrase <= 1.0:
         raise UserError(f"--rephrase is a probability in [0, 1], got {cfg.rephrase}")
+    if not 0.0 <= cfg.history_share <= 1.0 or not 0.0 <= cfg.history_noise <= 1.0:
+        raise UserError(f"--set history_share and history_noise are in [0, 1], got {cfg.history_share} and "
+                        f"{cfg.history_noise}")
+    if not 1 <= preset.history_frames < preset.num_frames:
+        raise UserError(f"--set history_frames={preset.history_frames}: a clip of {preset.num_frames} frames continues "
+                        f"from 1 .. {preset.num_frames - 1} of them")
+    if preset.history_frames > 1 and preset.space not in (AUTOENCODER, PIXEL):
+        raise UserError(f"--set history_frames needs one latent frame per frame; preset {preset.name!r} encodes "
+                        f"frames in groups (a video VAE): keep history_frames=1")
+    if cfg.history_share > 0 and preset.history_frames == 1:
+        raise UserError("--set history_share trains clips that continue from history frames: add --set "
+                        "history_frames=K with K > 1 (e.g. 4)")
     if not cfg.group_batches and cfg.counterfactual_swap > 0:
         raise UserError("--counterfactual-swap compares the futures of a counterfactual group: add --group-batches")
     if preset.space == AUTOENCODER and cfg.autoencoder is None:
@@ -199,6 +219,31 @@ def disagreement_mask(x0: torch.Tensor, share: float = DISAGREE_SHARE) -> torch.
     spread = x0.float().std(0, keepdim=True).mean(2, keepdim=True)  # (1, t', 1, h, w)
     threshold = torch.quantile(spread.flatten(), 1.0 - share)
     return ((spread >= threshold) & (spread > 0)).float()
+
+
+def draw_history(x0: torch.Tensor, k: int, share: float, max_noise: float,
+                 generator: torch.Generator) -> tuple[torch.Tensor, torch.Tensor] | None:
+    """History of the clips ``x0`` (b, t, c, h, w): (given (b, k, c, h, w), chosen (b,) bool), where
+    ``given`` is each clip's first k frames noised at a level ``s ~ U(0, max_noise)`` per clip,
+    ``(1 - s) x + s noise``, and ``chosen`` marks the clips (each with probability ``share``) that continue
+    from it. None, drawing nothing, when k = 1 or ``share`` = 0 (every clip from its first frame)."""
+    if k <= 1 or share <= 0:
+        return None
+    b = x0.shape[0]
+    chosen = torch.rand(b, generator=generator) < share
+    s = (torch.rand(b, generator=generator) * max_noise).view(b, 1, 1, 1, 1)
+    noise = torch.randn((b, k, *x0.shape[2:]), generator=generator)
+    given = (1 - s.to(x0)) * x0[:, :k] + s.to(x0) * noise.to(x0)
+    return given, chosen.to(x0.device)
+
+
+def history_loss_mask(x0: torch.Tensor, k: int, chosen: torch.Tensor, weights: torch.Tensor | None) -> torch.Tensor:
+    """(b, t, 1, h, w) loss weights (``weights``, or ones) with frames 0 .. k-1 of the ``chosen`` clips at
+    zero: those frames were given as history, so nothing is learnt from predicting them."""
+    b, t, _, h, w = x0.shape
+    out = torch.ones(b, t, 1, h, w, dtype=x0.dtype, device=x0.device) if weights is None else weights.clone()
+    out[chosen.to(out.device), :k] = 0.0
+    return out
 
 
 def cell_weights(x0: torch.Tensor, objects: torch.Tensor | None, cfg) -> torch.Tensor | None:

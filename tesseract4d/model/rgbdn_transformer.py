@@ -8,7 +8,8 @@
   is intact).
 - RGB leaves through the backbone's original output head, depth and normal through extra heads.
 - Parameterisation: the network predicts the clean clip as "first frame + correction"
-  (``x0_hat = condition[:, :1] + output``). Predicting the velocity directly failed in the pilot run
+  (``x0_hat = condition[:, :1] + output``; a clip continuing from k history frames: each of them + its
+  correction, the later frames on the last of them). Predicting the velocity directly failed in the pilot run
   (ENVIRONMENT.md); sampling turns ``x0_hat`` into a velocity (see pipeline.py).
 
 Tensors are ``(b, t, c, h, w)``; ``c`` holds the modalities' channels in ``modality_channels``
@@ -175,7 +176,7 @@ class RGBDNTransformer(ModelMixin, ConfigMixin):
 
     # ------------------------------------------------------------------ forward
     def forward(self, sample: torch.Tensor, condition: torch.Tensor, encoder_hidden_states: torch.Tensor,
-                t: torch.Tensor) -> torch.Tensor:
+                t: torch.Tensor, history_frames: int = 1) -> torch.Tensor:
         """Predict the clean clip.
 
         sample: (b, t, c, h, w) noisy clip x_t = (1 - t) x0 + t noise.
@@ -183,7 +184,10 @@ class RGBDNTransformer(ModelMixin, ConfigMixin):
             after it, as the preset says); zeros when dropped for guidance.
         encoder_hidden_states: (b, L, text_dim) text token embeddings (zeros when dropped).
         t: (b,) diffusion time in [0, 1].
-        Returns x0_hat (b, t, c, h, w) = condition[:, :1] + correction.
+        history_frames: k, how many given frames the condition's first latent frames hold (1: the first
+            frame; k > 1: a clip continuing from the last k frames of the one before, codec.make_condition).
+        Returns x0_hat (b, t, c, h, w) = given frame + correction: frame i < k on its own given frame, later
+            frames on the last given one (k = 1: condition[:, :1] + correction).
         """
         b, nt, c, h, w = sample.shape
         slices = self.channel_slices()
@@ -192,4 +196,8 @@ class RGBDNTransformer(ModelMixin, ConfigMixin):
         rotary = self._rotary_embeddings(nt, h, w, sample.device)
         timestep = (t * TIMESTEP_SCALE).to(sample.dtype)
         out = self.backbone(inp, encoder_hidden_states, timestep, image_rotary_emb=rotary, return_dict=False)[0]
-        return condition[:, :1] + out  # (b, t, c, h, w)
+        if history_frames == 1:
+            return condition[:, :1] + out  # (b, t, c, h, w)
+        given = condition[:, :history_frames]  # (b, k, c, h, w)
+        base = torch.cat([given, given[:, -1:].expand(-1, nt - history_frames, -1, -1, -1)], dim=1)
+        return base + out  # (b, t, c, h, w)

@@ -59,7 +59,8 @@ from tesseract4d.previews import write_preview
 from tesseract4d.dataset_format import CameraFrames, Episode
 from tesseract4d.model.recipe import (
     augment_condition, augment_text, cell_weights, check_recipe, check_samples_as_trained, check_scene_objects,
-    load_training_data, recipe_loss, rephrase, sample_times, share_within_groups, swap_sources,
+    draw_history, history_loss_mask, load_training_data, recipe_loss, rephrase, sample_times, share_within_groups,
+    swap_sources,
 )
 from tesseract4d.model.build import build_codec, build_text_encoder, build_transformer
 from tesseract4d.model.clips import dataset_units
@@ -111,6 +112,12 @@ class TrainConfig(TrainingLoopConfig):
     counterfactual_swap: float = option(0.0, "with group_batches: probability of showing a clip a sibling's noisy sample")
     rephrase: float = option(0.0, "probability of training a clip under another training wording of its instruction")
     text_noise: float = option(0.0, "max std of noise on the instruction's token embeddings, relative to each token's RMS")
+    history_frames: int | None = option(None, "k: clips after a rollout's first continue from its last k frames (the "
+                                              "model's preset field; default: the preset's, 1)")
+    history_share: float = option(0.0, "share of training clips whose first history_frames true frames are given as "
+                                        "history (loss on the later frames only)")
+    history_noise: float = option(0.0, "max noise level s of the given history, x_h = (1 - s) x + s noise, s ~ U(0, max) "
+                                       "per clip (diffusion-forcing style)")
 
     def resolved(self, preset: ModelPreset) -> "TrainConfig":
         out = dataclasses.replace(self)
@@ -148,7 +155,8 @@ class TrainConfig(TrainingLoopConfig):
         """The recipe levers, saved in the inference config."""
         return {k: getattr(self, k) for k in ("condition_noise", "moving_weight", "object_weight",
                                               "scene_object_weight", "text_dropout", "time_logit_normal",
-                                              "group_batches", "counterfactual_swap", "rephrase", "text_noise")}
+                                              "group_batches", "counterfactual_swap", "rephrase", "text_noise",
+                                              "history_frames", "history_share", "history_noise")}
 
 
 class EMA:
@@ -289,7 +297,10 @@ class Trainer:
 
     # Hooks a specialised trainer (tesseract4d.model.reflow.ReflowTrainer) overrides.
     def _resolve_preset(self, config: TrainConfig) -> ModelPreset:
-        return get_preset(config.preset)
+        preset = get_preset(config.preset)
+        if config.history_frames is None or config.history_frames == preset.history_frames:
+            return preset
+        return dataclasses.replace(preset, history_frames=int(config.history_frames))
 
     def _build_data(self, cfg: TrainConfig):
         """The training data source: clips of a dataset folder, or latent clips from its cache
@@ -421,11 +432,14 @@ class Trainer:
         keep_image = (torch.rand(b, generator=g) >= cfg.image_dropout).float()
         text = (text * keep_text[:, None, None]).to(self.device)
         first = first * keep_image.to(self.device)[:, None, None, None, None]
+        history = draw_history(x0, self.preset.history_frames, cfg.history_share, cfg.history_noise, g)
+        if history is not None:  # a dropped first frame drops the history with it
+            history = (history[0] * keep_image.to(history[0].device)[:, None, None, None, None], history[1])
         t = share_within_groups(sample_times(b, g, cfg.time_logit_normal), leaders)
         noise = share_within_groups(torch.randn(x0.shape, generator=g), leaders)
         if leaders is not None and cfg.counterfactual_swap > 0:
             shown = swap_sources(leaders, t, cfg.counterfactual_swap, g)
-        return self.denoising_loss(x0, first, text, t, noise, objects, shown=shown)
+        return self.denoising_loss(x0, first, text, t, noise, objects, shown=shown, history=history)
 
     def rephrased(self, texts: list[str], g: torch.Generator) -> list[str]:
         """The batch's instructions after the ``rephrase`` lever (unchanged, drawing nothing, at 0)."""
@@ -436,29 +450,50 @@ class Trainer:
 
     def denoising_loss(self, x0: torch.Tensor, first: torch.Tensor, text: torch.Tensor, t: torch.Tensor,
                        noise: torch.Tensor, objects: torch.Tensor | None = None, *,
-                       shown: list[int] | None = None) -> tuple[torch.Tensor, dict[str, float]]:
+                       shown: list[int] | None = None, history: tuple[torch.Tensor, torch.Tensor] | None = None,
+                       ) -> tuple[torch.Tensor, dict[str, float]]:
         """The weighted per-group loss of the clean-clip target at ``x_t = (1 - t) x0 + t noise``. x0,
         noise: (b, t', c, h, w) network space; first: (b, 1, c, h, w) encoded first frame (zeros =
         dropped); text: (b, L, d) embeddings; t: (b,) in [0, 1]; objects: (b, t', 2, h, w) robot/object
         and scene-object shares of a latent cache (``recipe.cell_weights``), or None. With group
         batches, ``shown`` gives the clip whose clean sample builds each clip's ``x_t``
-        (recipe.swap_sources); the target stays the clip's own."""
+        (recipe.swap_sources); the target stays the clip's own. ``history``: (given (b, k, c, h, w) noised
+        true frames, chosen (b,) bool) from ``recipe.draw_history``: a chosen clip's condition holds its k
+        given frames (dropped with its first frame) and its loss counts frames k.. only."""
         cfg = self.cfg
         x0, first, text = x0.to(self.device), first.to(self.device), text.to(self.device)
         t, noise = t.to(self.device), noise.to(self.device)
         cond = make_condition(first, x0.shape[1], self.preset.condition)
+        k = 1
+        if history is not None:
+            given, chosen = history[0].to(self.device), history[1].to(self.device)
+            k = given.shape[1]
+            with_history = make_condition(given, x0.shape[1], self.preset.condition)
+            cond = torch.where(chosen[:, None, None, None, None], with_history, cond)
         tt = t[:, None, None, None, None]
         seen = x0 if shown is None else x0[torch.as_tensor(shown, device=x0.device)]
         x_t = (1 - tt) * seen + tt * noise
-        out = self.model(x_t, cond, text, t).float()
+        out = (self.model(x_t, cond, text, t) if history is None else
+               self._history_forward(x_t, cond, text, t, k, history[1].to(self.device))).float()
         channels = self.accelerator.unwrap_model(self.model).channel_slices()
         weights = cell_weights(x0, objects, cfg)  # (b, t', 1, h, w) or None
+        if history is not None:
+            weights = history_loss_mask(x0, k, history[1].to(self.device), weights)
         parts = recipe_loss(out, x0, channels, weights)
         # A joint latent group (not a modality) has weight 1.
         weight_of = {n: cfg.loss_weights.get(n, 0.0) if n in MODALITIES else 1.0 for n in parts}
         total_w = sum(weight_of.values())
         loss = sum(weight_of[n] * v for n, v in parts.items()) / total_w
         return loss, {f"loss/{n}": float(v.detach()) for n, v in parts.items()}
+
+    def _history_forward(self, x_t, cond, text, t, k: int, chosen: torch.Tensor) -> torch.Tensor:
+        """x0_hat of a batch where the ``chosen`` clips continue from k given frames: the network runs once;
+        only its base (the given frame each output frame corrects) differs between the two kinds of clip
+        (rgbdn_transformer.py), so the base of the chosen clips is swapped in afterwards."""
+        out = self.model(x_t, cond, text, t)  # (b, t', c, h, w): bases condition[:, :1]
+        given = cond[:, :k]
+        base_k = torch.cat([given, given[:, -1:].expand(-1, cond.shape[1] - k, -1, -1, -1)], dim=1)
+        return out + torch.where(chosen[:, None, None, None, None], base_k - cond[:, :1], torch.zeros_like(base_k))
 
     def train_step(self) -> dict[str, float]:
         lr = learning_rate(self)
