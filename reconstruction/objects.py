@@ -765,6 +765,9 @@ def track_objects(rgb: np.ndarray, depth_m: np.ndarray, normal_cam: np.ndarray, 
                     sink = start_height[k] - float(T_hyp[:3, 3] @ up_axis)
                     if sink > 0:  # it rests on what it stood on, or higher
                         T_hyp[:3, 3] += sink * up_axis
+                if hidden_used[k] or state[k, t] == LOST:
+                    T_hyp = _refine_hidden(trees[k], model, T_hyp, pts_t, rgb[t], valid[t] & ~taken, depth[t], K[t],
+                                           T_world_cam[t], config.colour_tol, up_axis, lifted)
                 hidden[k][t] = T_hyp
                 hidden_covered[k] = hidden_covered[k] or state[k, t] == OCCLUDED
                 # The arm that covered it moved at it: it may be found elsewhere when seen again.
@@ -903,6 +906,31 @@ def _arm_step(arm_prev: np.ndarray, arm_now: np.ndarray, centre: np.ndarray, up:
         if np.linalg.norm(step) < 1e-5:
             break
     return shift, low
+
+
+def _refine_hidden(model_tree, model: "_Model", T_hyp: np.ndarray, pts: np.ndarray, rgb: np.ndarray, free: np.ndarray,
+                   depth_m: np.ndarray, K: np.ndarray, T_world_cam: np.ndarray, colour_tol: float, up: np.ndarray,
+                   lifted: bool) -> np.ndarray:
+    """An inferred pose moved onto the few pixels of the object's colours seen near it (too few to track it:
+    a corner under the hand), by a translation fit, across ``up`` only unless it is lifted; unchanged
+    when fewer than ``MIN_OBJECT_PIXELS`` are seen, or the fit is poor or moves it farther than ``REFIND_M``."""
+    reach = model.radius_m + REFIND_M
+    near = free & (np.linalg.norm(pts - T_hyp[:3, 3], axis=-1) <= reach)
+    if near.sum() < MIN_OBJECT_PIXELS:
+        return T_hyp
+    near[near] = min_colour_distance(rgb[near], model.palette) < colour_tol
+    observed = pts[near]
+    if len(observed) < MIN_OBJECT_PIXELS:
+        return T_hyp
+    T_fit, rms, _ = _icp(model_tree, model, observed, T_hyp, np.zeros(3), depth_m, K, T_world_cam)
+    move = T_fit[:3, 3] - T_hyp[:3, 3]
+    if not lifted:
+        move -= (move @ up) * up
+    if not rms <= MAX_FIT_RMS_M or np.linalg.norm(move) > REFIND_M:
+        return T_hyp
+    out = T_hyp.copy()
+    out[:3, 3] += move
+    return out
 
 
 def truth_layer(first: ObjectLayer, object_poses: dict[str, np.ndarray]) -> ObjectLayer:
