@@ -123,6 +123,9 @@ CAUSE_REACH_M = 0.05
 # An object seen again after frames unseen is found farther than this from where it was only when
 # something was at it meanwhile.
 REFIND_M = 0.02
+# Flow + RANSAC fits (TrackConfig.fit): RANSAC draws, and how near (metres) a carried point must land to agree.
+FLOW_RANSAC_ITERATIONS = 100
+FLOW_INLIER_M = 0.004
 # "It went with the arm while hidden": an object hidden behind the arm whose old place is later seen empty
 # moved with the arm. Its inferred pose follows the translation of the arm's points within HIDDEN_ARM_M of
 # it (the visible side of a hand over a 4 cm cube lies 5-14 cm from the cube's centre at 128²), never
@@ -403,10 +406,15 @@ class TrackConfig:
     search_m: float = SEARCH_M
     min_visible_share: float = MIN_VISIBLE_SHARE
     colour_tol: float = OBJECT_COLOUR_TOL
+    # "icp": fitted by ICP near its last pose; "flow": its last pixels carried by optical flow, lifted with
+    # depth, a rigid fit by RANSAC (AVDC's way); "flow+icp": that fit starts the ICP.
+    fit: str = "icp"
 
     def validate(self) -> None:
         if self.rotation not in ("yaw", "full"):
             raise UserError(f"TrackConfig.rotation is 'yaw' or 'full', got {self.rotation!r}")
+        if self.fit not in ("icp", "flow", "flow+icp"):
+            raise UserError(f"TrackConfig.fit is 'icp', 'flow' or 'flow+icp', got {self.fit!r}")
         if not self.search_m > 0:
             raise UserError(f"TrackConfig.search_m must be > 0 metres, got {self.search_m}")
 
@@ -646,12 +654,24 @@ def track_objects(rgb: np.ndarray, depth_m: np.ndarray, normal_cam: np.ndarray, 
     for t in range(1, T_frames):
         pts_t = world_points(t)
         taken = np.zeros((H, W), bool)
+        flow = None  # (H, W, 2) from frame t-1 to t, made for flow fits
         causes = None  # made when an object is not seen (what may be at it)
         for k, model in enumerate(models):
             T_prev = T_all[k][t - 1]
             guess = T_prev.copy()
             if t >= 2 and state[k, t - 1] == TRACKED and state[k, t - 2] == TRACKED:
                 guess[:3, 3] += T_prev[:3, 3] - T_all[k][t - 2][:3, 3]  # on at its last velocity
+            T_flow = None
+            if config.fit != "icp" and state[k, t - 1] == TRACKED:
+                if flow is None:
+                    from reconstruction.flow import dis_flow  # OpenCV loads only for flow fits
+
+                    flow = dis_flow(rgb[t - 1], rgb[t])
+                step = _flow_ransac(labels[t - 1] == k, flow, pts_prev, pts_t, valid[t], up)
+                if step is not None:
+                    T_flow = step @ T_prev
+                    if config.fit == "flow+icp":
+                        guess = T_flow
             # Where the model's surface would be seen from the camera at the guess.
             model_world = transform_points(guess, model.points)
             normals_world = model.normals @ guess[:3, :3].T
@@ -677,8 +697,11 @@ def track_objects(rgb: np.ndarray, depth_m: np.ndarray, normal_cam: np.ndarray, 
                 seen_share = max(seen_share, len(observed) / n_expected)
                 if len(observed) < MIN_OBJECT_PIXELS or len(observed) / n_expected < config.min_visible_share:
                     continue
-                T_fit, rms, kept = _best_fit(trees[k], model, observed, guess, expected, T_prev, up,
-                                             depth[t], K[t], T_world_cam[t], moving=was_moving[k] or state[k, t - 1] == HELD)
+                if config.fit == "flow" and T_flow is not None:
+                    T_fit, (rms, kept) = T_flow, _residual(trees[k], observed, T_flow)
+                else:
+                    T_fit, rms, kept = _best_fit(trees[k], model, observed, guess, expected, T_prev, up,
+                                                 depth[t], K[t], T_world_cam[t], moving=was_moving[k] or state[k, t - 1] == HELD)
                 if rms > MAX_FIT_RMS_M:
                     continue
                 # Seen again after frames unseen: somewhere else only if something was at it meanwhile;
@@ -774,8 +797,10 @@ def track_objects(rgb: np.ndarray, depth_m: np.ndarray, normal_cam: np.ndarray, 
                 touched_unseen[k] = touched_unseen[k] or (hidden_covered[k] and hidden_arm_moved[k] >= HIDDEN_MOVE_M)
                 first = min(hidden[k])
                 went = np.linalg.norm(T_hyp[:3, 3] - hidden[k][first][:3, 3]) >= HIDDEN_MOVE_M
-                # Used once its old place is seen empty, after the arm covered it and took it away.
-                if hidden_used[k] or (state[k, t] == LOST and hidden_covered[k] and went):
+                # Used once its old place is seen empty (its colours too: not an object the fit refused),
+                # after the arm covered it and took it away.
+                empty = state[k, t] == LOST and seen_share < config.min_visible_share
+                if hidden_used[k] or (empty and hidden_covered[k] and went):
                     frames = sorted(f for f in hidden[k] if f > first and (f == t or state[k, f] in (OCCLUDED, LOST, INFERRED)))
                     for f in frames:
                         T_all[k][f] = hidden[k][f]
@@ -878,14 +903,68 @@ def _arm_shift(pts_prev: np.ndarray, pts_t: np.ndarray, normals_t: np.ndarray, d
     return None if shift is None else (shift, int((dist <= CONTACT_M).sum()) >= MIN_CONTACT_POINTS)
 
 
+def _flow_ransac(pixels_prev: np.ndarray, flow: np.ndarray, pts_prev: np.ndarray, pts_now: np.ndarray,
+                 valid_now: np.ndarray, up: np.ndarray | None) -> np.ndarray | None:
+    """(4, 4) the rigid motion (world) of an object from frame t-1 to t from optical flow: its pixels at
+    t-1 (``pixels_prev`` (H, W) bool) carried by ``flow`` (H, W, 2) to frame t, both ends lifted with
+    depth (``pts_*`` (H, W, 3) world), a rigid fit (a turn about ``up`` only when given) by RANSAC over
+    pairs of pairs, refitted on its inliers (AVDC's way). None when too few pairs land on a depth."""
+    H, W = pixels_prev.shape
+    rows, cols = np.nonzero(pixels_prev)
+    u = np.rint(cols + flow[rows, cols, 0]).astype(np.int64)
+    v = np.rint(rows + flow[rows, cols, 1]).astype(np.int64)
+    ok = (u >= 0) & (u < W) & (v >= 0) & (v < H)
+    rows, cols, u, v = rows[ok], cols[ok], u[ok], v[ok]
+    ok = valid_now[v, u]
+    P, Q = pts_prev[rows[ok], cols[ok]].astype(np.float64), pts_now[v[ok], u[ok]].astype(np.float64)
+    if len(P) < MIN_OBJECT_PIXELS:
+        return None
+    rng = np.random.default_rng(0)
+    n_sample = 2 if up is not None else 3
+    best, best_in = None, None
+    for _ in range(FLOW_RANSAC_ITERATIONS):
+        pick = rng.choice(len(P), n_sample, replace=False)
+        T = _rigid_fit(P[pick], Q[pick], up)
+        inliers = np.linalg.norm(transform_points(T, P) - Q, axis=1) <= FLOW_INLIER_M
+        if best_in is None or inliers.sum() > best_in.sum():
+            best, best_in = T, inliers
+    if best_in.sum() < n_sample:
+        return None
+    return _rigid_fit(P[best_in], Q[best_in], up)
+
+
+def _rigid_fit(P: np.ndarray, Q: np.ndarray, up: np.ndarray | None) -> np.ndarray:
+    """(4, 4) the least-squares rigid motion taking points P onto Q (N, 3): a turn about ``up`` only
+    (Procrustes in the plane across it) when given, any rotation (Kabsch) when None."""
+    cp, cq = P.mean(0), Q.mean(0)
+    A, B = P - cp, Q - cq
+    if up is not None:
+        a = np.eye(3)[int(np.argmin(np.abs(up)))]
+        e1 = a - a.dot(up) * up
+        e1 /= np.linalg.norm(e1)
+        e2 = np.cross(up, e1)
+        x, y = A @ e1 + 1j * (A @ e2), B @ e1 + 1j * (B @ e2)
+        s = np.sum(np.conj(x) * y)
+        R = rotation_about(up, float(np.angle(s)) if abs(s) > 1e-12 else 0.0)
+    else:
+        U, _, Vt = np.linalg.svd(A.T @ B)
+        D = np.diag([1.0, 1.0, np.sign(np.linalg.det(Vt.T @ U.T))])
+        R = Vt.T @ D @ U.T
+    T = np.eye(4)
+    T[:3, :3] = R
+    T[:3, 3] = cq - R @ cp
+    return T
+
+
 def _arm_step(arm_prev: np.ndarray, arm_now: np.ndarray, centre: np.ndarray, up: np.ndarray,
               low_m: float) -> tuple[np.ndarray, bool] | None:
     """How the arm may have moved an unseen object at ``centre`` (world) from one frame to the next: the
     translation of the arm's points within ``HIDDEN_ARM_M`` of it (a trimmed point-to-point fit onto the
-    next frame's arm points, from no motion), counted only while the arm reaches down to it (an arm point
-    within ``HIDDEN_REACH_M`` across ``up`` of it lies lower than ``low_m``, its top and a margin, along
-    ``up``): a hand that approaches from above does not move it. Returns (translation, whether the arm
-    reaches down to it), or None when too few arm points are near."""
+    next frame's arm points, from no motion), counted only while the arm reaches down to it (its points
+    within ``HIDDEN_REACH_M`` across ``up`` of it that lie lower than ``low_m``, its top and a margin, along
+    ``up``) and those points trail it along the motion: a hand that approaches from above, or moves away
+    from it, does not move it. Returns (translation, whether it pushes the object), or None when too few
+    arm points are near."""
     from scipy.spatial import cKDTree  # scipy loads only when an object is hidden
 
     src = arm_prev[np.linalg.norm(arm_prev - centre, axis=1) <= HIDDEN_ARM_M]
@@ -895,7 +974,7 @@ def _arm_step(arm_prev: np.ndarray, arm_now: np.ndarray, centre: np.ndarray, up:
     rel = src - centre
     height = rel @ up
     across = np.linalg.norm(rel - height[:, None] * up, axis=1)
-    low = bool(np.any((across <= HIDDEN_REACH_M) & (height + float(centre @ up) <= low_m)))
+    reach = (across <= HIDDEN_REACH_M) & (height + float(centre @ up) <= low_m)
     tree = cKDTree(dst)
     shift = np.zeros(3)
     for _ in range(2 * ICP_ITERATIONS):
@@ -905,7 +984,11 @@ def _arm_step(arm_prev: np.ndarray, arm_now: np.ndarray, centre: np.ndarray, up:
         shift += step
         if np.linalg.norm(step) < 1e-5:
             break
-    return shift, low
+    # It pushes the object only from behind: the arm's low points trail it along the motion (an arm
+    # leaving an object, or passing ahead of it, does not take it along).
+    across_shift = shift - (shift @ up) * up
+    pushes = bool(reach.any()) and float((rel[reach].mean(0)) @ across_shift) < 0
+    return shift, pushes
 
 
 def _refine_hidden(model_tree, model: "_Model", T_hyp: np.ndarray, pts: np.ndarray, rgb: np.ndarray, free: np.ndarray,
