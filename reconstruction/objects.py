@@ -132,9 +132,6 @@ CAUSE_REACH_M = 0.05
 # An object seen again after frames unseen is found farther than this from where it was only when
 # something was at it meanwhile.
 REFIND_M = 0.02
-# Flow + RANSAC fits (TrackConfig.fit): RANSAC draws, and how near (metres) a carried point must land to agree.
-FLOW_RANSAC_ITERATIONS = 100
-FLOW_INLIER_M = 0.004
 # "It went with the arm while hidden": an object hidden behind the arm whose old place is later seen empty
 # moved with the arm. Its inferred pose follows the translation of the arm's points within HIDDEN_ARM_M of
 # it (the visible side of a hand over a 4 cm cube lies 5-14 cm from the cube's centre at 128²), never
@@ -399,56 +396,9 @@ def _object_model(rgb: np.ndarray, points_world: np.ndarray, normals_world: np.n
         return None
     pts, cols, nrm = pts[keep], ordered[keep], normals_world[sel][keep]
     centre = pts.mean(0)
-    if HIDDEN_FACES:
-        pts, nrm, cols = complete_box(pts, nrm, cols)
     radius = float(np.linalg.norm(pts - centre, axis=1).max())
     return _Model(points=(pts - centre).astype(np.float32), normals=nrm.astype(np.float32), colors=cols.astype(np.uint8),
                   palette=palette, radius_m=radius), centre
-
-
-HIDDEN_FACES = False
-BOX_FACE_COS = 0.95
-BOX_ORTHO_COS = 0.2
-BOX_SHARE = 0.8
-
-
-def complete_box(points: np.ndarray, normals: np.ndarray, colors: np.ndarray):
-    """A box's hidden faces mirrored from its seen ones: the seen points' normals fall into two or three
-    orthogonal directions (the faces); the box's centre along each is the middle of the points' span, and
-    each seen face whose opposite is not seen is mirrored through it. Returns (points, normals, colors)
-    with the mirrored ones appended; unchanged when the points are not a box's faces."""
-    n = np.asarray(normals, np.float64)
-    has = np.linalg.norm(n, axis=1) > 0.5
-    free = has.copy()
-    faces = []
-    for _ in range(3):
-        if free.sum() < MIN_OBJECT_PIXELS:
-            break
-        cand = n[free]
-        votes = (cand @ cand.T > BOX_FACE_COS).sum(1)
-        a = cand[int(np.argmax(votes))]
-        member = free & (n @ a > BOX_FACE_COS)
-        if member.sum() < MIN_OBJECT_PIXELS:
-            break
-        a = n[member].mean(0)
-        faces.append((a / np.linalg.norm(a), member))
-        free &= ~member
-    if len(faces) < 2 or sum(m.sum() for _, m in faces) < BOX_SHARE * len(points):
-        return points, normals, colors
-    if any(abs(faces[i][0] @ faces[j][0]) > BOX_ORTHO_COS for i in range(len(faces)) for j in range(i)):
-        return points, normals, colors
-    out_p, out_n, out_c = [points], [normals], [colors]
-    for a, member in faces:
-        if any(b @ a < -BOX_FACE_COS for b, _ in faces):
-            continue  # its opposite face is seen
-        proj = points @ a
-        mid = 0.5 * (proj.max() + proj.min())
-        p = points[member]
-        out_p.append(p - 2.0 * ((p @ a) - mid)[:, None] * a)
-        out_n.append(normals[member] - 2.0 * (normals[member] @ a)[:, None] * a)
-        out_c.append(colors[member])
-    return (np.concatenate(out_p).astype(points.dtype), np.concatenate(out_n).astype(normals.dtype),
-            np.concatenate(out_c).astype(colors.dtype))
 
 
 # ---------------------------------------------------------------------- tracking
@@ -462,15 +412,10 @@ class TrackConfig:
     search_m: float = SEARCH_M
     min_visible_share: float = MIN_VISIBLE_SHARE
     colour_tol: float = OBJECT_COLOUR_TOL
-    # "icp": fitted by ICP near its last pose; "flow": its last pixels carried by optical flow, lifted with
-    # depth, a rigid fit by RANSAC (AVDC's way); "flow+icp": that fit starts the ICP.
-    fit: str = "icp"
 
     def validate(self) -> None:
         if self.rotation not in ("yaw", "full"):
             raise UserError(f"TrackConfig.rotation is 'yaw' or 'full', got {self.rotation!r}")
-        if self.fit not in ("icp", "flow", "flow+icp"):
-            raise UserError(f"TrackConfig.fit is 'icp', 'flow' or 'flow+icp', got {self.fit!r}")
         if not self.search_m > 0:
             raise UserError(f"TrackConfig.search_m must be > 0 metres, got {self.search_m}")
 
@@ -710,24 +655,12 @@ def track_objects(rgb: np.ndarray, depth_m: np.ndarray, normal_cam: np.ndarray, 
     for t in range(1, T_frames):
         pts_t = world_points(t)
         taken = np.zeros((H, W), bool)
-        flow = None  # (H, W, 2) from frame t-1 to t, made for flow fits
         causes = None  # made when an object is not seen (what may be at it)
         for k, model in enumerate(models):
             T_prev = T_all[k][t - 1]
             guess = T_prev.copy()
             if t >= 2 and state[k, t - 1] == TRACKED and state[k, t - 2] == TRACKED:
                 guess[:3, 3] += T_prev[:3, 3] - T_all[k][t - 2][:3, 3]  # on at its last velocity
-            T_flow = None
-            if config.fit != "icp" and state[k, t - 1] == TRACKED:
-                if flow is None:
-                    from reconstruction.flow import dis_flow  # OpenCV loads only for flow fits
-
-                    flow = dis_flow(rgb[t - 1], rgb[t])
-                step = _flow_ransac(labels[t - 1] == k, flow, pts_prev, pts_t, valid[t], up)
-                if step is not None:
-                    T_flow = step @ T_prev
-                    if config.fit == "flow+icp":
-                        guess = T_flow
             # Where the model's surface would be seen from the camera at the guess.
             model_world = transform_points(guess, model.points)
             normals_world = model.normals @ guess[:3, :3].T
@@ -753,11 +686,8 @@ def track_objects(rgb: np.ndarray, depth_m: np.ndarray, normal_cam: np.ndarray, 
                 seen_share = max(seen_share, len(observed) / n_expected)
                 if len(observed) < MIN_OBJECT_PIXELS or len(observed) / n_expected < config.min_visible_share:
                     continue
-                if config.fit == "flow" and T_flow is not None:
-                    T_fit, (rms, kept) = T_flow, _residual(trees[k], observed, T_flow)
-                else:
-                    T_fit, rms, kept = _best_fit(trees[k], model, observed, guess, expected, T_prev, up,
-                                                 depth[t], K[t], T_world_cam[t], moving=was_moving[k] or state[k, t - 1] == HELD)
+                T_fit, rms, kept = _best_fit(trees[k], model, observed, guess, expected, T_prev, up,
+                                             depth[t], K[t], T_world_cam[t], moving=was_moving[k] or state[k, t - 1] == HELD)
                 if rms > MAX_FIT_RMS_M:
                     continue
                 # Seen again after frames unseen: somewhere else only if something was at it meanwhile;
@@ -974,59 +904,6 @@ def _covered_share(model: "_Model", T_world_object: np.ndarray, depth_m: np.ndar
         return 1.0
     d = depth_m[rows[look], cols[look]]
     return float(np.mean((d > 0) & (d < z[look] - DEPTH_TOL_M)))
-
-
-def _flow_ransac(pixels_prev: np.ndarray, flow: np.ndarray, pts_prev: np.ndarray, pts_now: np.ndarray,
-                 valid_now: np.ndarray, up: np.ndarray | None) -> np.ndarray | None:
-    """(4, 4) the rigid motion (world) of an object from frame t-1 to t from optical flow: its pixels at
-    t-1 (``pixels_prev`` (H, W) bool) carried by ``flow`` (H, W, 2) to frame t, both ends lifted with
-    depth (``pts_*`` (H, W, 3) world), a rigid fit (a turn about ``up`` only when given) by RANSAC over
-    pairs of pairs, refitted on its inliers (AVDC's way). None when too few pairs land on a depth."""
-    H, W = pixels_prev.shape
-    rows, cols = np.nonzero(pixels_prev)
-    u = np.rint(cols + flow[rows, cols, 0]).astype(np.int64)
-    v = np.rint(rows + flow[rows, cols, 1]).astype(np.int64)
-    ok = (u >= 0) & (u < W) & (v >= 0) & (v < H)
-    rows, cols, u, v = rows[ok], cols[ok], u[ok], v[ok]
-    ok = valid_now[v, u]
-    P, Q = pts_prev[rows[ok], cols[ok]].astype(np.float64), pts_now[v[ok], u[ok]].astype(np.float64)
-    if len(P) < MIN_OBJECT_PIXELS:
-        return None
-    rng = np.random.default_rng(0)
-    n_sample = 2 if up is not None else 3
-    best, best_in = None, None
-    for _ in range(FLOW_RANSAC_ITERATIONS):
-        pick = rng.choice(len(P), n_sample, replace=False)
-        T = _rigid_fit(P[pick], Q[pick], up)
-        inliers = np.linalg.norm(transform_points(T, P) - Q, axis=1) <= FLOW_INLIER_M
-        if best_in is None or inliers.sum() > best_in.sum():
-            best, best_in = T, inliers
-    if best_in.sum() < n_sample:
-        return None
-    return _rigid_fit(P[best_in], Q[best_in], up)
-
-
-def _rigid_fit(P: np.ndarray, Q: np.ndarray, up: np.ndarray | None) -> np.ndarray:
-    """(4, 4) the least-squares rigid motion taking points P onto Q (N, 3): a turn about ``up`` only
-    (Procrustes in the plane across it) when given, any rotation (Kabsch) when None."""
-    cp, cq = P.mean(0), Q.mean(0)
-    A, B = P - cp, Q - cq
-    if up is not None:
-        a = np.eye(3)[int(np.argmin(np.abs(up)))]
-        e1 = a - a.dot(up) * up
-        e1 /= np.linalg.norm(e1)
-        e2 = np.cross(up, e1)
-        x, y = A @ e1 + 1j * (A @ e2), B @ e1 + 1j * (B @ e2)
-        s = np.sum(np.conj(x) * y)
-        R = rotation_about(up, float(np.angle(s)) if abs(s) > 1e-12 else 0.0)
-    else:
-        U, _, Vt = np.linalg.svd(A.T @ B)
-        D = np.diag([1.0, 1.0, np.sign(np.linalg.det(Vt.T @ U.T))])
-        R = Vt.T @ D @ U.T
-    T = np.eye(4)
-    T[:3, :3] = R
-    T[:3, 3] = cq - R @ cp
-    return T
 
 
 def _arm_step(arm_prev: np.ndarray, arm_now: np.ndarray, centre: np.ndarray, up: np.ndarray,
