@@ -45,8 +45,8 @@ Chosen by measurement against the simulator's stored poses (``tesseract4d/evalua
 on the recorded frames of the held-out sets at 128² (``heldout_cubes``: PickCube, PushCube, PullCube,
 StackCube, 20 objects; ``heldout_tabletop``: 84 objects) 102 of 104 objects end within 5 mm of the truth
 (the misses: PickCube's cube lifted under the hand, 18 mm, and a push's last 5 mm step); "yaw" fits as
-well as "full" (mean largest error along the track 7.4 vs 7.6 mm on an earlier set). A first version (point-to-point pairs one way, one search
-sphere) ended 7 of the first 24 objects 7-12 cm off (objects moving faster than the sphere, fits sliding
+well as "full" (mean largest error along the track 7.4 vs 7.6 mm on an earlier set). A first version
+(point-to-point pairs one way, one search sphere) ended 7 of the first 24 objects 7-12 cm off (objects moving faster than the sphere, fits sliding
 along a face). Objects are tracked in the input depth (see ``reconstruct.py``). The rules that keep still objects
 still were chosen on the default model's predictions of the held-out sets (docs/research/object_layer.md),
 where flow + RANSAC fits (AVDC's) and a box's hidden faces mirrored from its seen ones were measured too.
