@@ -10,7 +10,8 @@ has it; the choice of the track's own origin (the centroid of the points it saw)
 Per object: ``final_error_m`` (last frame), ``mean_error_m`` (frames ``first_scored_frame`` on), ``yaw_error_deg``
 (last frame: the track's turn about the scene's up axis since frame 0 against the truth's),
 ``displacement_truth_m`` / ``displacement_m`` (last frame from the first), ``displacement_error_m``
-(the two displacement vectors apart: the final error, measured from the shared start), ``lost_frames``.
+(the two displacement vectors apart: the final error, measured from the shared start), ``lost_frames``,
+``inferred_frames`` (frames placed by the arm's motion while hidden, not seen).
 
 Summary: the instructed object (the episode intent's target, else the task's target object; none for
 "keep still" and gripper-only skills) ``ended_within_2cm`` of the truth; every other object the truth kept
@@ -25,7 +26,7 @@ import math
 
 import numpy as np
 
-from reconstruction.objects import ObjectLayer, episode_objects, matrix_from_wxyz, yaw_about
+from reconstruction.objects import INFERRED, LOST, ObjectLayer, episode_objects, matrix_from_wxyz, yaw_about
 from reconstruction.recon4d import Recon4D
 from tesseract4d.dataset_format import CameraFrames, Episode
 from tesseract4d.evaluation.instruction_following import TARGET_OBJECT
@@ -138,7 +139,8 @@ def object_track_metrics(layer: ObjectLayer, gt: Episode, camera: str | None = N
             "displacement_m": float(np.linalg.norm(pred[-1] - pred[0])),
             "displacement_error_m": float(np.linalg.norm((pred[-1] - pred[0]) - (true[-1] - true[0]))),
             "still_in_truth": still, "stayed_within_1cm": bool(err.max() <= STAYED_WITHIN_M),
-            "lost_frames": int((np.asarray(tr.state[:n]) == 3).sum()), "frames": int(n),
+            "lost_frames": int((np.asarray(tr.state[:n]) == LOST).sum()),
+            "inferred_frames": int((np.asarray(tr.state[:n]) == INFERRED).sum()), "frames": int(n),
         }
     missing = [n for n in names if n not in per_object]
     others = [n for n in names if n != instructed]
@@ -193,10 +195,11 @@ def format_rows(result: dict) -> str:
     """Plain-text lines of one episode's object metrics (the `evaluate` command prints them)."""
     s = result["summary"]
     lines = [f"objects: {s['objects']} recorded, {s['missing']} without a track; instructed: {result['instructed'] or '-'}",
-             f"{'object':<14}{'final mm':>10}{'mean mm':>10}{'yaw deg':>9}{'moved mm':>10}{'truth mm':>10}{'lost':>6}"]
+             f"{'object':<14}{'final mm':>10}{'mean mm':>10}{'yaw deg':>9}{'moved mm':>10}{'truth mm':>10}{'lost':>6}{'inferred':>9}"]
     for name, r in result["per_object"].items():
         lines.append(f"{name:<14}{1000 * r['final_error_m']:>10.1f}{1000 * r['mean_error_m']:>10.1f}{r['yaw_error_deg']:>9.1f}"
-                     f"{1000 * r['displacement_m']:>10.1f}{1000 * r['displacement_truth_m']:>10.1f}{r['lost_frames']:>6}")
+                     f"{1000 * r['displacement_m']:>10.1f}{1000 * r['displacement_truth_m']:>10.1f}{r['lost_frames']:>6}"
+                     f"{r.get('inferred_frames', 0):>9}")
     fmt = lambda v: "-" if v is None or (isinstance(v, float) and math.isnan(v)) else f"{v:.2f}"  # noqa: E731
     lines.append(f"instructed object within 2 cm: {fmt(s['instructed_within_2cm'])}; others kept still within 1 cm: "
                  f"{fmt(s['others_still_within_1cm'])} of {s['others_still']}; final error <= 5 mm: {fmt(s['within_5mm'])}")

@@ -188,3 +188,52 @@ def test_reconstruct_episode_returns_the_object_layer():
     moved = track.T_world_object[-1, :3, 3] - track.T_world_object[0, :3, 3]
     assert np.linalg.norm(moved - [0.05, 0.0, 0.0]) < 0.004 and recon.metadata["objects"]["names"] == ["cube_red"]
     assert "objects" in recon.metadata["timings_s"]
+
+
+def _hand_at(cube_pos: np.ndarray, shown: np.ndarray) -> Box:
+    """A grey hand box on the camera's side of the cube, reaching down to the table: it hides the cube."""
+    return Box("panda_hand", cube_pos + [0.035, -0.035, 0.03], np.zeros(T), (0.03, 0.03, 0.05), (200, 200, 205), shown)
+
+
+def test_an_object_pushed_while_hidden_behind_the_arm_goes_with_it():
+    # The hand comes down in front of the cube (frame 3) and pushes it 8 cm along -x while hiding it
+    # (frames 4-9); the cube's old place is then seen empty: it went with the hand, and the frames since
+    # it was hidden are filled with the hand's motion, flagged "inferred" with a low confidence.
+    cpos = moving((0.0, 0.0, HALF), (-0.08, 0.0, HALF), T, 4, 9)
+    red = Box("cube_red", cpos, np.zeros(T), (HALF, HALF, HALF), (220, 30, 30))
+    ep = box_episode([red, green_still(), _hand_at(cpos, np.arange(T) >= 3)], T)
+    layer = episode_objects(ep, "close")
+    track = layer.track("cube_red")
+    pose = ep.object_poses["cube_red"]
+    states = track.states()
+    assert states[:3] == ["tracked"] * 3 and states[-1] == "inferred" and "lost" not in states, states
+    err = np.linalg.norm(truth_point_track(track, pose) - pose[:, :3], axis=1)
+    assert err[-1] < 0.005 and err.max() < 0.01, err  # moved 8 cm
+    inferred = track.state == STATES.index("inferred")
+    assert (track.confidence[inferred] < 0.5).all() and (track.visibility[inferred] < 0.2).all()
+    assert layer.track("cube_green").states() == ["tracked"] * T
+
+
+def test_an_object_the_arm_covered_and_left_stays_where_it_was():
+    # The hand comes down in front of the still cube (frames 3-5), then rises and moves away (frames 6-9):
+    # the cube is seen again where it was, and nothing was inferred.
+    cpos = still((0.0, 0.0, HALF), T)
+    hand_pos = cpos + moving((0, 0, 0), (0.0, -0.10, 0.12), T, 5, 9)
+    red = Box("cube_red", cpos, np.zeros(T), (HALF, HALF, HALF), (220, 30, 30))
+    ep = box_episode([red, green_still(), _hand_at(hand_pos, np.arange(T) >= 3)], T)
+    track = episode_objects(ep, "close").track("cube_red")
+    assert "inferred" not in track.states() and track.states()[-1] == "tracked", track.states()
+    assert np.allclose(track.T_world_object, track.T_world_object[0], atol=1e-6)
+
+
+def test_an_object_lost_under_an_arm_that_did_not_reach_it_is_not_moved():
+    # The hand passes high above the cube's place while the video drops the cube (frames 3-9): the arm
+    # never reached down to it, so it is reported lost where it was, not dragged along.
+    cpos = still((0.0, 0.0, HALF), T)
+    hand_pos = cpos + [0.0, 0.0, 0.10] + moving((0, 0, 0), (-0.08, 0.0, 0.0), T, 4, 9)
+    red = Box("cube_red", cpos, np.zeros(T), (HALF, HALF, HALF), (220, 30, 30), np.arange(T) < 3)
+    hand = Box("panda_hand", hand_pos, np.zeros(T), (0.03, 0.03, 0.03), (200, 200, 205), np.arange(T) >= 3)
+    ep = box_episode([red, green_still(), hand], T)
+    track = episode_objects(ep, "close").track("cube_red")
+    assert "inferred" not in track.states() and track.states()[-1] == "lost", track.states()
+    assert np.allclose(track.T_world_object, track.T_world_object[0], atol=1e-6)
