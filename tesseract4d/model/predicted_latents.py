@@ -27,6 +27,7 @@ import torch
 from tesseract4d import dataset_format as df
 from tesseract4d.configs import folder_list
 from tesseract4d.errors import UserError
+from tesseract4d.model.predict import load_pipeline
 
 BATCH = 4  # scenes per pipeline call (predict.py's DEFAULT_SCENE_BATCH measured 4 within 7 % of the best)
 
@@ -34,9 +35,6 @@ BATCH = 4  # scenes per pipeline call (predict.py's DEFAULT_SCENE_BATCH measured
 def sample_predicted_latents(checkpoint: Path, folders: list[Path], noise_seeds: list[int],
                              camera: str | None = None, precision: str = "auto", log=print) -> dict:
     """The cache's dict (module docstring) for every episode of ``folders``."""
-    # Lazy: the pipeline loads diffusers and the text encoder.
-    from tesseract4d.model.predict import load_pipeline
-
     files = [f for folder in folders for f in df.list_episode_files(folder)]
     if not files:
         raise UserError(f"{', '.join(map(str, folders))} hold no episodes; write some with `tesseract4d datagen`")
