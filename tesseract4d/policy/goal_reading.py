@@ -121,15 +121,20 @@ def _layer_goal(layer, up: np.ndarray) -> Goal:
         if np.linalg.norm(gap - dz * up) <= ON_XY_M and ON_DZ_M[0] <= dz <= ON_DZ_M[1]:
             on = other.name
     held = on is None and bool(rise[-1] >= LIFT_M)
-    if on is not None:
-        skill = "stack"
-    elif held:
-        skill = "lift"
-    elif lifted:
-        skill = "pick_place"
-    else:
-        skill = "pull" if disp[0] < 0 and abs(disp[0]) >= abs(disp[1]) else "push"
+    skill = _skill(on, held, lifted, disp)
     return Goal(skill, name, disp, lifted=lifted, held_at_end=held, on=on, moved_m=moved[name])
+
+
+def _skill(on: str | None, held: bool, lifted: bool, displacement: np.ndarray) -> str:
+    """The skill that explains a moved object's end: onto another object, still up, set down elsewhere,
+    or slid along the table (toward the robot, -x, a pull; otherwise a push)."""
+    if on is not None:
+        return "stack"
+    if held:
+        return "lift"
+    if lifted:
+        return "pick_place"
+    return "pull" if displacement[0] < 0 and abs(displacement[0]) >= abs(displacement[1]) else "push"
 
 
 def _filled(points: np.ndarray) -> np.ndarray:
@@ -229,16 +234,8 @@ def arm_goal(layer, gripper) -> Goal | None:
             if flat <= best and dz >= ON_DZ_M[0]:
                 on, best = other.name, flat
     held = lifted and on is None and float((end - p[0]) @ up) >= LIFT_M
-    if on is not None:
-        skill = "stack"
-    elif held:
-        skill = "lift"
-    elif lifted:
-        skill = "pick_place"
-    else:
-        disp_xy = end - p[0]
-        skill = "pull" if disp_xy[0] < 0 and abs(disp_xy[0]) >= abs(disp_xy[1]) else "push"
     displacement = end - p[0]
+    skill = _skill(on, held, lifted, displacement)
     if skill in ("push", "pull", "pick_place"):
         displacement = displacement - (displacement @ up) * up
     return Goal(skill, name, displacement, lifted=lifted, held_at_end=held, on=on,
