@@ -243,9 +243,10 @@ def test_group_batches_share_noise_and_time_per_scene_and_are_recorded(tmp_path,
     seen = []
     original = trainer.denoising_loss
 
-    def record(x0, first, text, t, noise, objects=None, *, shown=None):
+    def record(x0, first, text, t, noise, objects=None, *, shown=None, history=None):
+        assert history is None  # a one-frame preset draws no history
         seen.append((x0, t, noise, shown))
-        return original(x0, first, text, t, noise, objects, shown=shown)
+        return original(x0, first, text, t, noise, objects, shown=shown, history=history)
 
     groups = []
     sample_group_batch = trainer.data.sample_group_batch
