@@ -420,7 +420,7 @@ class TrackConfig:
             raise UserError(f"TrackConfig.search_m must be > 0 metres, got {self.search_m}")
 
 
-def _static_depth(depth_m: np.ndarray, valid: np.ndarray, T_world_cam: np.ndarray) -> np.ndarray | None:
+def static_depth(depth_m: np.ndarray, valid: np.ndarray, T_world_cam: np.ndarray) -> np.ndarray | None:
     """(H, W) the farthest depth seen at each pixel over the clip (the background moving things pass in
     front of), or None when the camera moves."""
     if len(depth_m) < 2 or not np.allclose(T_world_cam, T_world_cam[:1], atol=1e-6):
@@ -606,7 +606,7 @@ def track_objects(rgb: np.ndarray, depth_m: np.ndarray, normal_cam: np.ndarray, 
     T_world_cam = np.asarray(T_world_cam, np.float64)
     up_axis = scene_up_axis(T_world_cam[0])
     up = up_axis if config.rotation == "yaw" else None
-    static = _static_depth(depth, valid, T_world_cam)
+    static = static_depth(depth, valid, T_world_cam)
 
     def world_points(t):
         return transform_points(T_world_cam[t], unproject_depth(depth[t], K[t]).reshape(-1, 3)).reshape(H, W, 3)
@@ -815,15 +815,21 @@ def track_objects(rgb: np.ndarray, depth_m: np.ndarray, normal_cam: np.ndarray, 
                        point_object=[labels[t][valid[t]] for t in range(T_frames)])
 
 
-def _arm_points(pts: np.ndarray, rgb: np.ndarray, depth: np.ndarray, valid: np.ndarray, static: np.ndarray,
-                palettes: np.ndarray, colour_tol: float) -> np.ndarray:
-    """(N, 3) world points of the arm in one frame: nearer than the clip's farthest depth there (moving
-    things) and of none of the objects' colours."""
+def arm_pixels(rgb: np.ndarray, depth_m: np.ndarray, valid: np.ndarray, static_depth_m: np.ndarray) -> np.ndarray:
+    """(H, W) bool: the pixels of one frame that may be the arm: nearer than the clip's farthest depth there
+    (:func:`static_depth`: moving things) and grey, white or black (the blurred outline of a coloured
+    object or the table is not)."""
     c = np.asarray(rgb, np.float32)
     hi, lo = c.max(-1), c.min(-1)
-    # The arm is grey, white or black; the blurred outline of a coloured object or the table is not.
     grey = (hi - lo) <= ARM_MAX_SATURATION * np.maximum(hi, 1.0)
-    moving = valid & (depth < static - DEPTH_TOL_M) & grey
+    return valid & (depth_m < static_depth_m - DEPTH_TOL_M) & grey
+
+
+def _arm_points(pts: np.ndarray, rgb: np.ndarray, depth: np.ndarray, valid: np.ndarray, static: np.ndarray,
+                palettes: np.ndarray, colour_tol: float) -> np.ndarray:
+    """(N, 3) world points of the arm in one frame: its pixels (:func:`arm_pixels`) of none of the
+    objects' colours."""
+    moving = arm_pixels(rgb, depth, valid, static)
     p = pts[moving]
     if len(p) and len(palettes):
         p = p[min_colour_distance(rgb[moving], palettes) >= colour_tol]

@@ -7,12 +7,11 @@ scene. Robot4DGen executes the gripper it tracks in generated RGB-D; here the tr
 where a lost object went (:mod:`tesseract4d.policy.goal_reading`).
 
 The arm in a frame is what the object layer leaves over (:class:`reconstruction.objects.ObjectLayer`'s
-``point_object``, -1 = no object) that moves (nearer than the clip's farthest depth at that pixel by
-``DEPTH_TOL_M``: the camera must stay still) and is grey, white or black (a blurred object's colours are
+``point_object``, -1 = no object) among the pixels that may be the arm (``reconstruction.objects.arm_pixels``:
+moving, so the camera must stay still, and grey, white or black, where a blurred object's colours are
 not), and lies more than ``ABOVE_TABLE_M`` above the table top (a predicted clip redraws a white target
 disc on the table a little nearer now and then). Isolated points (fewer than ``MIN_NEIGHBOURS`` within
-``NEIGHBOUR_M``) are noise. The gripper's
-point is the hand: the arm's points within ``HAND_BAND_M`` above its lowest (``LOW_QUANTILE``) height along
+``NEIGHBOUR_M``) are noise. The gripper's point is the hand: the arm's points within ``HAND_BAND_M`` above its lowest (``LOW_QUANTILE``) height along
 the scene's up axis; in the table plane their median, along up their ``HEIGHT_QUANTILE``. Its offset from
 the TCP differs with the view (the fingers hide behind the hand or the object they push), so the goal
 reading uses only its displacements.
@@ -30,7 +29,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from reconstruction.objects import ARM_MAX_SATURATION, DEPTH_TOL_M
+from reconstruction.objects import arm_pixels, static_depth
 from tesseract4d.geometry import scene_up_axis, transform_points, unproject_depth
 from tesseract4d.policy.perception import TABLE_Z_M
 
@@ -54,16 +53,6 @@ class GripperTrack:
     def seen(self) -> np.ndarray:
         """(T,) bool: frames where the gripper is seen."""
         return np.isfinite(self.gripper_world_m).all(axis=1)
-
-
-def arm_mask(rgb: np.ndarray, depth_m: np.ndarray, static_depth_m: np.ndarray, object_label: np.ndarray) -> np.ndarray:
-    """(H, W) bool: the arm's pixels in one frame. rgb (H, W, 3) uint8; depth_m (H, W); static_depth_m (H, W)
-    the clip's farthest depth per pixel; object_label (H, W) int, the object layer's label (-1 = none)."""
-    c = np.asarray(rgb, np.float32)
-    hi, lo = c.max(-1), c.min(-1)
-    grey = (hi - lo) <= ARM_MAX_SATURATION * np.maximum(hi, 1.0)
-    valid = np.isfinite(depth_m) & (depth_m > 0)
-    return valid & (depth_m < static_depth_m - DEPTH_TOL_M) & grey & (object_label < 0)
 
 
 def gripper_point(points_world: np.ndarray, up: np.ndarray) -> np.ndarray | None:
@@ -95,17 +84,17 @@ def track_gripper(rgb: np.ndarray, depth_m: np.ndarray, K: np.ndarray, T_world_c
     the layer has no labels."""
     depth = np.asarray(depth_m, np.float32)
     T_world_cam = np.asarray(T_world_cam, np.float64)
-    if len(depth) < 2 or not np.allclose(T_world_cam, T_world_cam[:1], atol=1e-6) or len(layer.point_object) != len(depth):
-        return None
     valid = np.isfinite(depth) & (depth > 0)
-    static = np.where(valid, depth, 0.0).max(axis=0)  # (H, W)
+    static = static_depth(depth, valid, T_world_cam)  # (H, W); None when the camera moves
+    if static is None or len(layer.point_object) != len(depth):
+        return None
     up = scene_up_axis(T_world_cam[0])
     points = np.full((len(depth), 3), np.nan)
     counts = np.zeros(len(depth), int)
     for t in range(len(depth)):
         label = np.full(depth.shape[1:], -1, np.int32)
         label[valid[t]] = layer.point_object[t]
-        arm = arm_mask(rgb[t], depth[t], static, label)
+        arm = arm_pixels(rgb[t], depth[t], valid[t], static) & (label < 0)  # moving, grey, of no object
         counts[t] = int(arm.sum())
         pts = transform_points(T_world_cam[t], unproject_depth(depth[t], K[t])[arm])
         point = gripper_point(pts, up)
