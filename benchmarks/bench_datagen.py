@@ -38,7 +38,6 @@ class BenchWorker:
         self.sim = EpisodeSimulator(env_id, SimConfig(height=resolution, width=resolution, cameras=[camera], frames=0))
         seed = 0
         while True:
-            t0 = time.perf_counter()
             res = self.sim.run(seed)
             if res.success:
                 break
