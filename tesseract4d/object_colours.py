@@ -36,10 +36,22 @@ def dilate(mask: np.ndarray, px: int) -> np.ndarray:
 
 def min_colour_distance(colours: np.ndarray, palette: np.ndarray) -> np.ndarray:
     """For each of ``colours`` (N, 3), the RGB distance to the nearest of ``palette`` (M, 3)."""
-    colours, palette = np.asarray(colours, np.float32), np.asarray(palette, np.float32)
+    colours, palette = np.asarray(colours, np.float64), np.asarray(palette, np.float64)
     if len(palette) == 0:
         return np.full(len(colours), np.inf, np.float32)
-    return np.linalg.norm(colours[:, None, :] - palette[None, :, :], axis=-1).min(axis=1)
+    # |c - p|^2 = |c|^2 - 2 c.p + |p|^2 as one matrix product: exact for 0-255 integer colours (float64
+    # holds every term), and five to ten times faster than the (N, M, 3) differences on the object layer's sizes
+    out = np.empty(len(colours), np.float64)
+    p_sq = (palette**2).sum(axis=1)
+    step = max(1, _PAIRS_PER_CHUNK // len(palette))
+    for i in range(0, len(colours), step):
+        c = colours[i:i + step]
+        d_sq = (c**2).sum(axis=1)[:, None] - 2.0 * (c @ palette.T) + p_sq[None, :]
+        out[i:i + step] = d_sq.min(axis=1)
+    return np.sqrt(np.maximum(out, 0.0)).astype(np.float32)
+
+
+_PAIRS_PER_CHUNK = 1 << 21  # colour-palette pairs per matrix product (16 MiB of float64)
 
 
 def distinctive(rgb: np.ndarray, mask: np.ndarray, around_px: int) -> np.ndarray:
