@@ -76,10 +76,10 @@ class ModelSpace:
         unit = (x[:, s["depth"]][:, 0] + 1.0) / 2.0  # (t, h, w) in [0, 1]
         depth_m = self.near_m + unit * (self.far_m - self.near_m)
         depth_m = torch.where(unit >= 1.0 - FAR_BAND, torch.zeros_like(depth_m), depth_m).numpy().astype(np.float32)
-        n = x[:, s["normal"]].permute(0, 2, 3, 1)  # (t, h, w, 3)
-        length = n.norm(dim=-1, keepdim=True)
+        n = x[:, s["normal"]]  # (t, 3, h, w)
+        length = n.square().sum(dim=1, keepdim=True).sqrt()  # over channels before the permute (renormalize_normals)
         normal = torch.where(length >= MIN_NORMAL_LENGTH, n / length.clamp_min(1e-6), torch.zeros_like(n))
-        return rgb, depth_m, normal.numpy().astype(np.float32)
+        return rgb, depth_m, normal.permute(0, 2, 3, 1).numpy().astype(np.float32)
 
 
 
