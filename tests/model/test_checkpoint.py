@@ -113,7 +113,8 @@ def test_a_checkpoint_can_share_the_autoencoder_of_the_one_beside_it(tmp_path):
     entry = ck.read_inference_config(shared)["autoencoder"]
     assert entry["dir"] == "../v2/autoencoder" and not (shared / AUTOENCODER_DIR).exists()
     assert checkpoint_autoencoder(SHIPPED_CHECKPOINT, entry).resolve() == (V2_CHECKPOINT / AUTOENCODER_DIR).resolve()
-    own = write_sampler_copy(shared, tmp_path / "own", {"num_steps": 2})  # self-contained
+    steps = ck.read_inference_config(shared)["preset"]["num_steps"]
+    own = write_sampler_copy(shared, tmp_path / "own", {"num_steps": steps})  # the same sampler, self-contained
     assert (own / AUTOENCODER_DIR / "model.safetensors").is_file()
     first = torch.rand(1, 7, 128, 128, generator=torch.Generator().manual_seed(0)) * 2 - 1
 
