@@ -266,10 +266,10 @@ def hand_move(layer, gripper: GripperTrack) -> HandMove | None:
     return HandMove(name, kind, k, r, disp, path, on)
 
 
-def misses(positions_world: np.ndarray, seen_at_end: bool, displacement_m: np.ndarray) -> bool:
+def misses(positions_world: np.ndarray, seen_at_end: bool, displacement_m: np.ndarray, share: float = LAG_SHARE) -> bool:
     """Whether an object's track (positions (T, 3), world metres; ``seen_at_end``: fitted to the last frame)
     misses a move of the hand's (its displacement (3,), world metres): not seen at the end, or moved the
-    hand's way at least ``MOVED_M`` but less than ``LAG_SHARE`` of the hand's displacement. A track that still sees the object where it was, the hand
+    hand's way at least ``MOVED_M`` but less than ``share`` of the hand's displacement. A track that still sees the object where it was, the hand
     gone, does not miss it: the hand left it alone."""
     if not seen_at_end:
         return True
@@ -278,4 +278,4 @@ def misses(positions_world: np.ndarray, seen_at_end: bool, displacement_m: np.nd
     disp = np.asarray(displacement_m, np.float64)
     norm = float(np.linalg.norm(disp))
     along = float(own @ disp) / max(norm, 1e-9)
-    return MOVED_M <= along < LAG_SHARE * norm
+    return MOVED_M <= along < share * norm

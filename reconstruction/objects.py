@@ -39,7 +39,16 @@ How it is made (:func:`track_objects`):
    its colours) after the arm covered it, and that motion took it at least ``HIDDEN_MOVE_M`` away to a
    place the arm hides, the frames since it was hidden are filled with that motion, state ``inferred``,
    confidence ``INFERRED_CONFIDENCE``; the few pixels of it seen under the hand, if any, pin it (a
-   translation fit). A PullCube cube pulled behind the hand, 15-18 cm, ends 1-2 mm from the truth.
+   translation fit). A PullCube cube pulled behind the hand, 15-18 cm, ends 1-2 mm from the truth;
+5. "it went with the hand": the hand's track through the clip (:mod:`reconstruction.hand_track`: the arm is
+   what no object claims) says which object the hand reaches and whether it slides it along the table or
+   carries it and sets it down (the closed loop's goal reading decides the same way); where the layer's
+   track misses that move (not placed at the end, or moved the hand's way less than ``HAND_LAG_SHARE`` of it:
+   the object smeared or vanished under the hand), the object follows the hand's displacement from the
+   end of the hand's descent at it, state ``inferred``, confidence ``INFERRED_CONFIDENCE``;
+6. rigid bodies move only when touched: an object that neither the hand nor the object it moves ever
+   comes within reach of keeps its first pose (a prediction that redraws it elsewhere is a redraw, not a
+   move). Steps 5 and 6: :func:`follow_hand`.
 
 Chosen by measurement against the simulator's stored poses (``tesseract4d/evaluation/object_tracks.py``):
 on the recorded frames of the held-out sets at 128² (``heldout_cubes``: PickCube, PushCube, PullCube,
@@ -59,8 +68,8 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from reconstruction.hand_track import (LIFT_M, MOVING_DEPTH_M, GripperTrack, HandMove, arm_pixels, contact_frame, hand_move, misses,
-                                       static_depth, track_gripper)
+from reconstruction.hand_track import (LIFT_M, MOVING_DEPTH_M, GripperTrack, HandMove, arm_pixels, contact_frame,
+                                       hand_move, misses, static_depth, track_gripper)
 from tesseract4d.errors import UserError
 from tesseract4d.geometry import invert_pose, scene_up_axis, transform_points, unproject_depth
 from tesseract4d.object_colours import MIN_OBJECT_PIXELS, OBJECT_COLOUR_TOL, distinctive, min_colour_distance
@@ -75,8 +84,9 @@ STATE_MEANING = {
     "occluded": "not seen: something stands in front of where it was; the pose is kept",
     "held": "not seen, moving with the arm that holds it",
     "lost": "not seen and nothing covers where it should be: the video lost it; the pose is kept",
-    "inferred": "not seen: it was hidden by the arm and its old place is now seen empty, so it is placed where the "
-                "arm's motion since then took it (inferred, low confidence)",
+    "inferred": "not seen where it is: hidden by the arm with its old place seen empty, or lost, smeared or left "
+                "behind where the hand reached it and slid or carried it on; placed where the arm's or the hand's "
+                "motion since then took it (inferred, low confidence)",
 }
 TRAJECTORIES_FORMAT = "tesseract4d-trajectories"
 TRAJECTORIES_VERSION = 1
@@ -147,6 +157,10 @@ HIDDEN_MOVE_M = 0.02
 HIDDEN_REACH_M = 0.06
 HIDDEN_LOW_M = 0.005
 INFERRED_CONFIDENCE = 0.3
+# The object the hand moves follows the hand when the layer's own track went less than this share of the hand's way:
+# below the goal reading's LAG_SHARE, for the hand's point travels a little before it meets the object (a true
+# tabletop push, tracked all the way: 92 of the hand's 118 mm).
+HAND_LAG_SHARE = 0.7
 MIN_CAUSE_POINTS = 5
 # Confidence of a fit: visibility times exp(-rms / CONFIDENCE_RMS_M); an occluded/held object's decays by this per frame.
 CONFIDENCE_RMS_M = 0.004
@@ -820,13 +834,16 @@ def follow_hand(layer: ObjectLayer, rgb: np.ndarray, depth_m: np.ndarray, K: np.
     (:func:`reconstruction.hand_track.track_gripper`) and what it does to the objects. Returns the track
     (None when the camera moves or the layer has no labels: then nothing changes).
 
-    5. ``config.follow_hand``: the object the hand moves (:func:`reconstruction.hand_track.hand_move`: the
-       instructed one when ``layer.instructed`` names it, else the one it reaches first), when its track
-       misses that move (:func:`reconstruction.hand_track.misses`: not tracked at the end, or moved the
-       hand's way less than ``LAG_SHARE`` of it), follows the hand's displacement from the end of the hand's
+    5. ``config.follow_hand``, when ``layer.instructed`` names the object the instruction is about: that
+       object, when the hand moves it (:func:`reconstruction.hand_track.hand_move`) and its track
+       misses that move (:func:`reconstruction.hand_track.misses`: not placed at the end by a fit, the arm's
+       points that hold it or the arm's motion while hidden, or moved the hand's way less than
+       ``HAND_LAG_SHARE`` of it), follows the hand's displacement from the end of the hand's
        descent at it (``contact_frame``) on: along the table for a slide, carried for a grasp and set down
        where the hand lets go (on the table, or on the object under it), never below its starting height;
        state ``inferred``, confidence ``INFERRED_CONFIDENCE``.
+       (Not knowing which object the words are about, the layer moves none: the closed loop's goal reading
+       names it afterwards and reads the hand itself.)
     6. ``config.keep_unreached``: an object that neither the hand nor the object it moves ever comes within
        reach of (:func:`reconstruction.hand_track.contact_frame`) keeps its first pose in every frame (rigid
        bodies move only when touched: a prediction that redraws it elsewhere is a redraw, not a move); frames
@@ -838,11 +855,12 @@ def follow_hand(layer: ObjectLayer, rgb: np.ndarray, depth_m: np.ndarray, K: np.
         return gripper
     up = np.asarray(gripper.up, np.float64)
     move = hand_move(layer, gripper)
-    if config.follow_hand and move is not None:
+    if config.follow_hand and move is not None and layer.instructed is not None:
         tr = layer.track(move.target)
         # the layer's own placement at the end (fitted, held in the arm's points, or inferred while hidden)
         # counts as showing it, if it went the hand's way
-        if misses(tr.positions_world(), int(tr.state[-1]) in (TRACKED, HELD, INFERRED), move.displacement_m):
+        if misses(tr.positions_world(), int(tr.state[-1]) in (TRACKED, HELD, INFERRED), move.displacement_m,
+                  HAND_LAG_SHARE):
             _carry(tr, move, up)
     if config.keep_unreached:
         g = np.where(gripper.seen()[:, None], gripper.gripper_world_m, 0.0)
@@ -1070,14 +1088,15 @@ def truth_layer(first: ObjectLayer, object_poses: dict[str, np.ndarray]) -> Obje
 
 def instructed_object(names: list[str], colour_names: list[str], intent: dict | None, instruction: str | None) -> str | None:
     """The object the instruction is about: the episode's intent target when it names one of ``names``;
-    else the one object whose colour word the instruction says; else the scene's only object; else None."""
+    else the one object whose colour word the instruction says first ("place the red box onto the green
+    box": the red one); else the scene's only object; else None."""
     target = (intent or {}).get("target")
     if target in names:
         return target
-    words = set(str(instruction or "").lower().replace(",", " ").split())
-    hits = [n for n, c in zip(names, colour_names) if c in words]
-    if len(hits) == 1:
-        return hits[0]
+    for word in str(instruction or "").lower().replace(",", " ").split():
+        hits = [n for n, c in zip(names, colour_names) if c == word]
+        if len(hits) == 1:
+            return hits[0]
     return names[0] if len(names) == 1 else None
 
 
