@@ -39,7 +39,16 @@ How it is made (:func:`track_objects`):
    its colours) after the arm covered it, and that motion took it at least ``HIDDEN_MOVE_M`` away to a
    place the arm hides, the frames since it was hidden are filled with that motion, state ``inferred``,
    confidence ``INFERRED_CONFIDENCE``; the few pixels of it seen under the hand, if any, pin it (a
-   translation fit). A PullCube cube pulled behind the hand, 15-18 cm, ends 1-2 mm from the truth.
+   translation fit). A PullCube cube pulled behind the hand, 15-18 cm, ends 1-2 mm from the truth;
+5. "it went with the hand": the hand's track through the clip (:mod:`reconstruction.hand_track`: the arm is
+   what no object claims) says which object the hand reaches and whether it slides it along the table or
+   carries it and sets it down (the closed loop's goal reading decides the same way); where the layer's
+   track misses that move (not placed at the end, or moved the hand's way less than ``HAND_LAG_SHARE`` of it:
+   the object smeared or vanished under the hand), the object follows the hand's displacement from the
+   end of the hand's descent at it, state ``inferred``, confidence ``INFERRED_CONFIDENCE``;
+6. rigid bodies move only when touched: an object that neither the hand nor the object it moves ever
+   comes within reach of keeps its first pose (a prediction that redraws it elsewhere is a redraw, not a
+   move). Steps 5 and 6: :func:`follow_hand`.
 
 Chosen by measurement against the simulator's stored poses (``tesseract4d/evaluation/object_tracks.py``):
 on the recorded frames of the held-out sets at 128² (``heldout_cubes``: PickCube, PushCube, PullCube,
@@ -55,10 +64,12 @@ where flow + RANSAC fits (AVDC's) and a box's hidden faces mirrored from its see
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from reconstruction.hand_track import (LIFT_M, MOVING_DEPTH_M, GripperTrack, HandMove, arm_pixels, contact_frame,
+                                       hand_move, misses, static_depth, track_gripper)
 from tesseract4d.errors import UserError
 from tesseract4d.geometry import invert_pose, scene_up_axis, transform_points, unproject_depth
 from tesseract4d.object_colours import MIN_OBJECT_PIXELS, OBJECT_COLOUR_TOL, distinctive, min_colour_distance
@@ -73,8 +84,9 @@ STATE_MEANING = {
     "occluded": "not seen: something stands in front of where it was; the pose is kept",
     "held": "not seen, moving with the arm that holds it",
     "lost": "not seen and nothing covers where it should be: the video lost it; the pose is kept",
-    "inferred": "not seen: it was hidden by the arm and its old place is now seen empty, so it is placed where the "
-                "arm's motion since then took it (inferred, low confidence)",
+    "inferred": "not seen where it is: hidden by the arm with its old place seen empty, or lost, smeared or left "
+                "behind where the hand reached it and slid or carried it on; placed where the arm's or the hand's "
+                "motion since then took it (inferred, low confidence)",
 }
 TRAJECTORIES_FORMAT = "tesseract4d-trajectories"
 TRAJECTORIES_VERSION = 1
@@ -107,8 +119,9 @@ SEARCH_M = 0.05
 WIDE_SEARCH = 3.0
 # ... and this many times as far once it is lost.
 LOST_SEARCH = 5.0
-# Depth difference beyond which a surface is in front of / behind another (metres).
-DEPTH_TOL_M = 0.01
+# Depth difference beyond which a surface is in front of / behind another (metres): the hand track's
+# "moving" tolerance, one number.
+DEPTH_TOL_M = MOVING_DEPTH_M
 # An unseen object counts as covered when at least this share of its expected surface has something in front.
 COVERED_SHARE = 0.5
 # Evidence of being held: moving at least this much per frame when last seen, or lifted this far above its start.
@@ -144,8 +157,10 @@ HIDDEN_MOVE_M = 0.02
 HIDDEN_REACH_M = 0.06
 HIDDEN_LOW_M = 0.005
 INFERRED_CONFIDENCE = 0.3
-# The arm's pixels are unsaturated (grey, white, black): HSV saturation at most this.
-ARM_MAX_SATURATION = 0.3
+# The object the hand moves follows the hand when the layer's own track went less than this share of the hand's way:
+# below the goal reading's LAG_SHARE, for the hand's point travels a little before it meets the object (a true
+# tabletop push, tracked all the way: 92 of the hand's 118 mm).
+HAND_LAG_SHARE = 0.7
 MIN_CAUSE_POINTS = 5
 # Confidence of a fit: visibility times exp(-rms / CONFIDENCE_RMS_M); an occluded/held object's decays by this per frame.
 CONFIDENCE_RMS_M = 0.004
@@ -412,20 +427,14 @@ class TrackConfig:
     search_m: float = SEARCH_M
     min_visible_share: float = MIN_VISIBLE_SHARE
     colour_tol: float = OBJECT_COLOUR_TOL
+    follow_hand: bool = True  # an object the layer loses where the hand moves it follows the hand's track
+    keep_unreached: bool = True  # an object the hand (and what it moves) never reaches keeps its first pose
 
     def validate(self) -> None:
         if self.rotation not in ("yaw", "full"):
             raise UserError(f"TrackConfig.rotation is 'yaw' or 'full', got {self.rotation!r}")
         if not self.search_m > 0:
             raise UserError(f"TrackConfig.search_m must be > 0 metres, got {self.search_m}")
-
-
-def static_depth(depth_m: np.ndarray, valid: np.ndarray, T_world_cam: np.ndarray) -> np.ndarray | None:
-    """(H, W) the farthest depth seen at each pixel over the clip (the background moving things pass in
-    front of), or None when the camera moves."""
-    if len(depth_m) < 2 or not np.allclose(T_world_cam, T_world_cam[:1], atol=1e-6):
-        return None
-    return np.where(valid, depth_m, 0.0).max(axis=0)
 
 
 def _project(points_world: np.ndarray, K: np.ndarray, T_world_cam: np.ndarray, H: int, W: int):
@@ -811,18 +820,92 @@ def track_objects(rgb: np.ndarray, depth_m: np.ndarray, normal_cam: np.ndarray, 
             normals_object=model.normals, T_world_object=T_all[k], visibility=visibility[k],
             confidence=confidence[k], state=state[k],
         ))
-    return ObjectLayer(tracks=tracks, source=source, instructed=instructed,
-                       point_object=[labels[t][valid[t]] for t in range(T_frames)])
+    layer = ObjectLayer(tracks=tracks, source=source, instructed=instructed,
+                        point_object=[labels[t][valid[t]] for t in range(T_frames)])
+    if config.follow_hand or config.keep_unreached:
+        follow_hand(layer, rgb, depth, K, T_world_cam, config)
+    return layer
 
 
-def arm_pixels(rgb: np.ndarray, depth_m: np.ndarray, valid: np.ndarray, static_depth_m: np.ndarray) -> np.ndarray:
-    """(H, W) bool: the pixels of one frame that may be the arm: nearer than the clip's farthest depth there
-    (:func:`static_depth`: moving things) and grey, white or black (the blurred outline of a coloured
-    object or the table is not)."""
-    c = np.asarray(rgb, np.float32)
-    hi, lo = c.max(-1), c.min(-1)
-    grey = (hi - lo) <= ARM_MAX_SATURATION * np.maximum(hi, 1.0)
-    return valid & (depth_m < static_depth_m - DEPTH_TOL_M) & grey
+def follow_hand(layer: ObjectLayer, rgb: np.ndarray, depth_m: np.ndarray, K: np.ndarray, T_world_cam: np.ndarray,
+                config: TrackConfig = TrackConfig()) -> GripperTrack | None:
+    """Steps 5 and 6 of the tracker, in place on ``layer`` (its ``point_object`` labels of the clip rgb
+    (T, H, W, 3), depth_m (T, H, W), K (T, 3, 3), T_world_cam (T, 4, 4)): the hand's track
+    (:func:`reconstruction.hand_track.track_gripper`) and what it does to the objects. Returns the track
+    (None when the camera moves or the layer has no labels: then nothing changes).
+
+    5. ``config.follow_hand``, when ``layer.instructed`` names the object the instruction is about: that
+       object, when the hand moves it (:func:`reconstruction.hand_track.hand_move`) and its track
+       misses that move (:func:`reconstruction.hand_track.misses`: not placed at the end by a fit, the arm's
+       points that hold it or the arm's motion while hidden, or moved the hand's way less than
+       ``HAND_LAG_SHARE`` of it), follows the hand's displacement from the end of the hand's
+       descent at it (``contact_frame``) on: along the table for a slide, carried for a grasp and set down
+       where the hand lets go (on the table, or on the object under it), never below its starting height;
+       state ``inferred``, confidence ``INFERRED_CONFIDENCE``.
+       (Not knowing which object the words are about, the layer moves none: the closed loop's goal reading
+       names it afterwards and reads the hand itself.)
+    6. ``config.keep_unreached``: an object that neither the hand nor the object it moves ever comes within
+       reach of (:func:`reconstruction.hand_track.contact_frame`) keeps its first pose in every frame (rigid
+       bodies move only when touched: a prediction that redraws it elsewhere is a redraw, not a move); frames
+       where the tracker had fitted it farther than ``REFIND_M`` away count as ``lost`` (the video lost it
+       where it is).
+    """
+    gripper = track_gripper(rgb, depth_m, K, T_world_cam, layer)
+    if gripper is None or gripper.seen().sum() < 2:
+        return gripper
+    up = np.asarray(gripper.up, np.float64)
+    move = hand_move(layer, gripper)
+    if config.follow_hand and move is not None and layer.instructed is not None:
+        tr = layer.track(move.target)
+        # the layer's own placement at the end (fitted, held in the arm's points, or inferred while hidden)
+        # counts as showing it, if it went the hand's way
+        if misses(tr.positions_world(), int(tr.state[-1]) in (TRACKED, HELD, INFERRED), move.displacement_m,
+                  HAND_LAG_SHARE):
+            _carry(tr, move, up)
+    if config.keep_unreached:
+        g = np.where(gripper.seen()[:, None], gripper.gripper_world_m, 0.0)
+        moved = None if move is None else layer.track(move.target).positions_world()
+        for tr in layer.tracks:
+            if move is not None and tr.name == move.target:
+                continue
+            p0 = tr.positions_world()[0]
+            if contact_frame(p0, g, gripper.seen(), up) is not None:
+                continue
+            if moved is not None and contact_frame(p0, moved, np.ones(len(moved), bool), up) is not None:
+                continue
+            _keep(tr)
+    return gripper
+
+
+def _carry(tr: ObjectTrack, move: HandMove, up: np.ndarray) -> None:
+    """``tr`` follows ``move``'s path from its contact frame on (see :func:`follow_hand`), in place."""
+    k = move.contact_frame
+    base = tr.T_world_object[k].copy()
+    start_height = float(tr.T_world_object[0, :3, 3] @ up)
+    path = np.asarray(move.path_m, np.float64).copy()  # (T, 3)
+    if move.kind == "grasp" and move.on is None and float(path[-1] @ up) < LIFT_M:
+        # set down on the table where the hand lets go (the hand's point stops a little above or below)
+        path[move.release_frame:] -= np.outer(path[move.release_frame:] @ up, up)
+    T_all, state, confidence = tr.T_world_object.copy(), tr.state.copy(), tr.confidence.copy()
+    for t in range(k + 1, tr.num_frames):
+        T_all[t] = base
+        T_all[t, :3, 3] = base[:3, 3] + path[t]
+        sink = start_height - float(T_all[t, :3, 3] @ up)
+        if sink > 0:  # it rests on what it stood on, or higher
+            T_all[t, :3, 3] += sink * up
+        state[t] = INFERRED
+        confidence[t] = INFERRED_CONFIDENCE
+    tr.T_world_object, tr.state, tr.confidence = T_all, state, confidence
+
+
+def _keep(tr: ObjectTrack) -> None:
+    """``tr`` keeps its first pose in every frame (see :func:`follow_hand`), in place."""
+    away = np.linalg.norm(tr.T_world_object[:, :3, 3] - tr.T_world_object[0, :3, 3], axis=1) > REFIND_M
+    state, confidence = tr.state.copy(), tr.confidence.copy()
+    state[away] = LOST
+    confidence[away] = 0.0
+    tr.T_world_object = np.repeat(tr.T_world_object[:1], tr.num_frames, 0)
+    tr.state, tr.confidence = state, confidence
 
 
 def _arm_points(pts: np.ndarray, rgb: np.ndarray, depth: np.ndarray, valid: np.ndarray, static: np.ndarray,
@@ -1005,14 +1088,15 @@ def truth_layer(first: ObjectLayer, object_poses: dict[str, np.ndarray]) -> Obje
 
 def instructed_object(names: list[str], colour_names: list[str], intent: dict | None, instruction: str | None) -> str | None:
     """The object the instruction is about: the episode's intent target when it names one of ``names``;
-    else the one object whose colour word the instruction says; else the scene's only object; else None."""
+    else the one object whose colour word the instruction says first ("place the red box onto the green
+    box": the red one); else the scene's only object; else None."""
     target = (intent or {}).get("target")
     if target in names:
         return target
-    words = set(str(instruction or "").lower().replace(",", " ").split())
-    hits = [n for n, c in zip(names, colour_names) if c in words]
-    if len(hits) == 1:
-        return hits[0]
+    for word in str(instruction or "").lower().replace(",", " ").split():
+        hits = [n for n, c in zip(names, colour_names) if c == word]
+        if len(hits) == 1:
+            return hits[0]
     return names[0] if len(names) == 1 else None
 
 
@@ -1037,10 +1121,14 @@ def episode_objects(episode, camera: str, depth_m: np.ndarray | None = None, obj
     masks, source = first_frame_masks(np.asarray(ref_cam.rgb[0]), seg0, ref_cam.seg_id_to_name)
     depth = np.asarray(cam.depth_m if depth_m is None else depth_m, np.float32)
     frames = slice(0, 1) if truth else slice(None)
-    layer = track_objects(np.asarray(cam.rgb)[frames], depth[frames], np.asarray(cam.normal_cam)[frames],
-                          np.asarray(cam.K)[frames], np.asarray(cam.T_world_cam)[frames], masks, source, config=config)
+    rgb, K, T_world_cam = np.asarray(cam.rgb)[frames], np.asarray(cam.K)[frames], np.asarray(cam.T_world_cam)[frames]
+    # the hand's steps once the instructed object is known (the hand moves that one)
+    layer = track_objects(rgb, depth[frames], np.asarray(cam.normal_cam)[frames], K, T_world_cam, masks, source,
+                          config=replace(config, follow_hand=False, keep_unreached=False))
     layer.instructed = instructed_object(layer.names(), [t.colour_name for t in layer.tracks],
                                          getattr(ref, "intent", None), episode.instruction)
+    if not truth and (config.follow_hand or config.keep_unreached):
+        follow_hand(layer, rgb, np.where(np.isfinite(depth), depth, 0.0).astype(np.float32), K, T_world_cam, config)
     if not truth:
         return layer
     out = truth_layer(layer, episode.object_poses)

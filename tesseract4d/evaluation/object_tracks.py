@@ -11,7 +11,8 @@ Per object: ``final_error_m`` (last frame), ``mean_error_m`` (frames ``first_sco
 (last frame: the track's turn about the scene's up axis since frame 0 against the truth's),
 ``displacement_truth_m`` / ``displacement_m`` (last frame from the first), ``displacement_error_m``
 (the two displacement vectors apart: the final error, measured from the shared start), ``lost_frames``,
-``inferred_frames`` (frames placed by the arm's motion while hidden, not seen).
+``inferred_frames`` (frames placed by the arm's or the hand's motion, not seen), ``seen_final_error_m`` (where
+the track last saw it, its last ``tracked`` frame, against where the truth ends).
 
 Summary: the instructed object (the episode intent's target, else the task's target object; none for
 "keep still" and gripper-only skills) ``ended_within_2cm`` of the truth; every other object the truth kept
@@ -26,7 +27,7 @@ import math
 
 import numpy as np
 
-from reconstruction.objects import INFERRED, LOST, ObjectLayer, episode_objects, matrix_from_wxyz, yaw_about
+from reconstruction.objects import INFERRED, LOST, TRACKED, ObjectLayer, episode_objects, matrix_from_wxyz, yaw_about
 from reconstruction.recon4d import Recon4D
 from tesseract4d.dataset_format import CameraFrames, Episode
 from tesseract4d.evaluation.instruction_following import TARGET_OBJECT
@@ -51,6 +52,10 @@ DEFINITIONS = {
                                f"that stayed within {100 * STAYED_WITHIN_M:g} cm of the truth in every frame",
     "within_5mm": f"share of the objects whose final error is <= {1000 * CEILING_M:g} mm (the tracker's goal on the truth)",
     "lost_share": "share of object-frames the layer reports lost",
+    "inferred_share": "share of object-frames the layer placed by the arm's or the hand's motion, not seen",
+    "instructed_seen_within_2cm": f"where the layer last saw the instructed object (its last tracked frame) lies within "
+                                  f"{100 * ENDED_WITHIN_M:g} cm of where the truth ends (1/0): the instructed row without "
+                                  f"what the layer inferred",
 }
 
 
@@ -132,6 +137,8 @@ def object_track_metrics(layer: ObjectLayer, gt: Episode, camera: str | None = N
         yaw_true = yaw_about(T_true[n - 1, :3, :3] @ T_true[0, :3, :3].T, up)
         yaw_err = abs(math.degrees(math.remainder(yaw_pred - yaw_true, 2 * math.pi)))
         still = float(np.linalg.norm(true - true[0], axis=1).max()) <= STILL_TRUTH_M
+        seen = np.flatnonzero(np.asarray(tr.state[:n]) == TRACKED)
+        last_seen = int(seen[-1]) if len(seen) else 0
         per_object[name] = {
             "track": tr.name, "final_error_m": float(err[-1]), "mean_error_m": float(err[first:].mean()),
             "max_error_m": float(err.max()), "yaw_error_deg": yaw_err,
@@ -141,6 +148,7 @@ def object_track_metrics(layer: ObjectLayer, gt: Episode, camera: str | None = N
             "still_in_truth": still, "stayed_within_1cm": bool(err.max() <= STAYED_WITHIN_M),
             "lost_frames": int((np.asarray(tr.state[:n]) == LOST).sum()),
             "inferred_frames": int((np.asarray(tr.state[:n]) == INFERRED).sum()), "frames": int(n),
+            "last_seen_frame": last_seen, "seen_final_error_m": float(np.linalg.norm(pred[last_seen] - true[-1])),
         }
     missing = [n for n in names if n not in per_object]
     others = [n for n in names if n != instructed]
@@ -150,6 +158,8 @@ def object_track_metrics(layer: ObjectLayer, gt: Episode, camera: str | None = N
         "objects": len(names), "missing": len(missing),
         "instructed_within_2cm": (float("nan") if instructed is None or instructed not in names else
                                   float(instructed in per_object and per_object[instructed]["final_error_m"] <= ENDED_WITHIN_M)),
+        "instructed_seen_within_2cm": (float("nan") if instructed is None or instructed not in names else
+                                       float(instructed in per_object and per_object[instructed]["seen_final_error_m"] <= ENDED_WITHIN_M)),
         "instructed_final_error_m": per_object[instructed]["final_error_m"] if instructed in per_object else float("nan"),
         "instructed_displacement_error_m": (per_object[instructed]["displacement_error_m"] if instructed in per_object
                                             else float("nan")),
@@ -163,6 +173,8 @@ def object_track_metrics(layer: ObjectLayer, gt: Episode, camera: str | None = N
                        if names else float("nan")),
         "lost_share": (float(sum(r["lost_frames"] for r in scored) / sum(r["frames"] for r in scored)) if scored
                        else float("nan")),
+        "inferred_share": (float(sum(r["inferred_frames"] for r in scored) / sum(r["frames"] for r in scored)) if scored
+                           else float("nan")),
     }
     return {"per_object": per_object, "instructed": instructed, "missing": missing, "summary": summary}
 
@@ -171,6 +183,8 @@ def pooled(rows: list[dict]) -> dict:
     """Rates over many episodes' :func:`object_track_metrics` results, pooled by object (not averaged per
     episode): instructed objects within 2 cm, still others within 1 cm, objects within 5 mm, mean errors."""
     inst = [r["summary"]["instructed_within_2cm"] for r in rows if not math.isnan(r["summary"]["instructed_within_2cm"])]
+    inst_seen = [r["summary"].get("instructed_seen_within_2cm", float("nan")) for r in rows]
+    inst_seen = [v for v in inst_seen if not math.isnan(v)]
     still_hits = still_n = five_hits = five_n = 0
     finals = []
     for r in rows:
@@ -184,6 +198,7 @@ def pooled(rows: list[dict]) -> dict:
         finals += [o["final_error_m"] for o in r["per_object"].values()]
     return {
         "instructed": len(inst), "instructed_within_2cm": float(np.mean(inst)) if inst else float("nan"),
+        "instructed_seen_within_2cm": float(np.mean(inst_seen)) if inst_seen else float("nan"),
         "others_still": still_n, "others_still_within_1cm": still_hits / still_n if still_n else float("nan"),
         "objects": five_n, "within_5mm": five_hits / five_n if five_n else float("nan"),
         "final_error_m": float(np.mean(finals)) if finals else float("nan"),
@@ -240,6 +255,9 @@ SUMMARY_KEYS = {
     "obj_final_error_m": ("object layer: final position error (mm), mean over objects", "scene objects"),
     "obj_yaw_error_deg": ("object layer: final yaw error (degrees), mean over objects", "scene objects"),
     "obj_lost_share": ("object layer: object-frames reported lost", "scene objects"),
+    "obj_inferred_share": ("object layer: object-frames placed by the arm's or the hand's motion (inferred)", "scene objects"),
+    "obj_instructed_seen_within_2cm": ("object layer: the instructed object, where last seen, within 2 cm of the truth's end",
+                                       "instructed object"),
 }
 
 
@@ -251,7 +269,9 @@ def object_summary(result: dict | None) -> dict:
     s = result["summary"]
     return {"obj_instructed_within_2cm": s["instructed_within_2cm"], "obj_others_still_within_1cm": s["others_still_within_1cm"],
             "obj_instructed_final_error_m": s["instructed_final_error_m"], "obj_final_error_m": s["final_error_m"],
-            "obj_yaw_error_deg": s["yaw_error_deg"], "obj_lost_share": s["lost_share"]}
+            "obj_yaw_error_deg": s["yaw_error_deg"], "obj_lost_share": s["lost_share"],
+            "obj_inferred_share": s.get("inferred_share", nan),
+            "obj_instructed_seen_within_2cm": s.get("instructed_seen_within_2cm", nan)}
 
 
 def truth_tracker_summary(rows: list[dict]) -> dict:

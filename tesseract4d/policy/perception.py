@@ -29,12 +29,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from reconstruction.hand_track import TABLE_Z_M
 from reconstruction.objects import first_frame_masks, plane_step, rotation_about, track_objects, yaw_about
 from tesseract4d.geometry import rotate_vectors, scene_up_axis, transform_points, unproject_depth
 from tesseract4d.object_colours import OBJECT_COLOUR_TOL, min_colour_distance
 from tesseract4d.segments import SCENERY_SEGMENTS
 
-TABLE_Z_M = 0.0  # ManiSkill's table top (world z)
 TOP_FACE_M = 0.006  # points this close below an object's highest point form its top face
 MIN_PIXELS = 6  # fewer pixels of an object: not seen in this observation (its last pose is kept)
 ICP_ITERATIONS = 20

@@ -9,7 +9,7 @@ One episode in ManiSkill, per replan:
    or the true future of the motion planner's episode of the seed (``oracle_plan``); the
    ``words_plan`` arm parses the instruction instead (:mod:`tesseract4d.policy.words`);
 3. reconstruct: the clip's object layer (:func:`reconstruction.objects.track_objects`, the objects named
-   by the observation's segmentation) and the gripper's track (:mod:`tesseract4d.policy.gripper_track`);
+   by the observation's segmentation) and the gripper's track (:mod:`reconstruction.hand_track`);
 4. plan: read the goal (:func:`tesseract4d.policy.goal_reading.read_goal`): which object moves, where
    to, lifted or set on another (from the arm's motion where the clip lost the object it moves); its
    target = the perceived centre + the predicted displacement;
@@ -30,10 +30,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from reconstruction.hand_track import track_gripper
 from reconstruction.objects import TRACKED, first_frame_masks, instructed_object, track_objects
 from tesseract4d.geometry import invert_pose, project_points, transform_points
 from tesseract4d.policy.goal_reading import read_goal
-from tesseract4d.policy.gripper_track import track_gripper
 from tesseract4d.policy.loop import EpisodeResult, FutureClip, StageClock, Trace, WorldModelFuture
 from tesseract4d.policy.perception import ObjectPerception, PerceivedObject
 from tesseract4d.policy.primitives import PrimitiveFailure, run_primitive

@@ -9,7 +9,7 @@ import math
 import numpy as np
 import pytest
 
-from reconstruction.objects import episode_objects, rotation_about
+from reconstruction.objects import STATES, episode_objects, rotation_about
 from tesseract4d.testing.synthetic_objects import Box, box_episode, moving, still
 from tesseract4d.evaluation.object_tracks import format_rows, object_track_metrics, pooled
 
@@ -91,3 +91,20 @@ def test_keep_still_has_no_instructed_object(scene):
     m = object_track_metrics(layer, still_gt)
     assert m["instructed"] is None and math.isnan(m["summary"]["instructed_within_2cm"])
     assert m["summary"]["others_still"] == 1  # the red cube moved in the truth: not a still one
+
+
+def test_the_seen_only_row_leaves_out_what_the_layer_inferred(scene):
+    # The red cube is placed right at the end but only inferred after frame 3 (where the layer last saw it):
+    # the instructed row counts it, the seen-only row does not.
+    gt, layer = scene
+    inferred = copy.deepcopy(layer)
+    red = inferred.track("cube_red")
+    red.state[4:] = STATES.index("inferred")
+    m = object_track_metrics(inferred, gt)
+    s, r = m["summary"], m["per_object"]["cube_red"]
+    assert s["instructed_within_2cm"] == 1.0 and s["instructed_seen_within_2cm"] == 0.0
+    assert r["last_seen_frame"] == 3 and r["inferred_frames"] == T - 4
+    assert math.isclose(s["inferred_share"], (T - 4) / (2 * T))
+    pose = gt.object_poses["cube_red"]
+    assert math.isclose(r["seen_final_error_m"], float(np.linalg.norm(pose[-1, :3] - pose[3, :3])), abs_tol=1e-6)
+    assert pooled([m])["instructed_seen_within_2cm"] == 0.0

@@ -7,7 +7,7 @@ import numpy as np
 
 from reconstruction.objects import STATES, ObjectLayer, ObjectTrack
 from tesseract4d.policy.goal_reading import arm_goal, read_goal
-from tesseract4d.policy.gripper_track import GripperTrack
+from reconstruction.hand_track import GripperTrack
 
 T = 16
 

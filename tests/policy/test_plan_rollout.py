@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-PLAN_MODULES = ("plan.py", "perception.py", "primitives.py", "goal_reading.py", "gripper_track.py", "words.py")
+PLAN_MODULES = ("plan.py", "perception.py", "primitives.py", "goal_reading.py", "words.py")
 SIMULATOR_FILES = ("mani_skill/envs/sapien_env.py", "datagen/simulate.py", "datagen/capture.py")
 
 

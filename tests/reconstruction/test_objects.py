@@ -228,9 +228,10 @@ def test_an_object_the_arm_covered_and_left_stays_where_it_was():
 
 def test_an_object_lost_under_an_arm_that_did_not_reach_it_is_not_moved():
     # The hand passes high above the cube's place while the video drops the cube (frames 3-9): the arm
-    # never reached down to it, so it is reported lost where it was, not dragged along.
+    # never reached down to it (its lowest points stay more than the hand track's reach, REACH_DZ_M, above
+    # the cube's centre), so it is reported lost where it was, not dragged along.
     cpos = still((0.0, 0.0, HALF), T)
-    hand_pos = cpos + [0.0, 0.0, 0.10] + moving((0, 0, 0), (-0.08, 0.0, 0.0), T, 4, 9)
+    hand_pos = cpos + [0.0, 0.0, 0.14] + moving((0, 0, 0), (-0.08, 0.0, 0.0), T, 4, 9)
     red = Box("cube_red", cpos, np.zeros(T), (HALF, HALF, HALF), (220, 30, 30), np.arange(T) < 3)
     hand = Box("panda_hand", hand_pos, np.zeros(T), (0.03, 0.03, 0.03), (200, 200, 205), np.arange(T) >= 3)
     ep = box_episode([red, green_still(), hand], T)

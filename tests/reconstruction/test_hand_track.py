@@ -1,12 +1,12 @@
-"""The gripper's track from a clip's depth: a grey box (the hand) moving over a table, rendered by ray casting
+"""The hand's track from a clip's depth: a grey box (the hand) moving over a table, rendered by ray casting
 from an oblique camera; the object layer labels a red cube on the table."""
 
 from __future__ import annotations
 
 import numpy as np
 
+from reconstruction.hand_track import gripper_point, track_gripper
 from reconstruction.objects import ObjectLayer
-from tesseract4d.policy.gripper_track import gripper_point, track_gripper
 
 H = W = 96
 TABLE_RGB, HAND_RGB, CUBE_RGB = (150, 90, 50), (200, 200, 205), (200, 30, 30)
