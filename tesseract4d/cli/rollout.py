@@ -45,7 +45,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--idm", help="inverse dynamics model folder (train-idm RUN/final)")
     parser.add_argument("--bc", help="behaviour-cloning model folder (RUN/final of `train-idm --recipe bc`)")
     parser.add_argument("--checkpoint", default=str(SHIPPED_CHECKPOINT),
-                        help="world-model inference checkpoint (default: the shipped v2-2step, one network pass; "
+                        help="world-model inference checkpoint (default: the shipped v2-2step, 2 steps; "
                              "tesseract4d/checkpoints/v2 takes 10 guided steps)")
     parser.add_argument("--max-sim-steps", type=whole(1), default=lc.max_steps, dest="max_sim_steps",
                         help="simulator steps per episode before it counts as failed (default %(default)s)")
