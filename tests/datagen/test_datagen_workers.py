@@ -26,6 +26,11 @@ def _tree(pid: int) -> list[psutil.Process]:
         return []
 
 
+def _finished(dataset: Path) -> list[str]:
+    """The episode files a datagen run has finished in ``dataset`` (not the hidden ``.*.partial.h5`` being written)."""
+    return sorted(p.name for p in dataset.glob("episodes/*/*.h5") if not p.name.startswith("."))
+
+
 def _listening(procs: list[psutil.Process]) -> list[tuple]:
     found = []
     for p in procs:
@@ -45,7 +50,7 @@ def test_local_workers_listen_nowhere_and_end_with_a_killed_driver(tmp_path):
     try:
         deadline = time.monotonic() + 300
         seen, listening = set(), []
-        while not list((tmp_path / "ds").glob("episodes/*/*.h5")):  # watch until the workers have written one
+        while not _finished(tmp_path / "ds"):  # watch until the workers have written one
             assert proc.poll() is None and time.monotonic() < deadline, proc.stderr.read()[-3000:]
             tree = _tree(proc.pid)
             seen |= {p.pid for p in tree[1:]}
@@ -65,10 +70,10 @@ def test_local_workers_listen_nowhere_and_end_with_a_killed_driver(tmp_path):
         for p in _tree(proc.pid):
             p.kill()
     # The next run resumes in the same folder: the killed run's partial files are cleared, no episode is lost.
-    before = sorted(p.name for p in (tmp_path / "ds").glob("episodes/*/*.h5"))
+    before = _finished(tmp_path / "ds")
     done = subprocess.run([*DATAGEN, "--episodes", "3", "--out", str(tmp_path / "ds")], cwd=REPO, env=env,
                           capture_output=True, text=True, timeout=600)
     assert done.returncode == 0, done.stderr[-3000:]
-    after = sorted(p.name for p in (tmp_path / "ds").glob("episodes/*/*.h5"))
+    after = _finished(tmp_path / "ds")
     assert set(before) <= set(after) and len(after) >= 3
     assert not list((tmp_path / "ds").glob("episodes/*/.*partial*"))
