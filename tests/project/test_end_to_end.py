@@ -151,10 +151,10 @@ def test_shipped_checkpoint_beats_the_static_world_on_the_moving_region(heldout,
 
 # Measured with the shipped default (v2-2step, the 2-step student of v2 step 16) on this set (seeded, its 2 steps and
 # two noise draws, bf16 on an AVX512-BF16 EPYC, each scene with its own noise), model vs static world on the moving
-# region, frames 1 to 15 (session 49, 2026-11-29: the given frame 0 no longer counts): RGB PSNR 12.12 vs 10.32 dB,
+# region, frames 1 to 15 (since the given frame 0 no longer counts): RGB PSNR 12.12 vs 10.32 dB,
 # normal error 50.5 vs 69.9 deg, depth AbsRel 0.41 vs 1.71, Chamfer 58.5 vs 266.6 mm; the ceiling 22.52 dB, 7.4 deg,
 # 0.018, 5.4 mm. The margins are about half of each gap. Every number below counted frame 0, a perfect copy for the
-# model and the static world: (session 39, AMX CPU, one draw: 17.58 vs 15.93 dB, 47.3 vs 65.5 deg, 0.39 vs 1.60,
+# model and the static world: (an AMX CPU, one draw: 17.58 vs 15.93 dB, 47.3 vs 65.5 deg, 0.39 vs 1.60,
 # 55.2 vs 249.9 mm. The student of step 15, until commit 24888c2: 17.50 dB, 48.3 deg, 0.40, 56.8 mm;
 # the student of step 14, until commit 52f7959: 17.66 dB, 46.9 deg, 0.37, 54.1 mm;
 # the student of step 13, until commit 9b510f0: 17.86 dB, 44.3 deg, 0.35,
