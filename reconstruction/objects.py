@@ -213,6 +213,9 @@ class ObjectLayer:
     # T x (N_t,) int16 per reconstruction point: the index of the object it belongs to, -1 for none (the
     # arm where dynamic, else the table and the rest of the scene). Empty where the points are not labelled.
     point_object: list[np.ndarray] = field(default_factory=list)
+    # The hand's track through the clip that the tracker's hand steps read (:func:`follow_hand`), for a reader
+    # of the same clip (the closed loop's goal reading); None when they did not run. Not saved with the layer.
+    hand: GripperTrack | None = field(default=None, repr=False, compare=False)
 
     def __len__(self) -> int:
         return len(self.tracks)
@@ -831,8 +834,8 @@ def follow_hand(layer: ObjectLayer, rgb: np.ndarray, depth_m: np.ndarray, K: np.
                 config: TrackConfig = TrackConfig()) -> GripperTrack | None:
     """Steps 5 and 6 of the tracker, in place on ``layer`` (its ``point_object`` labels of the clip rgb
     (T, H, W, 3), depth_m (T, H, W), K (T, 3, 3), T_world_cam (T, 4, 4)): the hand's track
-    (:func:`reconstruction.hand_track.track_gripper`) and what it does to the objects. Returns the track
-    (None when the camera moves or the layer has no labels: then nothing changes).
+    (:func:`reconstruction.hand_track.track_gripper`) and what it does to the objects. Returns the track,
+    also kept as ``layer.hand`` (None when the camera moves or the layer has no labels: then nothing changes).
 
     5. ``config.follow_hand``, when ``layer.instructed`` names the object the instruction is about: that
        object, when the hand moves it (:func:`reconstruction.hand_track.hand_move`) and its track
@@ -850,7 +853,7 @@ def follow_hand(layer: ObjectLayer, rgb: np.ndarray, depth_m: np.ndarray, K: np.
        where the tracker had fitted it farther than ``REFIND_M`` away count as ``lost`` (the video lost it
        where it is).
     """
-    gripper = track_gripper(rgb, depth_m, K, T_world_cam, layer)
+    gripper = layer.hand = track_gripper(rgb, depth_m, K, T_world_cam, layer)
     if gripper is None or gripper.seen().sum() < 2:
         return gripper
     up = np.asarray(gripper.up, np.float64)

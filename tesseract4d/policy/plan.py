@@ -9,7 +9,7 @@ One episode in ManiSkill, per replan:
    or the true future of the motion planner's episode of the seed (``oracle_plan``); the
    ``words_plan`` arm parses the instruction instead (:mod:`tesseract4d.policy.words`);
 3. reconstruct: the clip's object layer (:func:`reconstruction.objects.track_objects`, the objects named
-   by the observation's segmentation) and the gripper's track (:mod:`reconstruction.hand_track`);
+   by the observation's segmentation) with the hand's track it read (``layer.hand``, :mod:`reconstruction.hand_track`);
 4. plan: read the goal (:func:`tesseract4d.policy.goal_reading.read_goal`): which object moves, where
    to, lifted or set on another (from the arm's motion where the clip lost the object it moves); its
    target = the perceived centre + the predicted displacement;
@@ -30,7 +30,6 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from reconstruction.hand_track import track_gripper
 from reconstruction.objects import TRACKED, first_frame_masks, instructed_object, track_objects
 from tesseract4d.geometry import invert_pose, project_points, transform_points
 from tesseract4d.policy.goal_reading import read_goal
@@ -111,8 +110,6 @@ def clip_object_layer(clip: FutureClip, normal_cam: np.ndarray, frame0, seg_id_t
     observation's segmentation; the instructed one found by its colour word (the first one named when the
     words name several). ``perception``: an
     ObjectPerception of ``frame0`` that re-finds objects lost at the end."""
-
-
     masks, source = first_frame_masks(frame0.rgb, frame0.segmentation, seg_id_to_name)
     depth = np.asarray(clip.depth_m, np.float32)
     layer = track_objects(clip.rgb, depth, normal_cam, clip.K, clip.T_world_cam, masks, source)
@@ -178,9 +175,8 @@ class WorldModelPlan:
         lap("predict")
         normals = clip.episode.cameras[self.camera].normal_cam
         layer = clip_object_layer(clip, normals, frame, seg_id_to_name, instruction, ObjectPerception(frame, seg_id_to_name))
-        gripper = track_gripper(clip.rgb, clip.depth_m, clip.K, clip.T_world_cam, layer)
         lap("reconstruct")
-        return _absolute(read_goal(layer, gripper=gripper), objects), clip
+        return _absolute(read_goal(layer, gripper=layer.hand), objects), clip
 
 
 class OraclePlan:
@@ -200,9 +196,8 @@ class OraclePlan:
         if self.goal is None:
             layer = clip_object_layer(self.clip, self.normals, frame, seg_id_to_name, instruction,
                                       ObjectPerception(frame, seg_id_to_name))
-            gripper = track_gripper(self.clip.rgb, self.clip.depth_m, self.clip.K, self.clip.T_world_cam, layer)
             lap("reconstruct")
-            self.goal = _absolute(read_goal(layer, gripper=gripper), objects)
+            self.goal = _absolute(read_goal(layer, gripper=layer.hand), objects)
             return self.goal, self.clip
         return (PlanStep("none", self.goal.target, reading={"reached": True}) if reached(self.goal, objects)
                 else self.goal), None
