@@ -108,3 +108,22 @@ def test_the_seen_only_row_leaves_out_what_the_layer_inferred(scene):
     pose = gt.object_poses["cube_red"]
     assert math.isclose(r["seen_final_error_m"], float(np.linalg.norm(pose[-1, :3] - pose[3, :3])), abs_tol=1e-6)
     assert pooled([m])["instructed_seen_within_2cm"] == 0.0
+
+
+def test_an_object_carried_out_of_view_is_counted_apart(scene):
+    # The truth carries the red cube behind the camera at the last frame: no tracker of these frames can
+    # place it, so "within 5 mm" is also given over the objects in view at the end.
+    gt, layer = scene
+    gone = copy.deepcopy(gt)
+    gone.object_poses["cube_red"] = gone.object_poses["cube_red"].copy()
+    gone.object_poses["cube_red"][-1, :3] = [0.6, -0.6, 0.6]  # behind the camera at (0.30, -0.30, 0.32)
+    m = object_track_metrics(layer, gone)
+    assert m["per_object"]["cube_red"]["in_view_at_end"] is False and m["per_object"]["cube_green"]["in_view_at_end"] is True
+    s = m["summary"]
+    assert s["within_5mm"] == 0.5 and s["objects_in_view"] == 1 and s["within_5mm_in_view"] == 1.0
+    aside = copy.deepcopy(gt)
+    aside.object_poses["cube_red"] = aside.object_poses["cube_red"].copy()
+    aside.object_poses["cube_red"][-1, :3] = [0.3, 0.5, 0.02]  # in front of the camera, far outside its 50 degrees
+    assert object_track_metrics(layer, aside)["per_object"]["cube_red"]["in_view_at_end"] is False
+    p = pooled([m, object_track_metrics(layer, gt)])
+    assert p["objects"] == 4 and p["within_5mm"] == 0.75 and p["objects_in_view"] == 3 and p["within_5mm_in_view"] == 1.0
