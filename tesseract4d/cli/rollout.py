@@ -41,7 +41,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help=f"comma-separated arms from {', '.join(ARMS)} (default: %(default)s; static_world feeds "
                              f"the IDM the current frame repeated, the control for what the predicted frames add; the "
                              f"*_plan arms need no IDM: they read the goal from a future's objects, or the words, and "
-                             f"run motion-planned primitives, also on the tabletop's skills, task Tesseract4dTabletop-v1)")
+                             f"run motion-planned primitives; every arm also runs the tabletop's skills, task "
+                             f"Tesseract4dTabletop-v1, the IDM arms with an IDM trained on tabletop episodes)")
     parser.add_argument("--idm", help="inverse dynamics model folder (train-idm RUN/final)")
     parser.add_argument("--bc", help="behaviour-cloning model folder (RUN/final of `train-idm --recipe bc`)")
     parser.add_argument("--checkpoint", default=str(SHIPPED_CHECKPOINT),

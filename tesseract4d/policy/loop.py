@@ -231,7 +231,12 @@ class PolicyRunner:
                          resolution=tuple(self.config.resolution), what=f"the rollout env {self.sim.env_id}")
 
     @torch.no_grad()
-    def run(self, seed: int, future=None, trace: Trace | None = None) -> EpisodeResult:
+    def run(self, seed: int, future=None, trace: Trace | None = None, instruction: str | None = None,
+            success_check=None) -> EpisodeResult:
+        """One episode of ``seed``. instruction: None = the task's own; success_check: None = the env's own
+        success signal after every step, else a function called once after reset (it reads the start)
+        returning one that says whether the task is done now, asked after every chunk (a tabletop skill:
+        ``tesseract4d.policy.tabletop_tasks.success_check``)."""
         c, model = self.config, self.model
         arm = future.name if future is not None else "behavior_cloning"
         if model.config.use_future != (future is not None):
@@ -242,7 +247,8 @@ class PolicyRunner:
         timings, t_start, lap = clock.seconds, clock.start, clock.lap
 
         first = self.sim.first_frame(seed)
-        instruction = first.instruction
+        instruction = first.instruction if instruction is None else instruction
+        done = success_check() if success_check is not None else None
         frame = self.sim.observe()[c.camera]
         lap("observe")
         text = sentence_embeddings(self.text_encoder, [instruction])  # (1, d)
@@ -278,10 +284,14 @@ class PolicyRunner:
                 for a in actions:
                     _, _, _, _, info = env.step(a)
                     steps += 1
-                    success_now = bool(np.asarray(info["success"]).reshape(-1)[0])
-                    success |= success_now
+                    if done is None:
+                        success_now = bool(np.asarray(info["success"]).reshape(-1)[0])
+                        success |= success_now
                     if success or steps >= c.max_steps:
                         break
+                if done is not None:
+                    success_now = done()
+                    success |= success_now
                 chunks += 1
                 lap("act")
                 frame = self.sim.observe()[c.camera]
