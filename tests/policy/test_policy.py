@@ -318,6 +318,44 @@ def test_static_world_arm_steers_toward_the_observation_it_replanned_from(overfi
         assert targets and all(np.array_equal(t, trace.observed[observed_at].rgb) for t in targets)
 
 
+@pytest.mark.sim
+@pytest.mark.slow
+def test_a_given_success_check_and_instruction_replace_the_envs_own(overfit, text_encoder):
+    """As a tabletop skill is scored: the check is made once after reset, asked after every chunk, and the
+    env's own success signal is not used (seed 1's true future, which the env calls solved in 69 steps,
+    counts as failed under a check that never says done)."""
+    from datagen.simulate import EpisodeSimulator, SimConfig
+    from tesseract4d.policy.idm import load_idm
+    from tesseract4d.policy.loop import LoopConfig, OracleFuture, PolicyRunner, StaticFuture
+
+    _, out = overfit
+    cfg = LoopConfig(replan_every=4, max_steps=80)
+    sim = EpisodeSimulator("PushCube-v1", SimConfig(height=64, width=64, cameras=["close"], frames=0))
+    asked = {"made": 0, "asked": 0}
+
+    def check():
+        asked["made"] += 1
+
+        def done():
+            asked["asked"] += 1
+            return asked["asked"] >= 2  # done after the second chunk
+
+        return done
+
+    try:
+        runner = PolicyRunner(sim, load_idm(out / "final"), text_encoder, cfg)
+        words = "shove the cube ahead"
+        r = runner.run(100000, StaticFuture(cfg), None, words, check)
+        assert asked == {"made": 1, "asked": 2} and r.success and r.chunks == 2 and r.instruction == words
+        planner = sim.run(1)
+        assert r.steps < cfg.max_steps and planner.success
+        never = runner.run(1, OracleFuture(planner.episode, cfg), None, None, lambda: (lambda: False))
+        env_own = runner.run(1, OracleFuture(planner.episode, cfg))
+    finally:
+        sim.close()
+    assert env_own.success and not never.success and never.steps == cfg.max_steps
+
+
 def test_clip_starts_are_distinct_steps_inside_the_episode():
     from tesseract4d.policy.predicted_pairs import clip_starts
 
