@@ -16,7 +16,9 @@ from a frame it never saw (a smeared object, a torn arm). Here the student meets
    clip from ``x_t = (1 - t) x0 + t noise``) toward the TRUE next clip with instruction 2, conditioned
    on the cached self-forced frame (``condition="self"``) or on the true frame (``condition="true"``,
    the control: same steps, data, loss and learning rate). ``t`` is drawn from the student's own
-   sampling noise levels only (2 steps: 1.0 and 0.5), the only inputs its network meets at sampling.
+   sampling noise levels only (``times="sampler"``; its 2-step flow-matching Euler sampler runs the
+   network at 1.0 and 0.001), the only inputs its network meets at sampling, or ``t ~ U(0, 1)``
+   (``times="uniform"``, as ``distill`` trains).
    A share of each batch (``own_share``) is the student's own clip-1 reflow pairs, trained as
    ``distill`` trains them, so it keeps its straight noise-to-clip paths and its 2-step sampling (the
    teacher pairs it was distilled from are not kept with the checkpoint).
@@ -50,12 +52,14 @@ from tesseract4d.errors import UserError
 from tesseract4d.instruction_schedule import schedule_of
 from tesseract4d.model.checkpoint import weights_digest
 from tesseract4d.model.pipeline import RGBDNPipeline, make_scheduler
+from tesseract4d.model.predict import load_pipeline
 from tesseract4d.model.reflow import ReflowConfig, ReflowTrainer, model_space_psnr
 from tesseract4d.model.trainer import Trainer
 from tesseract4d.training.config import option
 
 BATCH = 4  # chains per pipeline call
 CONDITIONS = ("self", "true")
+TIMES = ("sampler", "uniform")
 
 
 def _noise_generator(noise_seed: int, index: int) -> torch.Generator:
@@ -126,8 +130,6 @@ def sample_self_forced(checkpoint: Path, folders: list[Path], noise_seed: int = 
 
 
 def load_student(checkpoint: Path, precision: str = "auto") -> RGBDNPipeline:
-    from tesseract4d.model.predict import load_pipeline  # deferred: loads torch models
-
     return load_pipeline(checkpoint, precision=precision)
 
 
@@ -163,6 +165,8 @@ class SelfForcingConfig(ReflowConfig):
                                     "or 'true' (the true frame: the control)")
     own_share: float = option(0.5, "share of each batch from the student's own clip-1 reflow pairs (keeps its "
                                    "few-step sampling)")
+    times: str = option("sampler", "diffusion times of the second clips: 'sampler' (the student's own sampling noise "
+                                   "levels only) or 'uniform' (t ~ U(0, 1), as distill trains)")
 
 
 def sampling_levels(num_steps: int) -> torch.Tensor:
@@ -180,6 +184,8 @@ class SelfForcingTrainer(ReflowTrainer):
     def __init__(self, config: SelfForcingConfig):
         if config.condition not in CONDITIONS:
             raise UserError(f"condition must be one of {', '.join(CONDITIONS)}, got {config.condition!r}")
+        if config.times not in TIMES:
+            raise UserError(f"times must be one of {', '.join(TIMES)}, got {config.times!r}")
         if not 0.0 <= config.own_share < 1.0:
             raise UserError(f"own_share must be in [0, 1), got {config.own_share}")
         super().__init__(config)
@@ -212,7 +218,9 @@ class SelfForcingTrainer(ReflowTrainer):
         x0 = torch.cat([data.target[i], data.own_x0[j]]).float()
         cond = torch.cat([data.condition(cfg.condition)[i], data.own_first[j]]).float()
         texts = [data.instructions[k][1] for k in i.tolist()] + [data.instructions[k][0] for k in j.tolist()]
-        t = torch.cat([self.levels[torch.randint(len(self.levels), (n_sf,), generator=g)], torch.rand(n_own, generator=g)])
+        t_sf = (self.levels[torch.randint(len(self.levels), (n_sf,), generator=g)] if cfg.times == "sampler"
+                else torch.rand(n_sf, generator=g))
+        t = torch.cat([t_sf, torch.rand(n_own, generator=g)])
         noise = torch.cat([torch.randn((n_sf, *x0.shape[1:]), generator=g), data.own_noise[j].float()])
         return x0, cond, texts, t, noise
 
@@ -228,6 +236,7 @@ class SelfForcingTrainer(ReflowTrainer):
         cfg["self_forcing"] = {"student": str(self.cfg.teacher), "student_digest": self.teacher_digest,
                                "conditions": str(self.cfg.data), "chains": len(self.data),
                                "condition": self.cfg.condition, "own_share": self.cfg.own_share,
+                               "times": self.cfg.times,
                                "noise_seed": m.get("noise_seed"), "data": m.get("data"),
                                "levels": [round(float(s), 4) for s in self.levels]}
         return cfg

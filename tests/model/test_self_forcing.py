@@ -47,8 +47,8 @@ def _write_cache(path, ckpt, pipe, perturb: float):
     return path
 
 
-def _trainer(tmp_path, ckpt, cache, condition, name):
-    cfg = SelfForcingConfig(teacher=ckpt, data=cache, out=tmp_path / name, condition=condition, own_share=0.5,
+def _trainer(tmp_path, ckpt, cache, condition, name, times="sampler"):
+    cfg = SelfForcingConfig(teacher=ckpt, data=cache, out=tmp_path / name, condition=condition, own_share=0.5, times=times,
                             batch_size=4, max_steps=2, val_every=0, ckpt_every=0, quiet=True, precision="fp32")
     return SelfForcingTrainer(cfg)
 
@@ -73,6 +73,8 @@ def test_the_fine_tune_trains_on_the_condition_it_is_given(micro_checkpoint, tmp
         loss_same = float(_trainer(tmp_path, micro_checkpoint, same, "self", "same").compute_loss(0)[0])
     assert loss_self != pytest.approx(loss_true, rel=1e-4)  # the perturbed condition reaches the network
     assert loss_same == pytest.approx(loss_true, rel=1e-5)  # and nothing else differs between the two
+    t_uniform = _trainer(tmp_path, micro_checkpoint, cache, "self", "uniform", times="uniform").batch(0)[3]
+    assert not any(abs(float(s) - float(v)) < 1e-6 for s in t_uniform[:2] for v in levels)
 
 
 def test_a_cache_of_other_weights_or_an_unknown_condition_is_refused(micro_checkpoint, tmp_path):
@@ -80,6 +82,8 @@ def test_a_cache_of_other_weights_or_an_unknown_condition_is_refused(micro_check
     cache = _write_cache(tmp_path / "c.pt", micro_checkpoint, pipe, perturb=0.5)
     with pytest.raises(UserError, match="one of self, true"):
         _trainer(tmp_path, micro_checkpoint, cache, "given", "x")
+    with pytest.raises(UserError, match="one of sampler, uniform"):
+        _trainer(tmp_path, micro_checkpoint, cache, "self", "x", times="all")
     saved = torch.load(cache)
     saved["digest"] = "0" * 16
     torch.save(saved, tmp_path / "other.pt")
