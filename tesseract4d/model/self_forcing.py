@@ -89,7 +89,10 @@ def sample_self_forced(checkpoint: Path, folders: list[Path], noise_seed: int = 
     for path in files:
         ep = df.read_episode(path)
         segments = schedule_of(ep.metadata)
-        cam = ep.cameras[camera or next(iter(ep.cameras))]
+        name = camera or pipe.camera_name or next(iter(ep.cameras))
+        if name not in ep.cameras:
+            raise UserError(f"{path} has no camera {name!r}; it has {sorted(ep.cameras)}: pass --camera")
+        cam = ep.cameras[name]
         if segments is None or len(segments) < 2:
             continue
         start = T - 1  # where the pipeline's second clip starts (instruction_schedule.clip_new_frames)
@@ -196,6 +199,7 @@ class SelfForcingTrainer(ReflowTrainer):
         if data.manifest.get("digest") != self.teacher_digest:
             raise UserError(f"{cfg.data} holds the clips of other weights ({data.manifest.get('digest')}); the "
                             f"student {cfg.teacher} has {self.teacher_digest}: cache its own clips")
+        data.camera = self.teacher_config.get("camera_name")  # the student's: the cache was sampled with it
         p = self.preset
         if tuple(data.self_condition.shape[-2:]) != (p.height, p.width):
             raise UserError(f"{cfg.data} holds {tuple(data.self_condition.shape[-2:])} frames; the student predicts "
@@ -266,6 +270,7 @@ def main(argv: list[str] | None = None) -> int:
     c.add_argument("--checkpoint", type=Path, required=True)
     c.add_argument("--data", type=Path, nargs="+", required=True, help="chained dataset folders (chain_skills=2)")
     c.add_argument("--noise-seed", type=int, default=0)
+    c.add_argument("--camera", default=None, help="camera of --data (default: the checkpoint's)")
     c.add_argument("--out", type=Path, required=True, help="file to write (refused if it exists)")
     t = sub.add_parser("train", help="fine-tune the student on the cache (or the control with --set condition=true)")
     t.add_argument("--checkpoint", type=Path, required=True, help="the student (its cache's checkpoint)")
@@ -276,7 +281,7 @@ def main(argv: list[str] | None = None) -> int:
     if a.what == "cache":
         if a.out.exists():
             raise UserError(f"{a.out} exists; choose another --out (it is not overwritten)")
-        cache = sample_self_forced(a.checkpoint, folder_list(a.data), a.noise_seed, log=lambda m: print(m, flush=True))
+        cache = sample_self_forced(a.checkpoint, folder_list(a.data), a.noise_seed, a.camera, log=lambda m: print(m, flush=True))
         a.out.parent.mkdir(parents=True, exist_ok=True)
         tmp = a.out.with_name(a.out.name + ".tmp")
         torch.save(cache, tmp)

@@ -6,12 +6,48 @@ from __future__ import annotations
 import pytest
 import torch
 
+import dataclasses
+
+from tesseract4d import dataset_format as df
 from tesseract4d.errors import UserError
+from tesseract4d.instruction_schedule import SCHEDULE_KEY, Segment
 from tesseract4d.model.checkpoint import weights_digest
 from tesseract4d.model.predict import load_pipeline
 from tesseract4d.model.self_forcing import (
-    SelfForcingConfig, SelfForcingTrainer, sampling_levels, self_forced_frames,
+    SelfForcingConfig, SelfForcingTrainer, sample_self_forced, sampling_levels, self_forced_frames,
 )
+from tesseract4d.testing.synthetic_scene import synthetic_episode
+
+LEFT, RIGHT = "push the square to the left", "push the square to the right"
+
+
+def _chained_dataset(root, T, second_start):
+    df.init_dataset(root, df.DatasetInfo(height=32, width=32, cameras=["close"]))
+    for seed in (0, 1):
+        ep = synthetic_episode(seed, frames=2 * T - 1)
+        schedule = [Segment(LEFT, 0, second_start), Segment(RIGHT, second_start, 2 * T - 2)]
+        df.write_episode(root, dataclasses.replace(ep, metadata={SCHEDULE_KEY: [x.to_dict() for x in schedule]}))
+    df.write_episode(root, synthetic_episode(2, frames=2 * T - 1))  # one instruction: not a chain
+    return root
+
+
+def test_the_cache_holds_each_chain_s_own_clip_1_end_and_true_second_clip(micro_checkpoint, tmp_path):
+    pipe = load_pipeline(micro_checkpoint, precision="fp32")
+    T = pipe.num_frames
+    data = _chained_dataset(tmp_path / "chains", T, T - 1)
+    cache = sample_self_forced(micro_checkpoint, [data], noise_seed=0, precision="fp32", log=lambda m: None)
+    assert cache["instructions"] == [(LEFT, RIGHT)] * 2 and cache["digest"] == weights_digest(micro_checkpoint)
+    for i, f in enumerate(df.list_episode_files(data)[:2]):
+        cam = df.read_episode(f).cameras["close"]
+        frames = pipe.model_space.encode(cam.rgb, cam.depth_m, cam.normal_cam)
+        torch.testing.assert_close(cache["true_condition"][i].float(), frames[T - 1], atol=1e-3, rtol=0)
+        torch.testing.assert_close(cache["own_first"][i].float(), frames[0], atol=1e-3, rtol=0)
+        torch.testing.assert_close(cache["target"][i].float(), pipe.codec.encode(frames[None, T - 1:])[0],
+                                   atol=1e-2, rtol=0)  # the pixel codec: the true frames themselves
+    assert not torch.equal(cache["self_condition"], cache["true_condition"])
+    with pytest.raises(UserError, match="second clip"):
+        sample_self_forced(micro_checkpoint, [_chained_dataset(tmp_path / "other", T, T - 3)], precision="fp32",
+                           log=lambda m: None)
 
 
 def test_the_cached_condition_is_the_frame_the_rollout_continues_from(micro_checkpoint):
