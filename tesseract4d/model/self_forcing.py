@@ -39,7 +39,6 @@ checkpoint, its weights digest, the noise seed and the sampler's settings.
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -281,7 +280,8 @@ def main(argv: list[str] | None = None) -> int:
     if a.what == "cache":
         if a.out.exists():
             raise UserError(f"{a.out} exists; choose another --out (it is not overwritten)")
-        cache = sample_self_forced(a.checkpoint, folder_list(a.data), a.noise_seed, a.camera, log=lambda m: print(m, flush=True))
+        cache = sample_self_forced(a.checkpoint, folder_list(a.data), a.noise_seed, a.camera,
+                                   log=lambda m: print(m, flush=True))
         a.out.parent.mkdir(parents=True, exist_ok=True)
         tmp = a.out.with_name(a.out.name + ".tmp")
         torch.save(cache, tmp)

@@ -84,8 +84,8 @@ def _write_cache(path, ckpt, pipe, perturb: float):
 
 
 def _trainer(tmp_path, ckpt, cache, condition, name, times="sampler"):
-    cfg = SelfForcingConfig(teacher=ckpt, data=cache, out=tmp_path / name, condition=condition, own_share=0.5, times=times,
-                            batch_size=4, max_steps=2, val_every=0, ckpt_every=0, quiet=True, precision="fp32")
+    cfg = SelfForcingConfig(teacher=ckpt, data=cache, out=tmp_path / name, condition=condition, own_share=0.5,
+                            times=times, batch_size=4, max_steps=2, val_every=0, ckpt_every=0, quiet=True, precision="fp32")
     return SelfForcingTrainer(cfg)
 
 
