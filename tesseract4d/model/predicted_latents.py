@@ -87,6 +87,14 @@ def load_predicted_latents(path: Path, episode_ids: list[str]) -> torch.Tensor:
     return saved["latents"][[index[e] for e in episode_ids]]
 
 
+def save_cache(cache: dict, out: Path) -> None:
+    """``torch.save`` of a cache to ``out`` through a temporary file, so a stopped write leaves no half file."""
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = out.with_name(out.name + ".tmp")
+    torch.save(cache, tmp)
+    tmp.replace(out)
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description="Sample a checkpoint's latent clips of dataset episodes (no decoding).")
     p.add_argument("--checkpoint", type=Path, required=True, help="inference checkpoint (e.g. tesseract4d/checkpoints/v2-2step)")
@@ -99,10 +107,7 @@ def main(argv: list[str] | None = None) -> int:
         raise UserError(f"{a.out} exists; choose another --out (it is not overwritten)")
     cache = sample_predicted_latents(a.checkpoint, folder_list(a.data), a.noise_seeds, a.camera,
                                      log=lambda m: print(m, flush=True))
-    a.out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = a.out.with_name(a.out.name + ".tmp")
-    torch.save(cache, tmp)
-    tmp.replace(a.out)
+    save_cache(cache, a.out)
     print(f"wrote {a.out}: latents {tuple(cache['latents'].shape)}")
     return 0
 

@@ -52,6 +52,7 @@ from tesseract4d.instruction_schedule import schedule_of
 from tesseract4d.model.checkpoint import weights_digest
 from tesseract4d.model.pipeline import RGBDNPipeline, make_scheduler
 from tesseract4d.model.predict import load_pipeline
+from tesseract4d.model.predicted_latents import save_cache
 from tesseract4d.model.reflow import ReflowConfig, ReflowTrainer, model_space_psnr
 from tesseract4d.model.trainer import Trainer
 from tesseract4d.training.config import option
@@ -282,10 +283,7 @@ def main(argv: list[str] | None = None) -> int:
             raise UserError(f"{a.out} exists; choose another --out (it is not overwritten)")
         cache = sample_self_forced(a.checkpoint, folder_list(a.data), a.noise_seed, a.camera,
                                    log=lambda m: print(m, flush=True))
-        a.out.parent.mkdir(parents=True, exist_ok=True)
-        tmp = a.out.with_name(a.out.name + ".tmp")
-        torch.save(cache, tmp)
-        tmp.replace(a.out)
+        save_cache(cache, a.out)
         print(f"wrote {a.out}: {len(cache['episode_ids'])} chains")
         return 0
     cfg = SelfForcingConfig(teacher=a.checkpoint, data=a.conditions, out=a.out, val_every=0)
