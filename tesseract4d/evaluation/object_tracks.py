@@ -308,8 +308,8 @@ def truth_tracker_summary(rows: list[dict]) -> dict:
             seen.add(r["episode"])
             summaries.append({"summary": r["object_tracks_truth"], "per_object": {}})
     p = pooled(summaries)
-    return {k: p[k] for k in ("objects", "within_5mm", "objects_in_view", "within_5mm_in_view", "instructed", "instructed_within_2cm", "others_still",
-                              "others_still_within_1cm", "missing")}
+    return {k: p[k] for k in ("objects", "within_5mm", "objects_in_view", "within_5mm_in_view", "instructed",
+                              "instructed_within_2cm", "others_still", "others_still_within_1cm", "missing")}
 
 
 def markdown_rows(summary: dict, methods: list[str], truth: dict | None) -> list[str]:
