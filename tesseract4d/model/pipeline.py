@@ -174,13 +174,19 @@ class RGBDNPipeline:
                 return self.codec.decode(z, first_frame=first_frame.to(self.device)).float().clamp(-1.0, 1.0)
             return self.codec.decode(z).float().clamp(-1.0, 1.0)
 
-    def _sample_clip(self, first_frame, *args, static_tolerance: float = 0.0, **kwargs):
-        """One decoded clip (b, T, 7, H, W) in model space; arguments as :meth:`_denoise_clip`;
-        ``static_tolerance`` > 0 puts the first frame back where the clip is still (static_composite.py)."""
-        clip = self.decode(self._denoise_clip(first_frame, *args, **kwargs), first_frame=first_frame)
+    def finish_clip(self, z: torch.Tensor, first_frame: torch.Tensor, static_tolerance: float = 0.0) -> torch.Tensor:
+        """A sampled network-space clip (b, t', c, h, w) as the pipeline hands it on: decoded (b, T, 7, H, W)
+        model space, and with ``static_tolerance`` > 0 the first frame put back where the clip is still
+        (static_composite.py)."""
+        clip = self.decode(z, first_frame=first_frame)
         if static_tolerance > 0:
             clip = composite_static(clip, first_frame, static_tolerance)
         return clip
+
+    def _sample_clip(self, first_frame, *args, static_tolerance: float = 0.0, **kwargs):
+        """One decoded clip (b, T, 7, H, W) in model space; arguments as :meth:`_denoise_clip`, then
+        :meth:`finish_clip`."""
+        return self.finish_clip(self._denoise_clip(first_frame, *args, **kwargs), first_frame, static_tolerance)
 
     @torch.no_grad()
     def __call__(

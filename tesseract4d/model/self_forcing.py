@@ -70,12 +70,12 @@ def _noise_generator(noise_seed: int, index: int) -> torch.Generator:
 def self_forced_frames(pipe: RGBDNPipeline, first: torch.Tensor, words: list[str], noise: torch.Tensor,
                        generator: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
     """The student's clip 1 from ``first`` (b, 7, H, W) and ``words`` with initial ``noise``: (the frame the
-    pipeline hands to the next clip, (b, 7, H, W) model space; the clip's latent (b, t', c, h, w)). Both
-    come from the pipeline's own ``__call__`` with the same noise: the decoded clip (first-frame decoder,
-    static compositing as the preset sets them) and its latent before decoding."""
-    clip = pipe(first, words, latents=noise, generator=generator)  # (b, T, 7, H, W), one clip
+    pipeline hands to the next clip, (b, 7, H, W) model space; the clip's latent (b, t', c, h, w)). The clip
+    is sampled once, by the pipeline's own ``__call__``, and finished as the pipeline finishes a clip
+    (``finish_clip``: the first-frame decoder, static compositing as the preset sets it)."""
     z = pipe(first, words, latents=noise, generator=generator, output_type="latent")  # (b, t', c, h, w)
-    return clip[:, -1].float(), z.float()
+    clip = pipe.finish_clip(z, first.float(), pipe.preset.static_tolerance)  # (b, T, 7, H, W)
+    return clip[:, -1].float().cpu(), z.float()
 
 
 def sample_self_forced(checkpoint: Path, folders: list[Path], noise_seed: int = 0, camera: str | None = None,
@@ -83,7 +83,7 @@ def sample_self_forced(checkpoint: Path, folders: list[Path], noise_seed: int = 
     """The cache's dict (module docstring) for every chained episode of ``folders`` with at least 2 segments
     whose second clip lies inside the episode."""
     files = [f for folder in folders for f in df.list_episode_files(folder)]
-    pipe = load_student(checkpoint, precision)
+    pipe = load_pipeline(checkpoint, precision=precision)
     T = pipe.num_frames
     chains = []
     for path in files:
@@ -130,10 +130,6 @@ def sample_self_forced(checkpoint: Path, folders: list[Path], noise_seed: int = 
             "checkpoint": str(checkpoint), "digest": weights_digest(checkpoint), "noise_seed": int(noise_seed),
             "num_steps": pipe.preset.num_steps, "static_tolerance": pipe.preset.static_tolerance,
             "data": [str(f) for f in folders]}
-
-
-def load_student(checkpoint: Path, precision: str = "auto") -> RGBDNPipeline:
-    return load_pipeline(checkpoint, precision=precision)
 
 
 class SelfForcedChains:
